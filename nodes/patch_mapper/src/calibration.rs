@@ -1,0 +1,1 @@
+//! IMU-camera rotation calibration (J 2.2) by orthogonal Procrustes on plane normals and gravity.

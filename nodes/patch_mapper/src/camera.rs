@@ -1,0 +1,1 @@
+//! Pinhole camera intrinsics and depth images (metres, NaN where invalid); back-projection to organized clouds.

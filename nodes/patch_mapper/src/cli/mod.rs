@@ -1,0 +1,5 @@
+//! Offline subcommands of the `patch_mapper` binary.
+pub mod calibrate_imu;
+pub mod fit;
+pub mod map;
+pub mod track;

@@ -1,0 +1,47 @@
+//! `patch_mapper` binary: the ROS 2 perception node (`patch_mapper run`, the default) and the offline
+//! tools users reach for first (`fit`, `map`, `track`, `calibrate-imu`).
+
+mod cli;
+mod ros;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "patch_mapper", version, about = "patchwalk perception: depth + IMU -> bounded curved patches")]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the ROS 2 node (default when no subcommand is given).
+    Run(ros::RunArgs),
+    /// Fit one patch to a point file and print it as JSON.
+    Fit(cli::fit::FitArgs),
+    /// Map patches in depth frames offline (TUM dir, PNG dir + intrinsics, or one PNG).
+    Map(cli::map::MapArgs),
+    /// Track the camera through a dataset with TSDF fusion + ICP; write trajectory and pictures.
+    Track(cli::track::TrackArgs),
+    /// Calibrate the IMU->camera rotation from a dataset with a dominant horizontal plane.
+    CalibrateImu(cli::calibrate_imu::CalibrateImuArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        None => ros::run(ros::RunArgs::default()),
+        Some(Command::Run(args)) => ros::run(args),
+        Some(Command::Fit(args)) => cli::fit::run(args),
+        Some(Command::Map(args)) => cli::map::run(args),
+        Some(Command::Track(args)) => cli::track::run(args),
+        Some(Command::CalibrateImu(args)) => cli::calibrate_imu::run(args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("patch_mapper: error: {err:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! The single-frame patch mapper: stages i-v as one straight pipeline with one config.

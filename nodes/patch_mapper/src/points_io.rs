@@ -1,0 +1,1 @@
+//! Point files for the CLI: CSV (x,y,z[,covariance]) and PLY.

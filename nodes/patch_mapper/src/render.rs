@@ -1,0 +1,1 @@
+//! Pictures: depth with patches drawn (coloured by validation result) and saliency masks.

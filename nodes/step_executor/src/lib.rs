@@ -1,0 +1,5 @@
+//! step_executor: ROS-free execution library of patchwalk.
+//!
+//! A trained library of (patch relative to the robot -> keyframe motion), a matcher with the
+//! thresholds of J 6.3, a keyframe player, and the servo bus (Dynamixel Protocol 2.0) with real,
+//! simulated (pty) and mock implementations.

@@ -1,0 +1,1 @@
+//! terrain_sim: ROS-free rough-terrain simulator library of patchwalk.

@@ -1,0 +1,439 @@
+//! Shared ROS 2 node plumbing of the patchwalk binaries (over `ros2-client` / RustDDS):
+//! the DDS participant on `ROS_DOMAIN_ID` (loopback-only by default), deliberate QoS presets, typed
+//! endpoint creation from [`RosMessage`]/[`RosService`], non-blocking drain/serve helpers that never
+//! panic on input, SIGINT/SIGTERM shutdown, `tracing` initialisation and a rate-limited logger.
+//!
+//! A node's `run` is a short straight sequence: `init_tracing` -> `load_config` -> `RosNode::new` ->
+//! create endpoints -> `while !shutdown.requested() { drain, serve, publish, sleep }`.
+
+use std::collections::HashMap;
+use std::net::{IpAddr, Ipv4Addr};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use ros2_client::dds::rustdds::DomainParticipantBuilder;
+use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscription};
+use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
+use ros2_client::{MessageInfo, Name, NodeName, NodeOptions};
+
+use crate::builtin_interfaces::msg::Time;
+use crate::interface::{RosMessage, RosService};
+
+/// Environment variable selecting the DDS network (`loopback` or `all`); `--dds-network` overrides it.
+pub const DDS_NETWORK_ENV: &str = "PATCHWALK_DDS_NETWORK";
+
+/// Errors of the node plumbing.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error("ROS_DOMAIN_ID={value:?} is not a domain id (expected an integer 0..=232)")]
+    BadDomainId { value: String },
+    #[error("{DDS_NETWORK_ENV}={value:?} is not a DDS network (expected `loopback` or `all`)")]
+    BadNetwork { value: String },
+    #[error("invalid ROS name {name:?}: {reason}")]
+    BadName { name: String, reason: String },
+    #[error("cannot create the DDS participant on domain {domain_id}: {reason}")]
+    Participant { domain_id: u16, reason: String },
+    #[error("cannot create node {name:?}: {reason}")]
+    Node { name: String, reason: String },
+    #[error("cannot create {what} {name:?}: {reason}")]
+    Endpoint { what: &'static str, name: String, reason: String },
+    #[error("cannot install the SIGINT/SIGTERM handler: {0}")]
+    Signal(#[from] std::io::Error),
+}
+
+/// Which network interfaces DDS discovery and traffic use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum DdsNetwork {
+    /// Only 127.0.0.1 (default): tests, demos and single-machine setups; nothing leaves the host.
+    Loopback,
+    /// Every interface (RustDDS default): for a robot whose sensors or operator run on other hosts.
+    All,
+}
+
+impl DdsNetwork {
+    /// `--dds-network` if given, else `PATCHWALK_DDS_NETWORK`, else loopback.
+    pub fn resolve(flag: Option<DdsNetwork>) -> Result<DdsNetwork, NodeError> {
+        if let Some(network) = flag {
+            return Ok(network);
+        }
+        match std::env::var(DDS_NETWORK_ENV) {
+            Err(_) => Ok(DdsNetwork::Loopback),
+            Ok(value) => match value.trim().to_ascii_lowercase().as_str() {
+                "" | "loopback" | "localhost" => Ok(DdsNetwork::Loopback),
+                "all" => Ok(DdsNetwork::All),
+                _ => Err(NodeError::BadNetwork { value }),
+            },
+        }
+    }
+}
+
+/// Command-line options every patchwalk node shares (flattened into each node's `RunArgs`).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct NodeArgs {
+    /// YAML parameter file; without it the embedded defaults are used.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<std::path::PathBuf>,
+    /// Parameter override `dotted.key=value` (value parsed as YAML), applied after the file; repeatable.
+    #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
+    pub params: Vec<String>,
+    /// DDS network: `loopback` (default) or `all`. Default from PATCHWALK_DDS_NETWORK.
+    #[arg(long, value_enum)]
+    pub dds_network: Option<DdsNetwork>,
+}
+
+/// ROS domain from `ROS_DOMAIN_ID` (0 when unset or empty), as rcl does.
+pub fn ros_domain_id() -> Result<u16, NodeError> {
+    match std::env::var("ROS_DOMAIN_ID") {
+        Err(_) => Ok(0),
+        Ok(value) if value.trim().is_empty() => Ok(0),
+        Ok(value) => match value.trim().parse::<u16>() {
+            Ok(id) if id <= 232 => Ok(id),
+            _ => Err(NodeError::BadDomainId { value }),
+        },
+    }
+}
+
+/// Sensor-data QoS (REP-2003 / rclcpp `SensorDataQoS`, depth 5 per names.md): best effort, volatile,
+/// keep last 5 — a late depth frame is worth less than the next one.
+pub fn sensor_data_qos() -> QosProfile {
+    QosProfile::subscription_default()
+        .reliability_best_effort()
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 5 })
+}
+
+/// Reliable QoS for outputs (PatchArray, markers, status, joint states): reliable, volatile, keep last 10
+/// (the ROS 2 default profile). A full send window drops after 100 ms instead of stalling the loop.
+pub fn reliable_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::DEFAULT)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 })
+}
+
+/// Service QoS (rmw `services_default`): reliable, volatile, keep last 10.
+pub fn service_qos() -> QosProfile {
+    reliable_qos()
+}
+
+/// Split an absolute or relative ROS name (`/camera/depth/image_raw`) into a `ros2_client::Name`.
+pub fn ros_name(full: &str) -> Result<Name, NodeError> {
+    let bad = |reason: String| NodeError::BadName { name: full.to_string(), reason };
+    let (namespace, base) = match full.rsplit_once('/') {
+        Some(("", base)) => ("/", base),
+        Some((namespace, base)) => (namespace, base),
+        None => ("", full),
+    };
+    Name::new(namespace, base).map_err(|e| bad(format!("{e:?}")))
+}
+
+/// A ROS 2 node with its context and the spinner thread (graph, parameter services, rosout).
+/// Dropping it stops the spinner and leaves the graph cleanly.
+pub struct RosNode {
+    // Field order = drop order: the node first (stops the spinner), then its thread, then the context.
+    node: Node,
+    spinner: Option<JoinHandle<()>>,
+    context: Context,
+    network: DdsNetwork,
+}
+
+impl RosNode {
+    /// Create the DDS participant on `ROS_DOMAIN_ID` (restricted to 127.0.0.1 for `Loopback`) and the
+    /// node `/name`, and start its spinner on a thread.
+    pub fn new(name: &str, network: DdsNetwork) -> Result<RosNode, NodeError> {
+        let domain_id = ros_domain_id()?;
+        let mut builder = DomainParticipantBuilder::new(domain_id);
+        if network == DdsNetwork::Loopback {
+            builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
+        }
+        let participant = builder
+            .build()
+            .map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
+        let context = Context::from_domain_participant(participant)
+            .map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
+        let node_err = |e: String| NodeError::Node { name: name.to_string(), reason: e };
+        let node_name = NodeName::new("/", name).map_err(|e| node_err(format!("{e:?}")))?;
+        let mut node = context
+            .new_node(node_name, NodeOptions::new().enable_rosout(true))
+            .map_err(|e| node_err(format!("{e:?}")))?;
+        let spinner = node.spinner().map_err(|e| node_err(format!("{e:?}")))?;
+        let spinner = std::thread::Builder::new()
+            .name(format!("{name}-spinner"))
+            .spawn(move || {
+                if let Err(e) = futures::executor::block_on(spinner.spin()) {
+                    tracing::error!("ROS 2 spinner stopped: {e:?}");
+                }
+            })
+            .map_err(|e| node_err(format!("cannot start the spinner thread: {e}")))?;
+        tracing::info!(node = name, domain_id, ?network, "ROS 2 node up");
+        Ok(RosNode { node, spinner: Some(spinner), context, network })
+    }
+
+    pub fn domain_id(&self) -> u16 {
+        self.context.domain_id()
+    }
+
+    pub fn network(&self) -> DdsNetwork {
+        self.network
+    }
+
+    /// Typed publisher on `topic`.
+    pub fn publisher<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Publisher<M>, NodeError> {
+        let err = |e: String| NodeError::Endpoint { what: "publisher", name: topic.to_string(), reason: e };
+        let dds_topic = self
+            .node
+            .create_topic(&ros_name(topic)?, M::type_name(), &qos)
+            .map_err(|e| err(format!("{e:?}")))?;
+        self.node.create_publisher::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
+    }
+
+    /// Typed subscription on `topic`.
+    pub fn subscription<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Subscription<M>, NodeError> {
+        let err = |e: String| NodeError::Endpoint { what: "subscription", name: topic.to_string(), reason: e };
+        let dds_topic = self
+            .node
+            .create_topic(&ros_name(topic)?, M::type_name(), &qos)
+            .map_err(|e| err(format!("{e:?}")))?;
+        self.node.create_subscription::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
+    }
+
+    /// Typed service server `name` (ServiceMapping::Enhanced, the mapping rmw_fastrtps/cyclonedds use).
+    pub fn server<S: RosService>(&mut self, name: &str) -> Result<Server<S::Request, S::Response>, NodeError> {
+        self.node
+            .create_server::<S::Request, S::Response>(
+                ServiceMapping::Enhanced,
+                &ros_name(name)?,
+                &S::type_name(),
+                service_qos(),
+                service_qos(),
+            )
+            .map_err(|e| NodeError::Endpoint { what: "service", name: name.to_string(), reason: format!("{e:?}") })
+    }
+
+    /// Escape hatch for what this wrapper does not cover (clients, actions, graph queries).
+    pub fn node_mut(&mut self) -> &mut Node {
+        &mut self.node
+    }
+}
+
+impl Drop for RosNode {
+    fn drop(&mut self) {
+        self.node.stop_spinner();
+        if let Some(handle) = self.spinner.take() {
+            if handle.join().is_err() {
+                tracing::error!("ROS 2 spinner thread panicked");
+            }
+        }
+    }
+}
+
+/// Take up to `max` pending messages from `sub` and hand each to `handle`. Undecodable samples are
+/// logged (rate-limited through `log`) and skipped; returns how many messages were handled.
+pub fn drain<M: 'static>(
+    sub: &Subscription<M>,
+    topic: &str,
+    max: usize,
+    log: &mut RateLimitedLog,
+    mut handle: impl FnMut(M, MessageInfo),
+) -> usize
+where
+    M: serde::de::DeserializeOwned,
+{
+    let mut handled = 0;
+    for _ in 0..max {
+        match sub.take() {
+            Ok(Some((msg, info))) => {
+                handle(msg, info);
+                handled += 1;
+            }
+            Ok(None) => break,
+            Err(e) => {
+                log.warn(topic, format_args!("{topic}: cannot read a sample: {e:?}"));
+            }
+        }
+    }
+    handled
+}
+
+/// Answer every pending request of `server` with `handle`; a failed receive or send is logged, never
+/// fatal. Returns how many requests were answered.
+pub fn serve<Req, Resp>(
+    server: &Server<Req, Resp>,
+    name: &str,
+    log: &mut RateLimitedLog,
+    mut handle: impl FnMut(Req) -> Resp,
+) -> usize
+where
+    Req: ros2_client::Message + Clone + 'static,
+    Resp: ros2_client::Message + 'static,
+{
+    let mut answered = 0;
+    // Bounded so a flood of requests cannot starve the rest of the loop.
+    for _ in 0..64 {
+        match server.receive_request() {
+            Ok(Some((request_id, request))) => {
+                let response = handle(request);
+                match server.send_response(request_id, response) {
+                    Ok(()) => answered += 1,
+                    Err(e) => {
+                log.warn(name, format_args!("{name}: cannot send the response: {e:?}"));
+            }
+                }
+            }
+            Ok(None) => break,
+            Err(e) => {
+                log.warn(name, format_args!("{name}: cannot read a request: {e:?}"));
+            }
+        }
+    }
+    answered
+}
+
+/// Publish, logging (rate-limited) instead of failing when the middleware refuses.
+pub fn publish<M: serde::Serialize>(publisher: &Publisher<M>, topic: &str, msg: M, log: &mut RateLimitedLog) {
+    if let Err(e) = publisher.publish(msg) {
+        let reason = match e {
+            ros2_client::WriteError::WouldBlock { .. } => "send window full (reader too slow)".to_string(),
+            ros2_client::WriteError::Serialization { reason, .. } => format!("serialization failed: {reason}"),
+            ros2_client::WriteError::Io(io) => format!("I/O error: {io}"),
+            ros2_client::WriteError::Internal { reason } => reason,
+            _ => "middleware error".to_string(),
+        };
+        log.warn(topic, format_args!("{topic}: cannot publish: {reason}"));
+    }
+}
+
+/// Wall-clock stamp as `builtin_interfaces/Time`.
+pub fn now_stamp() -> Time {
+    let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
+    Time {
+        sec: i32::try_from(since_epoch.as_secs()).unwrap_or(i32::MAX),
+        nanosec: since_epoch.subsec_nanos(),
+    }
+}
+
+/// Set by SIGINT or SIGTERM; a second signal while shutting down exits at once (code 1).
+#[derive(Clone)]
+pub struct Shutdown {
+    flag: Arc<AtomicBool>,
+}
+
+impl Shutdown {
+    pub fn install() -> Result<Shutdown, NodeError> {
+        let flag = Arc::new(AtomicBool::new(false));
+        for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+            // Order matters: the conditional exit sees the flag set by the first signal only.
+            signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&flag))?;
+            signal_hook::flag::register(signal, Arc::clone(&flag))?;
+        }
+        Ok(Shutdown { flag })
+    }
+
+    pub fn requested(&self) -> bool {
+        self.flag.load(Ordering::Relaxed)
+    }
+
+    /// Request shutdown from inside the program.
+    pub fn request(&self) {
+        self.flag.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Logs to stderr through `tracing`; `RUST_LOG` overrides the default filter. The `log` records of
+/// ros2-client and RustDDS are forwarded (their info level is chatty, so they default to warn).
+pub fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,rustdds=warn,ros2_client=warn"));
+    // Ignore the error of a second initialisation (tests, embedded use).
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+}
+
+/// At most one warning per key and period, with the number of suppressed ones (journal-style
+/// "one clear log line, rate-limited" for bad input).
+pub struct RateLimitedLog {
+    period: Duration,
+    last: HashMap<String, (Instant, u64)>,
+}
+
+impl RateLimitedLog {
+    pub fn new(period: Duration) -> RateLimitedLog {
+        RateLimitedLog { period, last: HashMap::new() }
+    }
+
+    /// Log `message` at warn level unless `key` was logged less than `period` ago. Returns whether it
+    /// was logged.
+    pub fn warn(&mut self, key: &str, message: std::fmt::Arguments<'_>) -> bool {
+        let now = Instant::now();
+        match self.last.get_mut(key) {
+            Some((at, suppressed)) if now.duration_since(*at) < self.period => {
+                *suppressed += 1;
+                false
+            }
+            Some((at, suppressed)) => {
+                if *suppressed > 0 {
+                    tracing::warn!("{message} ({suppressed} similar suppressed)");
+                } else {
+                    tracing::warn!("{message}");
+                }
+                *at = now;
+                *suppressed = 0;
+                true
+            }
+            None => {
+                tracing::warn!("{message}");
+                self.last.insert(key.to_string(), (now, 0));
+                true
+            }
+        }
+    }
+}
+
+impl Default for RateLimitedLog {
+    fn default() -> Self {
+        RateLimitedLog::new(Duration::from_secs(2))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ros_names_split_into_namespace_and_base() {
+        let name = ros_name("/camera/depth/image_raw").map(|n| n.to_dds_name("rt", &NodeName::new("/", "x").unwrap(), ""));
+        assert_eq!(name.unwrap(), "rt/camera/depth/image_raw");
+        let name = ros_name("/joint_states").map(|n| n.to_dds_name("rt", &NodeName::new("/", "x").unwrap(), ""));
+        assert_eq!(name.unwrap(), "rt/joint_states");
+        let name = ros_name("/step_executor/list_motions")
+            .map(|n| n.to_dds_name("rq", &NodeName::new("/", "x").unwrap(), "Request"));
+        assert_eq!(name.unwrap(), "rq/step_executor/list_motionsRequest");
+    }
+
+    #[test]
+    fn rate_limited_log_suppresses_repeats_per_key() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        assert!(log.warn("a", format_args!("first")));
+        assert!(!log.warn("a", format_args!("again")));
+        assert!(log.warn("b", format_args!("other key")));
+        let mut log = RateLimitedLog::new(Duration::ZERO);
+        assert!(log.warn("a", format_args!("first")));
+        assert!(log.warn("a", format_args!("second")));
+    }
+
+    #[test]
+    fn qos_presets_are_the_documented_ones() {
+        use ros2_client::qos::Reliability;
+        assert_eq!(sensor_data_qos().reliability, Reliability::BestEffort);
+        assert_eq!(sensor_data_qos().history, History::KeepLast { depth: 5 });
+        assert!(matches!(reliable_qos().reliability, Reliability::Reliable { .. }));
+        assert_eq!(reliable_qos().history, History::KeepLast { depth: 10 });
+        assert_eq!(reliable_qos().durability, Durability::Volatile);
+    }
+
+    #[test]
+    fn stamps_are_after_2020() {
+        assert!(now_stamp().sec > 1_577_836_800);
+    }
+}

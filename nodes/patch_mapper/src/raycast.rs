@@ -1,1 +1,333 @@
-//! Raycasting the TSDF from the real camera (for ICP) and from the birds-eye virtual camera (for the mapper).
+//! Raycasting the TSDF (J 5.1): from the real camera (points + normals in the volume frame, the model
+//! for ICP) and from the birds-eye virtual camera (J 5.1 "Adaptations": axis-aligned with the volume,
+//! looking down along volume +y, `bo` above the real camera, `br × br` pixels) whose organized depth
+//! image feeds the patch mapper unchanged.
+//!
+//! Marching: rays are clipped to the cube; unallocated blocks are skipped whole (empty-space leaping);
+//! inside blocks the step shrinks with the nearest-voxel TSDF (step = max(voxel, 0.8·tsdf·μ)); at a
+//! + → − sign change the crossing is found by linear interpolation of trilinear TSDF values (two
+//! secant steps) and the normal is the normalized trilinear gradient.
+
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+
+use crate::camera::{DepthImage, Intrinsics};
+use crate::fusion::TsdfVolume;
+
+/// Raycast parameters.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RaycastConfig {
+    /// Nearest range considered along a ray (m).
+    pub min_range_m: f32,
+    /// Farthest range considered along a ray (m).
+    pub max_range_m: f32,
+    /// Step factor on the TSDF distance inside blocks (KinectFusion uses < 1 to not skip the crossing).
+    pub step_factor: f32,
+}
+
+impl Default for RaycastConfig {
+    fn default() -> Self {
+        Self { min_range_m: 0.1, max_range_m: 4.0, step_factor: 0.8 }
+    }
+}
+
+/// Birds-eye virtual camera (J 5.1 "Adaptations to moving volume KinectFusion").
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BirdsEyeConfig {
+    /// bo: offset of the centre of projection above the real camera (m). J gives no value; 0.5 m
+    /// lets a 90° view cover ±(bo + camera height) around the camera.
+    pub offset_above_camera_m: f64,
+    /// br: image width and height in pixels (J: "e.g. br = 200px").
+    pub resolution_px: usize,
+    /// Full field of view of the pinhole virtual camera (deg); J does not fix it.
+    pub field_of_view_deg: f64,
+}
+
+impl Default for BirdsEyeConfig {
+    fn default() -> Self {
+        Self { offset_above_camera_m: 0.5, resolution_px: 200, field_of_view_deg: 90.0 }
+    }
+}
+
+/// Organized raycast of the model: per pixel a surface point and normal in the volume frame (NaN
+/// where the ray hit nothing) and the depth along the virtual/real camera's optical axis.
+#[derive(Debug, Clone)]
+pub struct ModelRaycast {
+    pub intrinsics: Intrinsics,
+    pub volume_from_camera: Isometry3<f64>,
+    pub points_in_volume: Vec<Point3<f32>>,
+    pub normals_in_volume: Vec<Vector3<f32>>,
+    pub depth: DepthImage,
+}
+
+impl ModelRaycast {
+    /// Number of pixels with a surface hit.
+    pub fn hit_count(&self) -> usize {
+        self.depth.valid_count()
+    }
+}
+
+/// The birds-eye raycast handed to the mapper: an organized depth image of a pinhole camera and its pose.
+#[derive(Debug, Clone)]
+pub struct BirdsEyeView {
+    pub depth: DepthImage,
+    pub intrinsics: Intrinsics,
+    pub volume_from_birds_eye: Isometry3<f64>,
+    /// Surface normals in the volume frame (NaN where no hit), for rendering.
+    pub normals_in_volume: Vec<Vector3<f32>>,
+}
+
+/// Pose and intrinsics of the birds-eye camera for a real camera at `volume_from_camera`: axes aligned
+/// with the volume (z = volume +y, down; x = volume x; y = −volume z), centre `bo` above the camera.
+pub fn birds_eye_camera(config: &BirdsEyeConfig, volume_from_camera: &Isometry3<f64>) -> (Intrinsics, Isometry3<f64>) {
+    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[Vector3::x(), -Vector3::z(), Vector3::y()]));
+    let camera_position = volume_from_camera.translation.vector;
+    let position = camera_position - Vector3::y() * config.offset_above_camera_m;
+    let pose = Isometry3::from_parts(Translation3::from(position), UnitQuaternion::from_rotation_matrix(&rotation));
+    let br = config.resolution_px.max(1);
+    let half_fov = (config.field_of_view_deg.clamp(1.0, 170.0) / 2.0).to_radians();
+    let focal = (br as f64 / 2.0) / half_fov.tan();
+    let centre = (br as f64 - 1.0) / 2.0;
+    let intrinsics = Intrinsics { width: br, height: br, fx: focal, fy: focal, cx: centre, cy: centre };
+    (intrinsics, pose)
+}
+
+/// Raycasts the birds-eye view for the real camera at `volume_from_camera`.
+pub fn raycast_birds_eye(
+    volume: &TsdfVolume,
+    config: &RaycastConfig,
+    birds_eye: &BirdsEyeConfig,
+    volume_from_camera: &Isometry3<f64>,
+) -> BirdsEyeView {
+    let (intrinsics, volume_from_birds_eye) = birds_eye_camera(birds_eye, volume_from_camera);
+    let model = raycast(volume, config, &intrinsics, &volume_from_birds_eye);
+    BirdsEyeView { depth: model.depth, intrinsics, volume_from_birds_eye, normals_in_volume: model.normals_in_volume }
+}
+
+/// Raycasts the volume from a pinhole camera at `volume_from_camera` (J 5.1).
+pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrinsics, volume_from_camera: &Isometry3<f64>) -> ModelRaycast {
+    let (width, height) = (intrinsics.width, intrinsics.height);
+    let pose = volume_from_camera.cast::<f32>();
+    let rotation = pose.rotation.to_rotation_matrix();
+    let origin = pose.translation.vector;
+    let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
+    let rows: Vec<(Vec<Point3<f32>>, Vec<Vector3<f32>>, Vec<f32>)> = (0..height)
+        .into_par_iter()
+        .map(|v| {
+            let mut points = Vec::with_capacity(width);
+            let mut normals = Vec::with_capacity(width);
+            let mut depths = Vec::with_capacity(width);
+            for u in 0..width {
+                let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
+                let ray_length = ray_in_camera.norm();
+                let direction = rotation * (ray_in_camera / ray_length);
+                match cast_ray(volume, config, &origin, &direction) {
+                    Some((t, normal)) => {
+                        points.push(Point3::from(origin + direction * t));
+                        normals.push(normal);
+                        depths.push(t / ray_length);
+                    }
+                    None => {
+                        points.push(Point3::new(f32::NAN, f32::NAN, f32::NAN));
+                        normals.push(Vector3::repeat(f32::NAN));
+                        depths.push(f32::NAN);
+                    }
+                }
+            }
+            (points, normals, depths)
+        })
+        .collect();
+    let mut points_in_volume = Vec::with_capacity(width * height);
+    let mut normals_in_volume = Vec::with_capacity(width * height);
+    let mut depth_m = Vec::with_capacity(width * height);
+    for (p, n, d) in rows {
+        points_in_volume.extend(p);
+        normals_in_volume.extend(n);
+        depth_m.extend(d);
+    }
+    let depth = DepthImage { width, height, depth_m };
+    ModelRaycast { intrinsics: *intrinsics, volume_from_camera: *volume_from_camera, points_in_volume, normals_in_volume, depth }
+}
+
+/// Entry and exit ray parameters of the cube [0, edge]³ (slab method).
+fn clip_to_cube(origin: &Vector3<f32>, direction: &Vector3<f32>, edge: f32) -> Option<(f32, f32)> {
+    let mut t_near = f32::NEG_INFINITY;
+    let mut t_far = f32::INFINITY;
+    for axis in 0..3 {
+        let (o, d) = (origin[axis], direction[axis]);
+        if d.abs() < 1e-9 {
+            if o < 0.0 || o > edge {
+                return None;
+            }
+            continue;
+        }
+        let (a, b) = ((0.0 - o) / d, (edge - o) / d);
+        t_near = t_near.max(a.min(b));
+        t_far = t_far.min(a.max(b));
+    }
+    (t_near <= t_far).then_some((t_near, t_far))
+}
+
+/// Marches one ray; returns the range to the first front-facing zero crossing and the unit normal.
+fn cast_ray(volume: &TsdfVolume, config: &RaycastConfig, origin: &Vector3<f32>, direction: &Vector3<f32>) -> Option<(f32, Vector3<f32>)> {
+    let voxel = volume.voxel_size();
+    let inv_voxel = 1.0 / voxel;
+    let mu = volume.truncation();
+    let block = volume.block_size();
+    let (t_enter, t_exit) = clip_to_cube(origin, direction, volume.edge_m() - 1e-4)?;
+    let mut t = t_enter.max(config.min_range_m);
+    let t_end = t_exit.min(config.max_range_m);
+    let mut previous: Option<(f32, f32)> = None;
+    let mut guard = 0usize;
+    while t < t_end && guard < 1_000_000 {
+        guard += 1;
+        let point_voxel = (origin + direction * t) * inv_voxel;
+        if !volume.is_block_allocated_at_voxel(&point_voxel) {
+            // Empty-space leaping: jump to where the ray leaves this block.
+            previous = None;
+            t = block_exit(origin, direction, t, block) + 0.01 * voxel;
+            continue;
+        }
+        let Some(tsdf) = volume.nearest(&point_voxel) else {
+            previous = None;
+            t += voxel;
+            continue;
+        };
+        if let Some((t_previous, tsdf_previous)) = previous {
+            if tsdf_previous > 0.0 && tsdf <= 0.0 {
+                return refine_crossing(volume, origin, direction, t_previous, t, inv_voxel);
+            }
+        }
+        previous = Some((t, tsdf));
+        t += (config.step_factor * tsdf * mu).max(voxel);
+    }
+    None
+}
+
+/// Ray parameter where the ray leaves the block containing `origin + t·direction`.
+fn block_exit(origin: &Vector3<f32>, direction: &Vector3<f32>, t: f32, block: f32) -> f32 {
+    let p = origin + direction * t;
+    let mut exit = f32::INFINITY;
+    for axis in 0..3 {
+        let d = direction[axis];
+        if d.abs() < 1e-9 {
+            continue;
+        }
+        let cell = (p[axis] / block).floor();
+        let boundary = if d > 0.0 { (cell + 1.0) * block } else { cell * block };
+        exit = exit.min(t + (boundary - p[axis]) / d);
+    }
+    exit.max(t)
+}
+
+/// Zero crossing between `t_a` (TSDF > 0) and `t_b` (≤ 0) by secant steps on trilinear values.
+fn refine_crossing(
+    volume: &TsdfVolume,
+    origin: &Vector3<f32>,
+    direction: &Vector3<f32>,
+    mut t_a: f32,
+    mut t_b: f32,
+    inv_voxel: f32,
+) -> Option<(f32, Vector3<f32>)> {
+    let sample = |t: f32| volume.trilinear(&((origin + direction * t) * inv_voxel)).map(|s| s.tsdf);
+    // Both brackets must be fully observed, else the crossing is at the edge of the data: no hit.
+    let (mut f_a, mut f_b) = (sample(t_a)?, sample(t_b)?);
+    if !(f_a > 0.0 && f_b <= 0.0) {
+        return None;
+    }
+    let mut t = t_a;
+    for _ in 0..2 {
+        t = if f_a - f_b > 1e-6 { t_a + (t_b - t_a) * f_a / (f_a - f_b) } else { 0.5 * (t_a + t_b) };
+        let Some(f) = sample(t) else { break };
+        if f > 0.0 {
+            t_a = t;
+            f_a = f;
+        } else {
+            t_b = t;
+            f_b = f;
+        }
+    }
+    let at = volume.trilinear(&((origin + direction * t) * inv_voxel))?;
+    let norm = at.gradient.norm();
+    if !(norm > 1e-6) {
+        return None;
+    }
+    Some((t, at.gradient / norm))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fusion::tests::{looking_down_pose, render_plane};
+    use crate::fusion::TsdfConfig;
+
+    #[test]
+    fn raycast_recovers_an_integrated_plane() {
+        let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
+        let mut volume = TsdfVolume::new(config).unwrap();
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        // A tilted plane through (0.64, 0.9, 0.64).
+        let normal = Vector3::new(0.2, -1.0, 0.1).normalize();
+        let offset = normal.dot(&Vector3::new(0.64, 0.9, 0.64));
+        let pose = looking_down_pose(Vector3::new(0.64, 0.3, 0.64));
+        let depth = render_plane(&intrinsics, &pose, normal, offset);
+        volume.integrate(&depth, &intrinsics, &pose).unwrap();
+        // Cast from a slightly moved camera.
+        let cast_pose = Isometry3::translation(0.02, 0.0, -0.01) * pose;
+        let model = raycast(&volume, &RaycastConfig::default(), &intrinsics, &cast_pose);
+        assert!(model.hit_count() > intrinsics.width * intrinsics.height / 3, "{}", model.hit_count());
+        let expected_depth = render_plane(&intrinsics, &cast_pose, normal, offset);
+        let mut errors = Vec::new();
+        for (i, p) in model.points_in_volume.iter().enumerate() {
+            if p.x.is_nan() {
+                continue;
+            }
+            let distance = (normal.cast::<f32>().dot(&p.coords) - offset as f32).abs();
+            assert!(distance < 0.002, "point {i} is {distance} m off the plane");
+            let n = model.normals_in_volume[i];
+            // Normal faces the camera: opposite to the plane normal n (which points down, +y... here −y).
+            assert!(n.dot(&normal.cast::<f32>()).abs() > 0.99, "normal {n}");
+            if let Some(d) = expected_depth.depth_m.get(i).filter(|d| d.is_finite()) {
+                errors.push((model.depth.depth_m[i] - d).abs());
+            }
+        }
+        let mean = errors.iter().sum::<f32>() / errors.len() as f32;
+        assert!(mean < 0.001, "mean depth error {mean}");
+    }
+
+    #[test]
+    fn birds_eye_looks_down_from_above_the_camera() {
+        let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
+        let mut volume = TsdfVolume::new(config).unwrap();
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        // A forward-looking camera tilted 45° down at (0.64, 0.5, 0.3) sees a floor at y = 1.0.
+        let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_4);
+        let pose = Isometry3::from_parts(Translation3::new(0.64, 0.5, 0.3), tilt);
+        let depth = render_plane(&intrinsics, &pose, Vector3::y(), 1.0);
+        volume.integrate(&depth, &intrinsics, &pose).unwrap();
+        let view = raycast_birds_eye(&volume, &RaycastConfig::default(), &BirdsEyeConfig::default(), &pose);
+        assert_eq!((view.depth.width, view.depth.height), (200, 200));
+        // Birds-eye centre 0.5 m above the camera at y = 0.0: the floor is 1.0 m away along its z.
+        let d = view.depth.valid_count();
+        assert!(d > 1000, "{d}");
+        for value in view.depth.depth_m.iter().filter(|d| d.is_finite()) {
+            assert!((value - 1.0).abs() < 0.003, "{value}");
+        }
+        // The camera z axis is volume +y.
+        let z_axis = view.volume_from_birds_eye.rotation * Vector3::z();
+        assert!((z_axis - Vector3::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn empty_volume_yields_no_hits() {
+        let volume = TsdfVolume::new(TsdfConfig::default()).unwrap();
+        let intrinsics = Intrinsics::primesense_default().scaled(0.25);
+        let model = raycast(&volume, &RaycastConfig::default(), &intrinsics, &Isometry3::translation(0.6, 0.6, 0.1));
+        assert_eq!(model.hit_count(), 0);
+        // A camera outside the cube looking away hits nothing either.
+        let model = raycast(&volume, &RaycastConfig::default(), &intrinsics, &Isometry3::translation(-5.0, 0.0, 0.0));
+        assert_eq!(model.hit_count(), 0);
+    }
+}

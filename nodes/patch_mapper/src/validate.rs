@@ -1,1 +1,284 @@
-//! Patch validation (J 3.3): Euclidean residual, coverage grid, curvature bounds; every rejection names the failed test.
+//! Patch validation (J 3.3): Euclidean residual, coverage grid, curvature bounds; every rejection
+//! names the failed test and by how much.
+
+use crate::patch::Patch;
+use nalgebra::{Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Validation thresholds (J 3.3; defaults are the paper's values).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ValidateConfig {
+    /// Residual threshold T_r (m) on the RMS Euclidean distance (J 3.3.1: 0.01 m).
+    pub residual_threshold: f64,
+    /// Coverage cell pitch w_c (m) (J 3.3.2: 0.01 m).
+    pub cell_size: f64,
+    /// Inside-count factor ζ_i of T_i = ζ_i N_e (J eq 17: 0.8).
+    pub zeta_inside: f64,
+    /// Outside-count factor ζ_o of T_o = ζ_o N_e (J eq 17: 0.2).
+    pub zeta_outside: f64,
+    /// Bad-cell limit T_p as a fraction of N_p (J 3.3.2: 0.3).
+    pub bad_cell_fraction: f64,
+    /// Minimum curvature κ_min,t (m⁻¹) (J 3.3.3 / [10]: −13.6).
+    pub curvature_min: f64,
+    /// Maximum curvature κ_max,t (m⁻¹) (J 3.3.3 / [10]: 19.7).
+    pub curvature_max: f64,
+    /// Sub-samples per cell side for the cell ∩ boundary area A_i (approximation of the exact
+    /// intersection area; 4 → 16 samples per cell).
+    pub area_subsamples: usize,
+}
+
+impl Default for ValidateConfig {
+    fn default() -> Self {
+        Self {
+            residual_threshold: 0.01,
+            cell_size: 0.01,
+            zeta_inside: 0.8,
+            zeta_outside: 0.2,
+            bad_cell_fraction: 0.3,
+            curvature_min: -13.6,
+            curvature_max: 19.7,
+            area_subsamples: 4,
+        }
+    }
+}
+
+/// One test's outcome: the measured value against its threshold.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TestResult {
+    /// Whether the test passed.
+    pub passed: bool,
+    /// The measured value.
+    pub value: f64,
+    /// The threshold it was compared with.
+    pub threshold: f64,
+}
+
+/// Result of [`validate_patch`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    /// RMS Euclidean point-to-patch distance (m) vs T_r (J eq 15).
+    pub residual: TestResult,
+    /// Number of bad coverage cells vs T_p (J eq 16–17).
+    pub coverage: TestResult,
+    /// Minimum principal curvature (m⁻¹) vs κ_min,t (passes if value ≥ threshold).
+    pub curvature_min: TestResult,
+    /// Maximum principal curvature (m⁻¹) vs κ_max,t (passes if value ≤ threshold).
+    pub curvature_max: TestResult,
+}
+
+impl Validation {
+    /// Whether the patch passed every test.
+    pub fn is_valid(&self) -> bool {
+        self.residual.passed && self.coverage.passed && self.curvature_ok()
+    }
+
+    /// Whether both curvature bounds hold.
+    pub fn curvature_ok(&self) -> bool {
+        self.curvature_min.passed && self.curvature_max.passed
+    }
+
+    /// One line per failed test, naming it and the amount by which it failed.
+    pub fn failures(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if !self.residual.passed {
+            out.push(format!("residual {:.4} m > {:.4} m", self.residual.value, self.residual.threshold));
+        }
+        if !self.coverage.passed {
+            out.push(format!("coverage: {:.0} bad cells > {:.1} allowed", self.coverage.value, self.coverage.threshold));
+        }
+        if !self.curvature_min.passed {
+            out.push(format!("curvature {:.2} 1/m < {:.2} 1/m", self.curvature_min.value, self.curvature_min.threshold));
+        }
+        if !self.curvature_max.passed {
+            out.push(format!("curvature {:.2} 1/m > {:.2} 1/m", self.curvature_max.value, self.curvature_max.threshold));
+        }
+        out
+    }
+}
+
+/// Validate a fitted patch against its (full) neighbourhood points (J 3.3).
+pub fn validate_patch(patch: &Patch, neighbourhood: &[Vector3<f64>], config: &ValidateConfig) -> Validation {
+    let rho = residual(patch, neighbourhood);
+    let residual = TestResult { passed: rho <= config.residual_threshold, value: rho, threshold: config.residual_threshold };
+    let (bad, allowed) = coverage_bad_cells(patch, neighbourhood, config);
+    let coverage = TestResult { passed: bad as f64 <= allowed, value: bad as f64, threshold: allowed };
+    let (kmin, kmax) = principal_curvature_range(patch);
+    Validation {
+        residual,
+        coverage,
+        curvature_min: TestResult { passed: kmin >= config.curvature_min, value: kmin, threshold: config.curvature_min },
+        curvature_max: TestResult { passed: kmax <= config.curvature_max, value: kmax, threshold: config.curvature_max },
+    }
+}
+
+/// Residual `ρ = RMS ‖q_i − p_i‖` with `p_i` the closest point on the bounded patch (J eq 15).
+/// Infinite for an empty or non-finite neighbourhood.
+pub fn residual(patch: &Patch, points: &[Vector3<f64>]) -> f64 {
+    if points.is_empty() {
+        return f64::INFINITY;
+    }
+    let sum: f64 = points.iter().map(|q| patch.distance(q).powi(2)).sum();
+    let rho = (sum / points.len() as f64).sqrt();
+    if rho.is_finite() {
+        rho
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// `(min, max)` principal curvature of the patch (J 3.3.3).
+pub fn principal_curvature_range(patch: &Patch) -> (f64, f64) {
+    let k = patch.curvatures;
+    match patch.surface {
+        crate::patch::SurfaceType::CylindricParaboloid | crate::patch::SurfaceType::CircularCylinder => {
+            (k.y.min(0.0), k.y.max(0.0))
+        }
+        _ => (k.x.min(k.y), k.x.max(k.y)),
+    }
+}
+
+/// Coverage test of J eq 16–17: returns `(bad cells, T_p)`. The grid of pitch w_c covers the
+/// projected boundary and the projected points (limited to 3× the boundary box).
+pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &ValidateConfig) -> (usize, f64) {
+    let wc = config.cell_size;
+    let area = patch.boundary_area();
+    let n_p = area / (wc * wc);
+    let allowed = config.bad_cell_fraction * n_p;
+    if points.is_empty() || !(n_p > 0.0) || !(wc > 0.0) {
+        return (usize::MAX, allowed);
+    }
+    let h = patch.boundary_half_extents();
+    let limit = h * 3.0;
+    let rot_t = patch.rotation_matrix().transpose();
+    let uvs: Vec<Vector2<f64>> = points.iter().map(|q| (rot_t * (q - patch.center)).xy()).collect();
+    let mut lo = -h;
+    let mut hi = h;
+    for u in &uvs {
+        if u.x.abs() <= limit.x && u.y.abs() <= limit.y {
+            lo = lo.inf(u);
+            hi = hi.sup(u);
+        }
+    }
+    // Grid anchored at the patch centre so cells are symmetric about it.
+    let i0 = (lo.x / wc).floor() as i64;
+    let j0 = (lo.y / wc).floor() as i64;
+    let nx = ((hi.x / wc).ceil() as i64 - i0).max(1) as usize;
+    let ny = ((hi.y / wc).ceil() as i64 - j0).max(1) as usize;
+    if nx.saturating_mul(ny) > 4_000_000 {
+        return (usize::MAX, allowed);
+    }
+    let mut inside = vec![0u32; nx * ny];
+    let mut outside = vec![0u32; nx * ny];
+    for u in &uvs {
+        let ci = (u.x / wc).floor() as i64 - i0;
+        let cj = (u.y / wc).floor() as i64 - j0;
+        if ci < 0 || cj < 0 || ci >= nx as i64 || cj >= ny as i64 {
+            continue;
+        }
+        let idx = cj as usize * nx + ci as usize;
+        let counts = if patch.contains_uv(u) { &mut inside } else { &mut outside };
+        if let Some(c) = counts.get_mut(idx) {
+            *c += 1;
+        }
+    }
+    let n_e = points.len() as f64 / n_p;
+    let t_i = config.zeta_inside * n_e;
+    let t_o = config.zeta_outside * n_e;
+    let s = config.area_subsamples.max(1);
+    let mut bad = 0;
+    for cj in 0..ny {
+        for ci in 0..nx {
+            let x0 = (i0 + ci as i64) as f64 * wc;
+            let y0 = (j0 + cj as i64) as f64 * wc;
+            // A_i / w_c² by sub-sampling the cell.
+            let mut hits = 0;
+            for a in 0..s {
+                for b in 0..s {
+                    let u = Vector2::new(x0 + (a as f64 + 0.5) * wc / s as f64, y0 + (b as f64 + 0.5) * wc / s as f64);
+                    if patch.contains_uv(&u) {
+                        hits += 1;
+                    }
+                }
+            }
+            let frac = hits as f64 / (s * s) as f64;
+            let idx = cj * nx + ci;
+            let ic = inside.get(idx).copied().unwrap_or(0) as f64;
+            let oc = outside.get(idx).copied().unwrap_or(0) as f64;
+            // J eq 16
+            if ic < frac * t_i || oc > (1.0 - frac) * t_o {
+                bad += 1;
+            }
+        }
+    }
+    (bad, allowed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::patch::{BoundaryType, SurfaceType};
+    use rand::{Rng, SeedableRng};
+
+    fn disk(r: f64) -> Patch {
+        Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![r], Vector2::zeros(), Vector3::zeros(), Vector3::new(0.0, 0.0, 1.0)).unwrap()
+    }
+
+    fn dense_disk(rng: &mut rand::rngs::StdRng, r: f64, n: usize) -> Vec<Vector3<f64>> {
+        disk(r).sample_points(rng, n)
+    }
+
+    #[test]
+    fn good_patch_passes() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(1);
+        let pts = dense_disk(&mut rng, 0.1, 3000);
+        let v = validate_patch(&disk(0.1), &pts, &ValidateConfig::default());
+        assert!(v.is_valid(), "{:?}", v.failures());
+        assert!(v.residual.value < 1e-9);
+    }
+
+    #[test]
+    fn step_edge_fails_residual() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(2);
+        let mut pts = dense_disk(&mut rng, 0.1, 3000);
+        for p in pts.iter_mut() {
+            if p.x > 0.0 {
+                p.z += 0.04;
+            }
+        }
+        let flat = disk(0.1);
+        let v = validate_patch(&flat, &pts, &ValidateConfig::default());
+        assert!(!v.residual.passed);
+        assert!(v.failures().iter().any(|f| f.starts_with("residual")));
+        assert!((v.residual.value - 0.04 / 2f64.sqrt()).abs() < 0.003);
+    }
+
+    #[test]
+    fn half_covered_neighbourhood_fails_coverage() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let pts: Vec<_> = dense_disk(&mut rng, 0.1, 6000).into_iter().filter(|p| p.x < -0.02).collect();
+        let v = validate_patch(&disk(0.1), &pts, &ValidateConfig::default());
+        assert!(v.residual.passed);
+        assert!(!v.coverage.passed, "{v:?}");
+        // Points spilling far outside the boundary also fail.
+        let mut spill = dense_disk(&mut rng, 0.1, 3000);
+        spill.extend((0..3000).map(|_| Vector3::new(rng.random_range(0.1..0.2), rng.random_range(-0.2..0.2), 1.0)));
+        assert!(!validate_patch(&disk(0.1), &spill, &ValidateConfig::default()).coverage.passed);
+    }
+
+    #[test]
+    fn too_curved_bump_fails_curvature() {
+        let bump = Patch::new(SurfaceType::CircularParaboloid, BoundaryType::Circle, vec![0.05], Vector2::new(-25.0, -25.0), Vector3::zeros(), Vector3::zeros()).unwrap();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+        let pts = bump.sample_points(&mut rng, 2000);
+        let v = validate_patch(&bump, &pts, &ValidateConfig::default());
+        assert!(!v.curvature_min.passed && v.curvature_max.passed);
+        assert!(v.failures().iter().any(|f| f.contains("curvature -25.00")));
+    }
+
+    #[test]
+    fn empty_neighbourhood_is_invalid() {
+        let v = validate_patch(&disk(0.1), &[], &ValidateConfig::default());
+        assert!(!v.is_valid());
+    }
+}

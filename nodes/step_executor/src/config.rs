@@ -1,0 +1,252 @@
+//! Configuration of the step executor (`config/step_executor.yaml`): servo ID ↔ joint mapping with
+//! zero offsets and directions, the RS-485 bus (port, 1 Mbps, return delay), the matcher thresholds of
+//! J 6.3, playback timing, and file locations. Unknown keys are rejected naming the key.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::matcher::MatcherConfig;
+use crate::player::PlayerConfig;
+
+/// Encoder ticks per revolution of the MX-28 (12-bit magnetic encoder, 0..=4095).
+pub const TICKS_PER_REV: f64 = 4096.0;
+/// Tick value at the servo's mechanical centre (0 rad).
+pub const CENTER_TICKS: f64 = 2048.0;
+
+/// Errors while loading or validating the configuration.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("invalid config {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("invalid config: {0}")]
+    Invalid(String),
+}
+
+/// Top level of `config/step_executor.yaml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StepExecutorConfig {
+    /// Robot model (relative paths are resolved against the config file's directory's parent).
+    pub urdf_path: PathBuf,
+    /// Motion library file (J 6.3: "a library of stored stepping motions").
+    pub library_path: PathBuf,
+    pub bus: BusConfig,
+    /// The 12 leg servos in keyframe order (J 6.2: 6-DoF legs like the DARwIn-OP).
+    pub servos: Vec<ServoConfig>,
+    pub matcher: MatcherConfig,
+    pub player: PlayerConfig,
+    /// ROS 2 wiring options (owned by the ROS layer; kept here so the file has one schema).
+    pub ros: RosConfig,
+}
+
+/// RS-485 Dynamixel bus settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BusConfig {
+    /// Serial device of the RS-485 adapter (or the pty printed by `step_executor sim-bus`).
+    pub port: PathBuf,
+    /// Baud rate; 1 Mbps is the MX-28 rate used by DARwIn-OP class robots.
+    pub baud: u32,
+    /// Return Delay Time written to every servo at start-up, microseconds (register 9, 2 µs units);
+    /// 0 keeps a 12-servo sync read within one 8 ms cycle (factory value 500 µs would add 6 ms).
+    pub return_delay_us: u32,
+    /// Model number every servo must report on ping (MX-28 with Protocol 2.0 firmware = 30).
+    pub expected_model: u16,
+}
+
+/// One servo: which joint it drives and how its ticks map to the joint angle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServoConfig {
+    /// Joint name in the URDF.
+    pub joint: String,
+    /// Dynamixel ID (1..=252).
+    pub id: u8,
+    /// Servo angle (rad, from the 2048-tick centre) at which the joint is at 0 rad.
+    #[serde(default)]
+    pub zero_offset: f64,
+    /// +1 or -1: sign between joint angle and servo angle.
+    #[serde(default = "default_direction")]
+    pub direction: i8,
+}
+
+fn default_direction() -> i8 {
+    1
+}
+
+/// ROS 2 node options (publish rates); the ROS layer may extend this struct.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RosConfig {
+    /// /joint_states rate while idle (during playback every control cycle is published), Hz.
+    pub joint_state_rate_hz: f64,
+    /// /step_executor/status rate, Hz.
+    pub status_rate_hz: f64,
+}
+
+impl Default for RosConfig {
+    fn default() -> Self {
+        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0 }
+    }
+}
+
+impl Default for BusConfig {
+    fn default() -> Self {
+        Self {
+            port: PathBuf::from("/dev/ttyUSB0"),
+            baud: 1_000_000,
+            return_delay_us: 0,
+            expected_model: crate::mx28::MODEL_NUMBER,
+        }
+    }
+}
+
+/// The RPBP leg joints in keyframe order, DARwIn-OP ID order (right before left, hip to ankle).
+pub const DEFAULT_JOINTS: [&str; 12] = [
+    "r_hip_yaw",
+    "l_hip_yaw",
+    "r_hip_roll",
+    "l_hip_roll",
+    "r_hip_pitch",
+    "l_hip_pitch",
+    "r_knee",
+    "l_knee",
+    "r_ankle_pitch",
+    "l_ankle_pitch",
+    "r_ankle_roll",
+    "l_ankle_roll",
+];
+
+impl Default for StepExecutorConfig {
+    fn default() -> Self {
+        let servos = DEFAULT_JOINTS
+            .iter()
+            .zip(1u8..)
+            .map(|(joint, id)| ServoConfig { joint: (*joint).to_string(), id, zero_offset: 0.0, direction: 1 })
+            .collect();
+        Self {
+            urdf_path: PathBuf::from("urdf/rpbp.urdf"),
+            library_path: PathBuf::from("motions.yaml"),
+            bus: BusConfig::default(),
+            servos,
+            matcher: MatcherConfig::default(),
+            player: PlayerConfig::default(),
+            ros: RosConfig::default(),
+        }
+    }
+}
+
+impl StepExecutorConfig {
+    /// Parse from YAML text and validate.
+    pub fn from_yaml(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        let config: Self = serde_yaml_ng::from_str(text)
+            .map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Load from a file and validate.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
+        Self::from_yaml(&text, path)
+    }
+
+    /// Joint names in keyframe order.
+    pub fn joint_names(&self) -> Vec<String> {
+        self.servos.iter().map(|s| s.joint.clone()).collect()
+    }
+
+    /// Servo IDs in keyframe order.
+    pub fn servo_ids(&self) -> Vec<u8> {
+        self.servos.iter().map(|s| s.id).collect()
+    }
+
+    /// Check IDs unique and in range, directions ±1, joints unique, thresholds positive.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.servos.is_empty() {
+            return Err(ConfigError::Invalid("servos: at least one servo is required".into()));
+        }
+        let mut ids = std::collections::BTreeSet::new();
+        let mut joints = std::collections::BTreeSet::new();
+        for (i, servo) in self.servos.iter().enumerate() {
+            if servo.id == 0 || servo.id > 252 {
+                return Err(ConfigError::Invalid(format!("servos[{i}].id: {} is outside 1..=252", servo.id)));
+            }
+            if !ids.insert(servo.id) {
+                return Err(ConfigError::Invalid(format!("servos[{i}].id: duplicate id {}", servo.id)));
+            }
+            if !joints.insert(servo.joint.as_str()) {
+                return Err(ConfigError::Invalid(format!("servos[{i}].joint: duplicate joint {}", servo.joint)));
+            }
+            if servo.direction != 1 && servo.direction != -1 {
+                return Err(ConfigError::Invalid(format!("servos[{i}].direction: must be 1 or -1")));
+            }
+            if !servo.zero_offset.is_finite() {
+                return Err(ConfigError::Invalid(format!("servos[{i}].zero_offset: not finite")));
+            }
+        }
+        if crate::mx28::baud_register(self.bus.baud).is_none() {
+            return Err(ConfigError::Invalid(format!("bus.baud: {} is not an MX-28 baud rate", self.bus.baud)));
+        }
+        if self.bus.return_delay_us > 508 {
+            return Err(ConfigError::Invalid("bus.return_delay_us: at most 508 (register 9 is 2 µs × 0..=254)".into()));
+        }
+        self.matcher.validate().map_err(ConfigError::Invalid)?;
+        self.player.validate().map_err(ConfigError::Invalid)?;
+        Ok(())
+    }
+}
+
+impl ServoConfig {
+    /// Joint angle (rad) → goal position ticks (may be outside 0..=4095; callers check limits).
+    pub fn ticks_from_joint(&self, joint_rad: f64) -> f64 {
+        CENTER_TICKS + (f64::from(self.direction) * joint_rad + self.zero_offset) * TICKS_PER_REV / std::f64::consts::TAU
+    }
+
+    /// Present position ticks → joint angle (rad).
+    pub fn joint_from_ticks(&self, ticks: f64) -> f64 {
+        f64::from(self.direction) * ((ticks - CENTER_TICKS) * std::f64::consts::TAU / TICKS_PER_REV - self.zero_offset)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_is_valid_and_round_trips_yaml() {
+        let config = StepExecutorConfig::default();
+        config.validate().unwrap();
+        let text = serde_yaml_ng::to_string(&config).unwrap();
+        let back = StepExecutorConfig::from_yaml(&text, Path::new("x.yaml")).unwrap();
+        assert_eq!(back, config);
+        assert_eq!(back.servos.len(), 12);
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let err = StepExecutorConfig::from_yaml("bus:\n  bogus_key: 3\n", Path::new("c.yaml")).unwrap_err();
+        assert!(err.to_string().contains("bogus_key"), "{err}");
+    }
+
+    #[test]
+    fn duplicate_ids_rejected() {
+        let mut config = StepExecutorConfig::default();
+        config.servos[1].id = config.servos[0].id;
+        assert!(config.validate().unwrap_err().to_string().contains("duplicate id"));
+    }
+
+    #[test]
+    fn tick_conversion_round_trips_with_offset_and_direction() {
+        let servo = ServoConfig { joint: "j".into(), id: 1, zero_offset: 0.1, direction: -1 };
+        let ticks = servo.ticks_from_joint(0.7);
+        assert!((servo.joint_from_ticks(ticks) - 0.7).abs() < 1e-12);
+        let plain = ServoConfig { joint: "j".into(), id: 1, zero_offset: 0.0, direction: 1 };
+        assert_eq!(plain.ticks_from_joint(0.0), 2048.0);
+        assert!((plain.ticks_from_joint(std::f64::consts::FRAC_PI_2) - 3072.0).abs() < 1e-9);
+    }
+}

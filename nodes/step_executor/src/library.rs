@@ -1,0 +1,429 @@
+//! The trained motion library (J 6.3 "Foot Placement Training"): named entries pairing a patch
+//! relative to the robot with a keyframe motion, stored in one human-readable YAML file with a schema
+//! version. Saves are atomic (temp file, fsync, rename, directory fsync), so a crash at any moment
+//! leaves either the old or the new file. A malformed file yields an error naming the entry and field;
+//! [`MotionLibrary::load_or_empty`] then starts empty and moves the bad file aside on the first save.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use serde_yaml_ng::{Mapping, Value};
+
+use crate::patch::PatchGeometry;
+
+/// Current schema version of the library file.
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// One keyframe: joint positions (rad, library joint order), the time to move there from the previous
+/// keyframe, and a pause after arriving.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Keyframe {
+    pub positions: Vec<f64>,
+    /// Move duration (s).
+    pub move_s: f64,
+    /// Pause after the move (s).
+    pub pause_s: f64,
+}
+
+/// One library entry: the trained patch (pose in `base_link`) and its motion.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Motion {
+    pub name: String,
+    pub patch: PatchGeometry,
+    pub keyframes: Vec<Keyframe>,
+}
+
+/// The whole file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LibraryFile {
+    schema_version: u32,
+    joints: Vec<String>,
+    motions: Vec<Motion>,
+}
+
+/// Library errors; parse errors name the entry and the field.
+#[derive(Debug, thiserror::Error)]
+pub enum LibraryError {
+    #[error("motion library {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("motion library {path}: {location}: {message}")]
+    Malformed { path: PathBuf, location: String, message: String },
+    #[error("motion {0:?} already exists")]
+    Duplicate(String),
+    #[error("no motion named {0:?}")]
+    NotFound(String),
+    #[error("invalid motion {name:?}: {message}")]
+    Invalid { name: String, message: String },
+    #[error("cannot serialise motion library: {0}")]
+    Serialize(String),
+}
+
+/// The in-memory library bound to its file.
+#[derive(Debug, Clone)]
+pub struct MotionLibrary {
+    path: PathBuf,
+    joints: Vec<String>,
+    motions: Vec<Motion>,
+    /// Set when the file on disk could not be parsed: it is moved aside before the next save.
+    corrupt_on_disk: bool,
+}
+
+impl MotionLibrary {
+    /// An empty library that will be saved at `path` for the given joint order.
+    pub fn new(path: &Path, joints: Vec<String>) -> Self {
+        Self { path: path.to_path_buf(), joints, motions: Vec::new(), corrupt_on_disk: false }
+    }
+
+    /// Load `path`; a missing file is an empty library. The file's joint order must equal `joints`.
+    pub fn load(path: &Path, joints: &[String]) -> Result<Self, LibraryError> {
+        let text = match std::fs::read_to_string(path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::new(path, joints.to_vec())),
+            Err(source) => return Err(LibraryError::Io { path: path.to_path_buf(), source }),
+        };
+        let file = parse_library(&text, joints).map_err(|(location, message)| LibraryError::Malformed {
+            path: path.to_path_buf(),
+            location,
+            message,
+        })?;
+        Ok(Self { path: path.to_path_buf(), joints: file.joints, motions: file.motions, corrupt_on_disk: false })
+    }
+
+    /// Load, or on a malformed/unreadable file start empty (the node must still start) and keep the
+    /// file untouched until the next save moves it to `<path>.corrupt`. Returns the error for reporting.
+    pub fn load_or_empty(path: &Path, joints: &[String]) -> (Self, Option<LibraryError>) {
+        match Self::load(path, joints) {
+            Ok(library) => (library, None),
+            Err(err) => {
+                let mut library = Self::new(path, joints.to_vec());
+                library.corrupt_on_disk = true;
+                (library, Some(err))
+            }
+        }
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn joints(&self) -> &[String] {
+        &self.joints
+    }
+
+    pub fn motions(&self) -> &[Motion] {
+        &self.motions
+    }
+
+    pub fn get(&self, name: &str) -> Option<&Motion> {
+        self.motions.iter().find(|m| m.name == name)
+    }
+
+    pub fn names(&self) -> Vec<String> {
+        self.motions.iter().map(|m| m.name.clone()).collect()
+    }
+
+    /// Add a motion (validated); names are unique.
+    pub fn insert(&mut self, motion: Motion) -> Result<(), LibraryError> {
+        if self.get(&motion.name).is_some() {
+            return Err(LibraryError::Duplicate(motion.name));
+        }
+        validate_motion(&motion, self.joints.len())
+            .map_err(|(field, message)| LibraryError::Invalid { name: motion.name.clone(), message: format!("{field}: {message}") })?;
+        self.motions.push(motion);
+        Ok(())
+    }
+
+    /// Remove a motion by name.
+    pub fn remove(&mut self, name: &str) -> Result<Motion, LibraryError> {
+        let index = self.motions.iter().position(|m| m.name == name).ok_or_else(|| LibraryError::NotFound(name.to_string()))?;
+        Ok(self.motions.remove(index))
+    }
+
+    /// Serialise to YAML text.
+    pub fn to_yaml(&self) -> Result<String, LibraryError> {
+        let file = LibraryFile { schema_version: SCHEMA_VERSION, joints: self.joints.clone(), motions: self.motions.clone() };
+        serde_yaml_ng::to_string(&file).map_err(|e| LibraryError::Serialize(e.to_string()))
+    }
+
+    /// Save atomically: write `<dir>/.<name>.tmp-<pid>`, fsync it, rename over the target, fsync the
+    /// directory. A corrupt file found at load time is first renamed to `<path>.corrupt`.
+    pub fn save(&mut self) -> Result<(), LibraryError> {
+        let text = self.to_yaml()?;
+        let io = |source| LibraryError::Io { path: self.path.clone(), source };
+        if self.corrupt_on_disk && self.path.exists() {
+            let mut aside = self.path.clone().into_os_string();
+            aside.push(".corrupt");
+            std::fs::rename(&self.path, PathBuf::from(aside)).map_err(io)?;
+        }
+        write_atomically(&self.path, text.as_bytes()).map_err(io)?;
+        self.corrupt_on_disk = false;
+        Ok(())
+    }
+}
+
+/// Atomic replace of `path` with `bytes` (temp + fsync + rename + directory fsync).
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let file_name = path
+        .file_name()
+        .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "library path has no file name"))?;
+    let mut temp_name = std::ffi::OsString::from(".");
+    temp_name.push(file_name);
+    temp_name.push(format!(".tmp-{}", std::process::id()));
+    let temp_path = dir.join(temp_name);
+    let result = (|| {
+        let mut file = std::fs::File::create(&temp_path)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        drop(file);
+        std::fs::rename(&temp_path, path)?;
+        std::fs::File::open(&dir)?.sync_all()
+    })();
+    if result.is_err() {
+        // Best effort: never leave a stray temp file behind; the target is untouched.
+        let _ = std::fs::remove_file(&temp_path);
+    }
+    result
+}
+
+type Located = (String, String);
+
+/// Parse the file with errors located as `motions[i] (name "x").field`.
+fn parse_library(text: &str, expected_joints: &[String]) -> Result<LibraryFile, Located> {
+    let root: Value = serde_yaml_ng::from_str(text).map_err(|e| ("file".to_string(), e.to_string()))?;
+    let root = root.as_mapping().ok_or_else(|| ("file".to_string(), "top level must be a mapping".to_string()))?;
+    reject_unknown(root, &["schema_version", "joints", "motions"], "file")?;
+    let schema_version: u32 = field(root, "schema_version", "file")?;
+    if schema_version != SCHEMA_VERSION {
+        return Err(("schema_version".into(), format!("unsupported version {schema_version} (this build reads {SCHEMA_VERSION})")));
+    }
+    let joints: Vec<String> = field(root, "joints", "file")?;
+    if joints != expected_joints {
+        return Err(("joints".into(), format!("file joint order {joints:?} differs from the configured {expected_joints:?}")));
+    }
+    let entries = root
+        .get("motions")
+        .and_then(Value::as_sequence)
+        .ok_or_else(|| ("motions".to_string(), "missing or not a list".to_string()))?;
+    let mut motions: Vec<Motion> = Vec::with_capacity(entries.len());
+    for (i, entry) in entries.iter().enumerate() {
+        let motion = parse_motion(entry, i, joints.len())?;
+        if motions.iter().any(|m| m.name == motion.name) {
+            return Err((format!("motions[{i}] (name {:?}).name", motion.name), "duplicate name".into()));
+        }
+        motions.push(motion);
+    }
+    Ok(LibraryFile { schema_version, joints, motions })
+}
+
+fn parse_motion(entry: &Value, index: usize, joint_count: usize) -> Result<Motion, Located> {
+    let mut location = format!("motions[{index}]");
+    let map = entry.as_mapping().ok_or_else(|| (location.clone(), "entry must be a mapping".to_string()))?;
+    reject_unknown(map, &["name", "patch", "keyframes"], &location)?;
+    let name: String = field(map, "name", &location)?;
+    location = format!("motions[{index}] (name {name:?})");
+    let patch_map = map
+        .get("patch")
+        .and_then(Value::as_mapping)
+        .ok_or_else(|| (format!("{location}.patch"), "missing or not a mapping".to_string()))?;
+    let patch_location = format!("{location}.patch");
+    reject_unknown(patch_map, &["surface", "boundary", "d", "k", "r", "c"], &patch_location)?;
+    let patch = PatchGeometry {
+        surface: field(patch_map, "surface", &patch_location)?,
+        boundary: field(patch_map, "boundary", &patch_location)?,
+        d: field(patch_map, "d", &patch_location)?,
+        k: field(patch_map, "k", &patch_location)?,
+        r: field(patch_map, "r", &patch_location)?,
+        c: field(patch_map, "c", &patch_location)?,
+    };
+    let frames = map
+        .get("keyframes")
+        .and_then(Value::as_sequence)
+        .ok_or_else(|| (format!("{location}.keyframes"), "missing or not a list".to_string()))?;
+    let mut keyframes = Vec::with_capacity(frames.len());
+    for (j, frame) in frames.iter().enumerate() {
+        let frame_location = format!("{location}.keyframes[{j}]");
+        let frame_map = frame.as_mapping().ok_or_else(|| (frame_location.clone(), "keyframe must be a mapping".to_string()))?;
+        reject_unknown(frame_map, &["positions", "move_s", "pause_s"], &frame_location)?;
+        keyframes.push(Keyframe {
+            positions: field(frame_map, "positions", &frame_location)?,
+            move_s: field(frame_map, "move_s", &frame_location)?,
+            pause_s: field(frame_map, "pause_s", &frame_location)?,
+        });
+    }
+    let motion = Motion { name, patch, keyframes };
+    validate_motion(&motion, joint_count).map_err(|(field, message)| (format!("{location}.{field}"), message))?;
+    Ok(motion)
+}
+
+/// Check patch parameters, keyframe sizes, finiteness and durations; returns (field, message).
+fn validate_motion(motion: &Motion, joint_count: usize) -> Result<(), (String, String)> {
+    if motion.name.trim().is_empty() {
+        return Err(("name".into(), "must not be empty".into()));
+    }
+    motion.patch.validate().map_err(|e| (format!("patch.{}", e.field), e.message))?;
+    if motion.keyframes.is_empty() {
+        return Err(("keyframes".into(), "at least one keyframe is required".into()));
+    }
+    for (j, frame) in motion.keyframes.iter().enumerate() {
+        if frame.positions.len() != joint_count {
+            return Err((format!("keyframes[{j}].positions"), format!("expected {joint_count} joint positions, got {}", frame.positions.len())));
+        }
+        if frame.positions.iter().any(|p| !p.is_finite()) {
+            return Err((format!("keyframes[{j}].positions"), "values must be finite".into()));
+        }
+        if !(frame.move_s.is_finite() && frame.move_s >= 0.0) {
+            return Err((format!("keyframes[{j}].move_s"), "must be a finite duration ≥ 0".into()));
+        }
+        if !(frame.pause_s.is_finite() && frame.pause_s >= 0.0) {
+            return Err((format!("keyframes[{j}].pause_s"), "must be a finite duration ≥ 0".into()));
+        }
+    }
+    Ok(())
+}
+
+fn field<T: DeserializeOwned>(map: &Mapping, key: &str, location: &str) -> Result<T, Located> {
+    let value = map.get(key).ok_or_else(|| (format!("{location}.{key}"), "missing field".to_string()))?;
+    serde_yaml_ng::from_value(value.clone()).map_err(|e| (format!("{location}.{key}"), e.to_string()))
+}
+
+fn reject_unknown(map: &Mapping, known: &[&str], location: &str) -> Result<(), Located> {
+    for key in map.keys() {
+        let name = key.as_str().unwrap_or("<non-string key>");
+        if !known.contains(&name) {
+            return Err((format!("{location}.{name}"), format!("unknown field (expected one of {known:?})")));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::patch::{BoundaryType, SurfaceType};
+
+    fn joints() -> Vec<String> {
+        crate::config::DEFAULT_JOINTS.iter().map(|s| (*s).to_string()).collect()
+    }
+
+    fn motion(name: &str) -> Motion {
+        Motion {
+            name: name.into(),
+            patch: PatchGeometry {
+                surface: SurfaceType::EllipticParaboloid,
+                boundary: BoundaryType::Ellipse,
+                d: vec![0.04, 0.03],
+                k: vec![12.0, 8.5],
+                r: [0.01, -0.02, 0.3],
+                c: [0.12, 0.04, -0.27],
+            },
+            keyframes: vec![
+                Keyframe { positions: vec![0.1; 12], move_s: 0.8, pause_s: 0.1 },
+                Keyframe { positions: vec![-0.2; 12], move_s: 1.0, pause_s: 0.0 },
+            ],
+        }
+    }
+
+    #[test]
+    fn round_trip_through_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("rock1")).unwrap();
+        library.insert(motion("rock2")).unwrap();
+        library.save().unwrap();
+        let back = MotionLibrary::load(&path, &joints()).unwrap();
+        assert_eq!(back.motions(), library.motions());
+        assert_eq!(back.names(), vec!["rock1", "rock2"]);
+        // no temp files left behind
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn duplicate_and_invalid_inserts_are_rejected() {
+        let mut library = MotionLibrary::new(Path::new("x.yaml"), joints());
+        library.insert(motion("a")).unwrap();
+        assert!(matches!(library.insert(motion("a")), Err(LibraryError::Duplicate(_))));
+        let mut bad = motion("b");
+        bad.keyframes[1].positions.pop();
+        let err = library.insert(bad).unwrap_err().to_string();
+        assert!(err.contains("keyframes[1].positions"), "{err}");
+        assert!(matches!(library.remove("zz"), Err(LibraryError::NotFound(_))));
+        assert_eq!(library.remove("a").unwrap().name, "a");
+    }
+
+    #[test]
+    fn malformed_entry_error_names_entry_and_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("rock1")).unwrap();
+        library.insert(motion("rock2")).unwrap();
+        let text = library.to_yaml().unwrap();
+        // Break the second entry's curvature list.
+        let broken = text.replacen("- 12.0\n", "- twelve\n", 2).replacen("- twelve\n", "- 12.0\n", 1);
+        std::fs::write(&path, &broken).unwrap();
+        let err = MotionLibrary::load(&path, &joints()).unwrap_err().to_string();
+        assert!(err.contains("motions[1] (name \"rock2\").patch.k"), "{err}");
+
+        std::fs::write(&path, text.replace("pause_s: 0.1", "pause: 0.1")).unwrap();
+        let err = MotionLibrary::load(&path, &joints()).unwrap_err().to_string();
+        assert!(err.contains("motions[0] (name \"rock1\").keyframes[0].pause"), "{err}");
+    }
+
+    #[test]
+    fn corrupt_file_gives_empty_library_and_is_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        std::fs::write(&path, "schema_version: 1\njoints: [a\n").unwrap();
+        let (mut library, err) = MotionLibrary::load_or_empty(&path, &joints());
+        assert!(err.is_some());
+        assert!(library.motions().is_empty());
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "schema_version: 1\njoints: [a\n");
+        library.insert(motion("fresh")).unwrap();
+        library.save().unwrap();
+        let corrupt = dir.path().join("motions.yaml.corrupt");
+        assert_eq!(std::fs::read_to_string(corrupt).unwrap(), "schema_version: 1\njoints: [a\n");
+        assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["fresh"]);
+    }
+
+    #[test]
+    fn wrong_schema_version_or_joint_order_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.yaml");
+        std::fs::write(&path, "schema_version: 7\njoints: []\nmotions: []\n").unwrap();
+        assert!(MotionLibrary::load(&path, &joints()).unwrap_err().to_string().contains("schema_version"));
+        std::fs::write(&path, "schema_version: 1\njoints: [a]\nmotions: []\n").unwrap();
+        assert!(MotionLibrary::load(&path, &joints()).unwrap_err().to_string().contains("joints"));
+    }
+
+    #[test]
+    fn atomic_save_leaves_old_or_new_never_partial() {
+        // Simulate a crash between writing the temp file and renaming: the target keeps the old
+        // content, and a later save replaces it completely.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("old")).unwrap();
+        library.save().unwrap();
+        let old = std::fs::read_to_string(&path).unwrap();
+        // A stale temp file from a crashed writer must not disturb loading or saving.
+        std::fs::write(dir.path().join(format!(".motions.yaml.tmp-{}", std::process::id())), "garbage: [").unwrap();
+        assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["old"]);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), old);
+        library.insert(motion("new")).unwrap();
+        library.save().unwrap();
+        assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["old", "new"]);
+        // Saving into a missing directory fails cleanly and leaves nothing behind.
+        let mut orphan = MotionLibrary::new(&dir.path().join("no/such/dir/m.yaml"), joints());
+        assert!(matches!(orphan.save(), Err(LibraryError::Io { .. })));
+    }
+}

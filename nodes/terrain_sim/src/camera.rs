@@ -1,0 +1,504 @@
+//! Virtual depth camera like the PrimeSense Carmine 1.09 of the RPBP (J 2.1, 6.2): 640×480 at 30 Hz,
+//! rendered by ray casting the analytic scene, with the Murray–Little stereo error model (J eq. 2),
+//! missing data at grazing angles, depth edges and projector shadows, and 16UC1-millimetre output.
+//!
+//! Noise (J eq. 2, Murray & Little): each pixel's measurement ray is perturbed by the pointing error
+//! σp (pixels, in u and v), and its disparity `d = f·b/z` by the matching error σm (pixels); the
+//! depth is `z = f·b/d`, so to first order σz = z²·σm/(f·b). Disparity is then quantised to the
+//! sensor's sub-pixel step and depth to millimetres. (`patch_mapper::sensor` was not committed yet
+//! when this was written, so the disparity model is implemented here directly.)
+//!
+//! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
+//! camera and the projector images so that per pixel only the rocks that can be hit are tested.
+
+use nalgebra::{Isometry3, Point3, Vector3};
+use patch_mapper::camera::{CameraError, DepthImage, Intrinsics};
+use rand::SeedableRng;
+use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::scene::{Ray, Scene};
+
+/// Sensor noise (J 2.1, eq. 2).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NoiseConfig {
+    pub enabled: bool,
+    /// Pointing error σp of the measurement rays (px); J 2.1: 0.35 px (Kinect, from [62]).
+    pub sigma_pointing_px: f64,
+    /// Disparity matching error σm (px); J 2.1: 0.17 px.
+    pub sigma_disparity_px: f64,
+    /// Disparity quantisation (px); PrimeSense sensors report 1/8-pixel sub-pixel disparity. 0 = off.
+    pub disparity_step_px: f64,
+    /// Output depth quantisation (m); 16UC1 millimetres. 0 = off.
+    pub depth_step_m: f64,
+}
+
+impl Default for NoiseConfig {
+    fn default() -> Self {
+        Self { enabled: true, sigma_pointing_px: 0.35, sigma_disparity_px: 0.17, disparity_step_px: 0.125, depth_step_m: 0.001 }
+    }
+}
+
+/// Where a structured-light sensor returns no depth.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MissingDataConfig {
+    /// Surfaces seen at more than this angle between ray and normal return nothing (grazing).
+    pub max_incidence_deg: f64,
+    /// A pixel whose 4-neighbour depth differs by more than this fraction of its depth is dropped
+    /// (depth edges).
+    pub edge_jump_ratio: f64,
+    /// Drop points the projector cannot see (occluded along the baseline).
+    pub projector_shadow: bool,
+}
+
+impl Default for MissingDataConfig {
+    fn default() -> Self {
+        Self { max_incidence_deg: 78.0, edge_jump_ratio: 0.03, projector_shadow: true }
+    }
+}
+
+/// The depth camera: intrinsics, rate, range, baseline, noise and missing data.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// J 2.1: 640 × 480 images at 30 Hz.
+    pub width: usize,
+    pub height: usize,
+    /// Carmine 1.09 depth focal length (px); OpenNI reports ≈ 570.3 at VGA.
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub rate_hz: f64,
+    /// Projector–camera baseline b (m) of J eq. 2; the projector sits at +x of `camera_optical`.
+    pub baseline_m: f64,
+    /// Range limits (m); Carmine 1.09 is rated 0.35–1.4 m and still returns depth further out.
+    pub min_depth_m: f64,
+    pub max_depth_m: f64,
+    pub noise: NoiseConfig,
+    pub missing: MissingDataConfig,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self {
+            width: 640,
+            height: 480,
+            fx: 570.3,
+            fy: 570.3,
+            cx: 319.5,
+            cy: 239.5,
+            rate_hz: 30.0,
+            baseline_m: 0.075,
+            min_depth_m: 0.35,
+            max_depth_m: 3.5,
+            noise: NoiseConfig::default(),
+            missing: MissingDataConfig::default(),
+        }
+    }
+}
+
+impl CameraConfig {
+    pub fn intrinsics(&self) -> Result<Intrinsics, CameraError> {
+        Intrinsics::new(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+    }
+
+    /// First-order depth standard deviation of J eq. 2 at depth `z`: σz = z²·σm/(f·b).
+    pub fn depth_sigma(&self, z: f64) -> f64 {
+        z * z * self.noise.sigma_disparity_px / (self.fx * self.baseline_m)
+    }
+}
+
+/// Errors from building the camera.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum DepthCameraError {
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    #[error("invalid camera config: {0}")]
+    Invalid(String),
+}
+
+/// The virtual depth camera.
+#[derive(Debug, Clone)]
+pub struct DepthCamera {
+    pub config: CameraConfig,
+    pub intrinsics: Intrinsics,
+}
+
+/// Conservative pixel rectangle `[u_min, u_max, v_min, v_max]` (inclusive, f64).
+type PixelRect = [f64; 4];
+
+/// Largest pointing jitter applied (px); Gaussian draws are clamped here so culling stays exact.
+const MAX_JITTER_PX: f64 = 1.5;
+
+impl DepthCamera {
+    pub fn new(config: CameraConfig) -> Result<Self, DepthCameraError> {
+        let intrinsics = config.intrinsics()?;
+        let n = &config.noise;
+        let checks = [
+            (config.rate_hz > 0.0, "rate_hz must be positive"),
+            (config.baseline_m > 0.0, "baseline_m must be positive"),
+            (config.min_depth_m >= 0.0 && config.max_depth_m > config.min_depth_m, "need 0 ≤ min_depth_m < max_depth_m"),
+            (n.sigma_pointing_px >= 0.0 && n.sigma_disparity_px >= 0.0, "noise sigmas must be ≥ 0"),
+            (n.disparity_step_px >= 0.0 && n.depth_step_m >= 0.0, "quantisation steps must be ≥ 0"),
+            ((0.0..=90.0).contains(&config.missing.max_incidence_deg), "max_incidence_deg must be in 0..=90"),
+            (config.missing.edge_jump_ratio > 0.0, "edge_jump_ratio must be positive"),
+        ];
+        if let Some((_, message)) = checks.iter().find(|(ok, _)| !ok) {
+            return Err(DepthCameraError::Invalid((*message).to_string()));
+        }
+        Ok(Self { config, intrinsics })
+    }
+
+    /// Renders one depth frame (metres, NaN = no data) seen from `world_from_camera`
+    /// (`camera_optical`). `noise_seed` makes the noise reproducible (use a per-frame seed).
+    pub fn render(&self, scene: &Scene, world_from_camera: &Isometry3<f64>, noise_seed: u64) -> DepthImage {
+        let (width, height) = (self.intrinsics.width, self.intrinsics.height);
+        let projector_in_camera = Vector3::new(self.config.baseline_m, 0.0, 0.0);
+        let camera_rects: Vec<Option<PixelRect>> =
+            scene.rocks.iter().map(|rock| self.project_bounds(rock, world_from_camera, &Vector3::zeros())).collect();
+        let projector_rects: Vec<Option<PixelRect>> =
+            scene.rocks.iter().map(|rock| self.project_bounds(rock, world_from_camera, &projector_in_camera)).collect();
+        let mut ideal = vec![f32::NAN; width * height];
+        ideal.par_chunks_mut(width).enumerate().for_each(|(v, row)| {
+            let mut rng = row_rng(noise_seed, 0, v);
+            for (u, out) in row.iter_mut().enumerate() {
+                let (ju, jv) = if self.config.noise.enabled { self.pointing_jitter(&mut rng) } else { (0.0, 0.0) };
+                *out = self.cast(scene, world_from_camera, &camera_rects, &projector_rects, u as f64 + ju, v as f64 + jv);
+            }
+        });
+        let mut depth = drop_depth_edges(&ideal, width, height, self.config.missing.edge_jump_ratio as f32);
+        if self.config.noise.enabled {
+            depth.par_chunks_mut(width).enumerate().for_each(|(v, row)| {
+                let mut rng = row_rng(noise_seed, 1, v);
+                for z in row.iter_mut().filter(|z| z.is_finite()) {
+                    *z = self.disparity_noise(f64::from(*z), &mut rng);
+                }
+            });
+        } else if self.config.noise.depth_step_m > 0.0 {
+            let step = self.config.noise.depth_step_m;
+            depth.iter_mut().for_each(|z| *z = quantise(f64::from(*z), step) as f32);
+        }
+        DepthImage { width, height, depth_m: depth }
+    }
+
+    /// Depth along the ray through pixel `(u, v)` (possibly sub-pixel), or NaN.
+    #[inline]
+    fn cast(
+        &self,
+        scene: &Scene,
+        world_from_camera: &Isometry3<f64>,
+        camera_rects: &[Option<PixelRect>],
+        projector_rects: &[Option<PixelRect>],
+        u: f64,
+        v: f64,
+    ) -> f32 {
+        let k = &self.intrinsics;
+        let direction_in_camera = Vector3::new((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+        let ray = Ray { origin: world_from_camera.translation.vector, direction: world_from_camera.rotation * direction_in_camera };
+        let Some((hit, _)) = scene.intersect(&ray, |i| rect_contains(camera_rects[i], u, v)) else {
+            return f32::NAN;
+        };
+        // With a unit-z ray in the camera frame the ray parameter is the depth.
+        let z = hit.t;
+        if !(self.config.min_depth_m..=self.config.max_depth_m).contains(&z) {
+            return f32::NAN;
+        }
+        let cos_incidence = -ray.direction.normalize().dot(&hit.normal);
+        if cos_incidence < self.config.missing.max_incidence_deg.to_radians().cos() {
+            return f32::NAN;
+        }
+        if self.config.missing.projector_shadow {
+            let point_in_camera = direction_in_camera * z;
+            let from_projector = point_in_camera - Vector3::new(self.config.baseline_m, 0.0, 0.0);
+            let (pu, pv) = (k.fx * from_projector.x / from_projector.z + k.cx, k.fy * from_projector.y / from_projector.z + k.cy);
+            let point_in_world = ray.at(z) + hit.normal * 1e-6;
+            let projector_in_world = world_from_camera * Point3::new(self.config.baseline_m, 0.0, 0.0);
+            let to_projector = Ray { origin: point_in_world, direction: projector_in_world.coords - point_in_world };
+            let shadowed = scene.rocks.iter().enumerate().any(|(i, rock)| {
+                rect_contains(projector_rects[i], pu, pv) && rock.intersect_world(&to_projector).is_some_and(|h| h.t < 1.0)
+            });
+            if shadowed {
+                return f32::NAN;
+            }
+        }
+        z as f32
+    }
+
+    /// Pointing error (J eq. 2, σp) in pixels, clamped to ±`MAX_JITTER_PX`.
+    #[inline]
+    fn pointing_jitter(&self, rng: &mut rand::rngs::SmallRng) -> (f64, f64) {
+        let sigma = self.config.noise.sigma_pointing_px;
+        let du: f64 = StandardNormal.sample(rng);
+        let dv: f64 = StandardNormal.sample(rng);
+        ((du * sigma).clamp(-MAX_JITTER_PX, MAX_JITTER_PX), (dv * sigma).clamp(-MAX_JITTER_PX, MAX_JITTER_PX))
+    }
+
+    /// Disparity-domain noise (J eq. 2, σm), disparity and depth quantisation; NaN if out of range.
+    #[inline]
+    fn disparity_noise(&self, z: f64, rng: &mut rand::rngs::SmallRng) -> f32 {
+        let noise = &self.config.noise;
+        let fb = self.intrinsics.fx * self.config.baseline_m;
+        let e: f64 = StandardNormal.sample(rng);
+        let mut disparity = fb / z + noise.sigma_disparity_px * e;
+        if noise.disparity_step_px > 0.0 {
+            disparity = quantise(disparity, noise.disparity_step_px);
+        }
+        if disparity <= 0.0 {
+            return f32::NAN;
+        }
+        let z = quantise(fb / disparity, noise.depth_step_m);
+        if (self.config.min_depth_m..=self.config.max_depth_m).contains(&z) {
+            z as f32
+        } else {
+            f32::NAN
+        }
+    }
+
+    /// Pixel rectangle covering a rock's bounding box as seen from a viewpoint at
+    /// `viewpoint_in_camera` (the camera itself or the projector) with the camera's intrinsics and
+    /// orientation; `None` if it is entirely behind; the whole plane if it straddles the image plane.
+    fn project_bounds(&self, rock: &crate::scene::Rock, world_from_camera: &Isometry3<f64>, viewpoint_in_camera: &Vector3<f64>) -> Option<PixelRect> {
+        let [min, max] = rock.bounds_in_rock;
+        let camera_from_rock = world_from_camera.inverse() * rock.world_from_rock;
+        let k = &self.intrinsics;
+        let margin = MAX_JITTER_PX + 1.0;
+        let mut rect = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
+        let mut behind = 0;
+        for corner in 0..8 {
+            let local = Point3::new(
+                if corner & 1 == 0 { min.x } else { max.x },
+                if corner & 2 == 0 { min.y } else { max.y },
+                if corner & 4 == 0 { min.z } else { max.z },
+            );
+            let p = (camera_from_rock * local).coords - viewpoint_in_camera;
+            if p.z <= 1e-3 {
+                behind += 1;
+                continue;
+            }
+            let (u, v) = (k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy);
+            rect = [rect[0].min(u), rect[1].max(u), rect[2].min(v), rect[3].max(v)];
+        }
+        match behind {
+            8 => None,
+            0 => Some([rect[0] - margin, rect[1] + margin, rect[2] - margin, rect[3] + margin]),
+            _ => Some([f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY]),
+        }
+    }
+}
+
+#[inline]
+fn rect_contains(rect: Option<PixelRect>, u: f64, v: f64) -> bool {
+    rect.is_some_and(|r| u >= r[0] && u <= r[1] && v >= r[2] && v <= r[3])
+}
+
+#[inline]
+fn quantise(value: f64, step: f64) -> f64 {
+    if step > 0.0 {
+        (value / step).round() * step
+    } else {
+        value
+    }
+}
+
+/// Deterministic RNG for (seed, pass, row), independent of thread scheduling.
+fn row_rng(seed: u64, pass: u64, row: usize) -> rand::rngs::SmallRng {
+    rand::rngs::SmallRng::seed_from_u64(mix(mix(seed, pass), row as u64))
+}
+
+/// SplitMix64-style mixing of two words into a seed.
+pub fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_add(0x9e37_79b9_7f4a_7c15).rotate_left(17);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Drops pixels at depth discontinuities: any valid 4-neighbour differing by more than
+/// `ratio · z`.
+fn drop_depth_edges(depth: &[f32], width: usize, height: usize, ratio: f32) -> Vec<f32> {
+    let mut out = depth.to_vec();
+    out.par_chunks_mut(width).enumerate().for_each(|(v, row)| {
+        for (u, value) in row.iter_mut().enumerate() {
+            let z = *value;
+            if !z.is_finite() {
+                continue;
+            }
+            let neighbours = [
+                (u > 0).then(|| v * width + u - 1),
+                (u + 1 < width).then(|| v * width + u + 1),
+                (v > 0).then(|| (v - 1) * width + u),
+                (v + 1 < height).then(|| (v + 1) * width + u),
+            ];
+            let jump = neighbours
+                .into_iter()
+                .flatten()
+                .filter_map(|i| depth.get(i).copied())
+                .any(|n| n.is_finite() && (n - z).abs() > ratio * z);
+            if jump {
+                *value = f32::NAN;
+            }
+        }
+    });
+    out
+}
+
+/// Depth in 16-bit millimetres (0 = no data), the `16UC1` encoding of `sensor_msgs/Image`.
+pub fn to_millimetres(image: &DepthImage) -> Vec<u16> {
+    image
+        .depth_m
+        .iter()
+        .map(|&d| if d.is_finite() { (f64::from(d) * 1000.0).round().clamp(0.0, 65535.0) as u16 } else { 0 })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{RockShape, SceneConfig, TableConfig};
+    use nalgebra::{Rotation3, UnitQuaternion};
+
+    fn empty_scene() -> Scene {
+        let table = TableConfig { length_x_m: 3.0, margin_y_m: 3.0, ..TableConfig::default() };
+        Scene::new(&SceneConfig { table, training_rocks: Some(vec![]), untrained_rocks: 0, ..SceneConfig::default() }, 0).unwrap()
+    }
+
+    /// Camera at height `h` above (1.5, 0.3) looking straight down (optical z = −world z).
+    fn looking_down(h: f64) -> Isometry3<f64> {
+        let rotation = Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0));
+        Isometry3::from_parts(nalgebra::Translation3::new(1.5, 0.3, h), UnitQuaternion::from_rotation_matrix(&rotation))
+    }
+
+    fn noiseless() -> CameraConfig {
+        CameraConfig { noise: NoiseConfig { enabled: false, depth_step_m: 0.0, ..NoiseConfig::default() }, ..CameraConfig::default() }
+    }
+
+    #[test]
+    fn plane_at_known_distance_renders_exactly() {
+        let camera = DepthCamera::new(noiseless()).unwrap();
+        let image = camera.render(&empty_scene(), &looking_down(0.8), 0);
+        assert_eq!((image.width, image.height), (640, 480));
+        assert_eq!(image.valid_count(), 640 * 480);
+        assert!(image.depth_m.iter().all(|&z| (z - 0.8).abs() < 1e-6));
+        // Tilted 30° about the camera x axis: analytic depth z(v) = h / (cos θ + sin θ·(v − cy)/fy)
+        // for the table plane (ray (0, y, 1) rotated).
+        let theta = 30f64.to_radians();
+        let pose = looking_down(0.8) * UnitQuaternion::from_euler_angles(theta, 0.0, 0.0);
+        let image = camera.render(&empty_scene(), &pose, 0);
+        for v in [0usize, 100, 239, 400, 479] {
+            let y = (v as f64 - camera.intrinsics.cy) / camera.intrinsics.fy;
+            let expected = 0.8 / (theta.cos() + theta.sin() * y);
+            let got = f64::from(image.get(320, v).unwrap());
+            assert!((got - expected).abs() < 1e-5, "row {v}: {got} vs {expected}");
+        }
+    }
+
+    #[test]
+    fn sphere_silhouette_matches_projection() {
+        // A full sphere (ellipsoid a = b = c = r standing on the table) seen from above.
+        let r = 0.08;
+        let shape = RockShape::EllipsoidCap { semi_axes_m: [r, r, r], centre_z_m: r };
+        let config = SceneConfig {
+            training_rocks: Some(vec![shape]),
+            untrained_rocks: 0,
+            rock_x_m: 0.7,
+            station_spacing_m: 0.6,
+            table: TableConfig::default(),
+            ..SceneConfig::default()
+        };
+        let scene = Scene::new(&config, 0).unwrap();
+        let centre = scene.rocks[0].world_from_rock.translation.vector + Vector3::new(0.0, 0.0, r);
+        let h = 0.9;
+        let pose = Isometry3::from_parts(
+            nalgebra::Translation3::new(centre.x, centre.y, h),
+            looking_down(h).rotation,
+        );
+        let camera = DepthCamera::new(noiseless()).unwrap();
+        let image = camera.render(&scene, &pose, 0);
+        // Centre pixel: top of the sphere.
+        let top = f64::from(image.get(320, 240).unwrap_or(f32::NAN));
+        let expected_top = h - centre.z - r;
+        assert!((top - expected_top).abs() < 1e-3, "{top} vs {expected_top}");
+        // Silhouette radius in pixels: the tangent cone half-angle α = asin(r / D).
+        let distance = h - centre.z;
+        let radius_px = camera.intrinsics.fx * (r / distance).asin().tan();
+        let near_sphere = |u: usize| image.get(u, 240).is_some_and(|z| f64::from(z) < distance);
+        // Pixels well inside see the sphere; well outside see the table (further than the centre).
+        for offset in [0.0, 0.5 * radius_px, radius_px - 4.0] {
+            assert!(near_sphere((320.0 + offset) as usize), "inside at {offset}");
+        }
+        for offset in [radius_px + 2.0, radius_px + 20.0] {
+            assert!(!near_sphere((320.0 + offset) as usize), "outside at {offset}");
+        }
+    }
+
+    #[test]
+    fn noise_matches_murray_little_model() {
+        let mut config = CameraConfig::default();
+        config.noise.disparity_step_px = 0.0;
+        config.noise.depth_step_m = 0.0;
+        let camera = DepthCamera::new(config).unwrap();
+        for h in [0.6, 1.2] {
+            let image = camera.render(&empty_scene(), &looking_down(h), 42);
+            let values: Vec<f64> = image.depth_m.iter().filter(|z| z.is_finite()).map(|&z| f64::from(z)).collect();
+            let n = values.len() as f64;
+            let mean = values.iter().sum::<f64>() / n;
+            let std = (values.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / n).sqrt();
+            let model = config.depth_sigma(h);
+            assert!((mean - h).abs() < 0.1 * model, "mean {mean} at {h}");
+            assert!((std / model - 1.0).abs() < 0.1, "std {std} vs model {model} at {h}");
+        }
+    }
+
+    #[test]
+    fn quantised_output_is_millimetres() {
+        let camera = DepthCamera::new(CameraConfig::default()).unwrap();
+        let image = camera.render(&empty_scene(), &looking_down(0.7), 3);
+        assert!(image.depth_m.iter().filter(|z| z.is_finite()).all(|&z| ((f64::from(z) * 1000.0).round() - f64::from(z) * 1000.0).abs() < 1e-3));
+        let mm = to_millimetres(&image);
+        assert!(mm.iter().all(|&d| d == 0 || (680..=720).contains(&d)));
+    }
+
+    #[test]
+    fn grazing_rays_and_depth_edges_are_missing() {
+        // Looking almost along the table: far rows hit it at grazing angles → no data there.
+        let camera = DepthCamera::new(noiseless()).unwrap();
+        let pose = looking_down(0.3) * UnitQuaternion::from_euler_angles(75f64.to_radians(), 0.0, 0.0);
+        let image = camera.render(&empty_scene(), &pose, 0);
+        assert!(image.get(320, 479).is_some());
+        let v_top = (0..480).find(|&v| image.get(320, v).is_some()).unwrap();
+        // Incidence at row v is 75° − atan((v − cy)/fy): 78° at v = cy − fy·tan 3°; rows above are dropped.
+        let expected = camera.intrinsics.cy - camera.intrinsics.fy * (3f64.to_radians()).tan();
+        assert!((v_top as f64 - expected).abs() <= 2.0, "{v_top} vs {expected}");
+        // A box edge over the table produces a band of missing pixels around its silhouette.
+        let shape = RockShape::FlatBoulder { radius_m: 0.06, height_m: 0.15, top_slope: [0.0, 0.0] };
+        let table = TableConfig { length_x_m: 3.0, ..TableConfig::default() };
+        let config = SceneConfig { table, training_rocks: Some(vec![shape]), untrained_rocks: 0, rock_x_m: 1.5, ..SceneConfig::default() };
+        let scene = Scene::new(&config, 0).unwrap();
+        let image = camera.render(&scene, &looking_down(0.8), 0);
+        let row: Vec<bool> = (0..640).map(|u| image.get(u, 240).is_some()).collect();
+        let gaps = row.windows(2).filter(|w| w[0] != w[1]).count();
+        assert!(gaps >= 4, "expected missing bands on both sides of the boulder, row validity changes {gaps} times");
+    }
+
+    #[test]
+    fn rendering_is_deterministic_from_the_seed() {
+        let scene = Scene::new(&SceneConfig::default(), 5).unwrap();
+        let camera = DepthCamera::new(CameraConfig::default()).unwrap();
+        let pose = looking_down(0.6);
+        let a = camera.render(&scene, &pose, 11);
+        let b = camera.render(&scene, &pose, 11);
+        let c = camera.render(&scene, &pose, 12);
+        assert_eq!(to_millimetres(&a), to_millimetres(&b));
+        assert_ne!(to_millimetres(&a), to_millimetres(&c));
+    }
+
+    #[test]
+    fn bad_config_is_an_error() {
+        assert!(DepthCamera::new(CameraConfig { fx: 0.0, ..CameraConfig::default() }).is_err());
+        assert!(DepthCamera::new(CameraConfig { min_depth_m: 4.0, ..CameraConfig::default() }).is_err());
+    }
+}

@@ -1,0 +1,119 @@
+//! Configuration of the simulator (`config/terrain_sim.yaml`): seed, scene, camera, IMU, motion and
+//! node wiring. One struct per stage, `Default` = the paper's values; unknown keys are rejected
+//! naming the key.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::CameraConfig;
+use crate::imu::ImuConfig;
+use crate::motion::MotionConfig;
+use crate::scene::SceneConfig;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("invalid config {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+}
+
+/// ROS 2 node wiring (used by the binary only).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NodeConfig {
+    /// Frame ids of the published messages (names.md).
+    pub camera_frame_id: String,
+    pub imu_frame_id: String,
+    /// Robot model for following `/joint_states` (relative to the workspace root); empty = ignore
+    /// joint states and keep the lookdown pose of `motion`.
+    pub urdf_path: PathBuf,
+    /// Follow `/joint_states` (the servo positions of the simulated bus).
+    pub follow_joint_states: bool,
+}
+
+impl Default for NodeConfig {
+    fn default() -> Self {
+        Self {
+            camera_frame_id: "camera_optical".into(),
+            imu_frame_id: "imu".into(),
+            urdf_path: PathBuf::from("urdf/rpbp.urdf"),
+            follow_joint_states: true,
+        }
+    }
+}
+
+/// Top level of `config/terrain_sim.yaml`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimConfig {
+    /// Seed of everything random (untrained rocks, noise, jitter).
+    pub seed: u64,
+    /// Index of the rock the robot starts in front of.
+    pub start_rock: usize,
+    pub scene: SceneConfig,
+    pub camera: CameraConfig,
+    pub imu: ImuConfig,
+    pub motion: MotionConfig,
+    pub node: NodeConfig,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            seed: 7,
+            start_rock: 0,
+            scene: SceneConfig::default(),
+            camera: CameraConfig::default(),
+            imu: ImuConfig::default(),
+            motion: MotionConfig::default(),
+            node: NodeConfig::default(),
+        }
+    }
+}
+
+impl SimConfig {
+    /// Loads a YAML file; missing keys take their defaults.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
+        Self::from_yaml(&text).map_err(|message| ConfigError::Parse { path: path.to_path_buf(), message })
+    }
+
+    /// Parses YAML text (error message names the offending key).
+    pub fn from_yaml(text: &str) -> Result<Self, String> {
+        if text.trim().is_empty() {
+            return Ok(Self::default());
+        }
+        serde_yaml_ng::from_str(text).map_err(|e| e.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_config_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/terrain_sim.yaml");
+        let config = SimConfig::load(&path).unwrap();
+        assert_eq!(config.camera.width, 640);
+        assert_eq!(config.imu.rate_hz, 100.0);
+    }
+
+    #[test]
+    fn unknown_keys_are_named() {
+        let error = SimConfig::from_yaml("camera:\n  fxx: 500\n").unwrap_err();
+        assert!(error.contains("fxx"), "{error}");
+        let config = SimConfig::from_yaml("seed: 3\ncamera:\n  fx: 500\n").unwrap();
+        assert_eq!((config.seed, config.camera.fx, config.camera.fy), (3, 500.0, 570.3));
+        assert_eq!(SimConfig::from_yaml("").unwrap(), SimConfig::default());
+    }
+
+    #[test]
+    fn rock_shapes_parse_from_yaml() {
+        let text = "scene:\n  training_rocks:\n    - kind: lying_cylinder\n      radius_m: 0.04\n      length_m: 0.2\n";
+        let config = SimConfig::from_yaml(text).unwrap();
+        assert_eq!(config.scene.training_rocks.map(|r| r.len()), Some(1));
+    }
+}

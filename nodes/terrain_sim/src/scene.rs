@@ -1,0 +1,660 @@
+//! The simulated world of J 6.3 (Fig. 10): a table top with rocks, four distinct training rocks in
+//! fixed places plus rocks not in the training set (deterministic from a seed).
+//!
+//! Rocks are smooth analytic solids whose top surfaces are the kinds of patches the mapper fits
+//! (J Table 1 / IROS Table I): ellipsoid caps (elliptic paraboloid tops), paraboloid bumps (circular
+//! or elliptic), flat-topped boulders with a tilted top (planes) and cylinders lying on the table
+//! (cylindric paraboloids). Each solid has an exact ray intersection and exposes its ground-truth
+//! foothold (top point, normal, principal curvatures) for tests and the demo.
+//!
+//! Frames: `world` is gravity aligned, z up (REP-103, like the mapper's `map`), the table top is the
+//! plane z = 0. Each rock has a local frame `rock` (z up, origin on the table under its centre);
+//! each robot station is a `base_link` pose on the table in front of one rock, facing it (+x).
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+/// Errors building a scene from its configuration.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SceneError {
+    #[error("invalid rock {name:?}: {reason}")]
+    InvalidRock { name: String, reason: String },
+    #[error("invalid scene: {0}")]
+    Invalid(String),
+    #[error("no rock with index {index} (the scene has {count})")]
+    NoSuchRock { index: usize, count: usize },
+}
+
+/// Smallest ray parameter accepted as a hit (metres along a unit-z camera ray).
+const T_MIN: f64 = 1e-6;
+
+/// A ray `origin + t·direction`; `direction` need not be unit length (the camera uses unit z in
+/// the camera frame, so `t` is the depth).
+#[derive(Debug, Clone, Copy)]
+pub struct Ray {
+    pub origin: Vector3<f64>,
+    pub direction: Vector3<f64>,
+}
+
+impl Ray {
+    #[inline]
+    pub fn at(&self, t: f64) -> Vector3<f64> {
+        self.origin + self.direction * t
+    }
+}
+
+/// The nearest intersection of a ray with a surface: ray parameter and outward unit normal (in the
+/// frame the ray was given in).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    pub t: f64,
+    pub normal: Vector3<f64>,
+}
+
+/// The analytic solid of one rock, in its local frame (z up, table at z = 0).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum RockShape {
+    /// Ellipsoid with semi-axes `(a, b, c)` along local x, y, z, centred at height `centre_z`
+    /// (≤ 0 sinks it into the table, leaving a cap). Top: elliptic paraboloid with
+    /// κ = (−c/a², −c/b²).
+    EllipsoidCap { semi_axes_m: [f64; 3], centre_z_m: f64 },
+    /// Paraboloid bump `z = h − ½(κx x² + κy y²)` above the table (κ > 0). Top: circular paraboloid
+    /// if κx = κy, else elliptic.
+    ParaboloidBump { height_m: f64, curvatures_per_m: [f64; 2] },
+    /// Upright cylinder of radius `r` with a flat top through `(0, 0, h)` tilted by
+    /// `slope = (∂z/∂x, ∂z/∂y)`. Top: plane with a circular boundary.
+    FlatBoulder { radius_m: f64, height_m: f64, top_slope: [f64; 2] },
+    /// Cylinder of radius `r` and length `l` lying on the table, axis along local x. Top:
+    /// cylindric paraboloid with κ = (0, −1/r).
+    LyingCylinder { radius_m: f64, length_m: f64 },
+}
+
+/// Ground-truth foothold geometry of a rock's top, in the world frame.
+///
+/// Convention (J eq. 3, patch frame): with `z` along `normal` (outward), `x` along `direction_x`, the
+/// surface near `top` is `z = ½(κx x² + κy y²)`, so a convex bump has negative curvatures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Foothold {
+    pub top_in_world: Vector3<f64>,
+    pub normal_in_world: Vector3<f64>,
+    /// Unit tangent of the first principal direction (curvature `curvatures[0]`).
+    pub direction_x_in_world: Vector3<f64>,
+    /// Principal curvatures (m⁻¹) along `direction_x` and `normal × direction_x`.
+    pub curvatures_per_m: [f64; 2],
+    /// Surface type name as in names.md (`elliptic_paraboloid`, `circular_paraboloid`, `plane`,
+    /// `cylindric_paraboloid`).
+    pub surface_type: &'static str,
+    /// Radius (m) of the top region around `top` that stays within the shape's smooth top.
+    pub top_radius_m: f64,
+}
+
+/// One rock placed on the table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rock {
+    pub name: String,
+    pub shape: RockShape,
+    /// Whether this rock is one of the four training rocks (J 6.3).
+    pub trained: bool,
+    pub world_from_rock: Isometry3<f64>,
+    /// Local axis-aligned bounds `[min, max]` of the solid (for culling).
+    pub bounds_in_rock: [Vector3<f64>; 2],
+    /// Where the robot stands (`base_link`) to look at this rock.
+    pub world_from_station: Isometry3<f64>,
+}
+
+impl RockShape {
+    /// Checks positive sizes and that the solid stands on the table.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = |name: &str, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{name} = {value} must be positive and finite"))
+            }
+        };
+        match *self {
+            RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
+                positive("a", a)?;
+                positive("b", b)?;
+                positive("c", c)?;
+                if !(centre_z_m.is_finite() && centre_z_m > -c) {
+                    return Err(format!("centre_z_m = {centre_z_m} puts the ellipsoid under the table"));
+                }
+            }
+            RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
+                positive("height", height_m)?;
+                positive("κx", kx)?;
+                positive("κy", ky)?;
+            }
+            RockShape::FlatBoulder { radius_m, height_m, top_slope: [sx, sy] } => {
+                positive("radius", radius_m)?;
+                positive("height", height_m)?;
+                if !(sx.is_finite() && sy.is_finite()) || (sx.hypot(sy) * radius_m) >= height_m {
+                    return Err(format!("top slope ({sx}, {sy}) takes the top below the table"));
+                }
+            }
+            RockShape::LyingCylinder { radius_m, length_m } => {
+                positive("radius", radius_m)?;
+                positive("length", length_m)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Local bounds `[min, max]`.
+    pub fn bounds(&self) -> [Vector3<f64>; 2] {
+        match *self {
+            RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
+                [Vector3::new(-a, -b, 0.0), Vector3::new(a, b, centre_z_m + c)]
+            }
+            RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
+                let (rx, ry) = ((2.0 * height_m / kx).sqrt(), (2.0 * height_m / ky).sqrt());
+                [Vector3::new(-rx, -ry, 0.0), Vector3::new(rx, ry, height_m)]
+            }
+            RockShape::FlatBoulder { radius_m, height_m, top_slope: [sx, sy] } => {
+                let top = height_m + radius_m * sx.hypot(sy);
+                [Vector3::new(-radius_m, -radius_m, 0.0), Vector3::new(radius_m, radius_m, top)]
+            }
+            RockShape::LyingCylinder { radius_m, length_m } => {
+                [Vector3::new(-length_m / 2.0, -radius_m, 0.0), Vector3::new(length_m / 2.0, radius_m, 2.0 * radius_m)]
+            }
+        }
+    }
+
+    /// Nearest intersection with `t > T_MIN` of a ray given in the rock frame (normal in the rock
+    /// frame). Only the part of the solid above the table (z ≥ 0) exists.
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        match *self {
+            RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
+                let scale = Vector3::new(1.0 / a, 1.0 / b, 1.0 / c);
+                let o = (ray.origin - Vector3::new(0.0, 0.0, centre_z_m)).component_mul(&scale);
+                let d = ray.direction.component_mul(&scale);
+                let t = first_root(d.dot(&d), 2.0 * o.dot(&d), o.dot(&o) - 1.0, |t| ray.at(t).z >= 0.0)?;
+                let p = ray.at(t) - Vector3::new(0.0, 0.0, centre_z_m);
+                let normal = Vector3::new(p.x / (a * a), p.y / (b * b), p.z / (c * c)).normalize();
+                Some(Hit { t, normal })
+            }
+            RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
+                let (o, d) = (ray.origin, ray.direction);
+                // f(p) = z − h + ½(κx x² + κy y²) = 0 along the ray.
+                let qa = 0.5 * (kx * d.x * d.x + ky * d.y * d.y);
+                let qb = d.z + kx * o.x * d.x + ky * o.y * d.y;
+                let qc = o.z - height_m + 0.5 * (kx * o.x * o.x + ky * o.y * o.y);
+                let t = first_root(qa, qb, qc, |t| ray.at(t).z >= 0.0)?;
+                let p = ray.at(t);
+                Some(Hit { t, normal: Vector3::new(kx * p.x, ky * p.y, 1.0).normalize() })
+            }
+            RockShape::FlatBoulder { radius_m, height_m, top_slope: [sx, sy] } => {
+                let (o, d) = (ray.origin, ray.direction);
+                let top_z = |p: &Vector3<f64>| height_m + sx * p.x + sy * p.y;
+                let mut best: Option<Hit> = None;
+                // Top plane z − sx·x − sy·y = h, inside the circle.
+                let denom = d.z - sx * d.x - sy * d.y;
+                if denom.abs() > 1e-15 {
+                    let t = (height_m - (o.z - sx * o.x - sy * o.y)) / denom;
+                    let p = ray.at(t);
+                    if t > T_MIN && p.x * p.x + p.y * p.y <= radius_m * radius_m {
+                        best = Some(Hit { t, normal: Vector3::new(-sx, -sy, 1.0).normalize() });
+                    }
+                }
+                // Side wall x² + y² = r², 0 ≤ z ≤ top.
+                let t_side = first_root(
+                    d.x * d.x + d.y * d.y,
+                    2.0 * (o.x * d.x + o.y * d.y),
+                    o.x * o.x + o.y * o.y - radius_m * radius_m,
+                    |t| {
+                        let p = ray.at(t);
+                        p.z >= 0.0 && p.z <= top_z(&p)
+                    },
+                );
+                if let Some(t) = t_side {
+                    if best.is_none_or(|hit| t < hit.t) {
+                        let p = ray.at(t);
+                        best = Some(Hit { t, normal: Vector3::new(p.x, p.y, 0.0) / radius_m });
+                    }
+                }
+                best
+            }
+            RockShape::LyingCylinder { radius_m, length_m } => {
+                let (o, d) = (ray.origin, ray.direction);
+                let half = length_m / 2.0;
+                let mut best: Option<Hit> = None;
+                // Side y² + (z − r)² = r², |x| ≤ l/2.
+                let oz = o.z - radius_m;
+                let t_side = first_root(
+                    d.y * d.y + d.z * d.z,
+                    2.0 * (o.y * d.y + oz * d.z),
+                    o.y * o.y + oz * oz - radius_m * radius_m,
+                    |t| ray.at(t).x.abs() <= half,
+                );
+                if let Some(t) = t_side {
+                    let p = ray.at(t);
+                    best = Some(Hit { t, normal: Vector3::new(0.0, p.y, p.z - radius_m) / radius_m });
+                }
+                // End caps x = ±l/2 inside the disc.
+                if d.x.abs() > 1e-15 {
+                    for sign in [-1.0, 1.0] {
+                        let t = (sign * half - o.x) / d.x;
+                        let p = ray.at(t);
+                        let inside = p.y * p.y + (p.z - radius_m).powi(2) <= radius_m * radius_m;
+                        if t > T_MIN && inside && best.is_none_or(|hit| t < hit.t) {
+                            best = Some(Hit { t, normal: Vector3::new(sign, 0.0, 0.0) });
+                        }
+                    }
+                }
+                best
+            }
+        }
+    }
+
+    /// Foothold geometry in the rock frame: (top point, normal, principal direction x, curvatures,
+    /// type name, top radius).
+    fn local_foothold(&self) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>, [f64; 2], &'static str, f64) {
+        let up = Vector3::z();
+        match *self {
+            RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
+                let kind = if (a - b).abs() < 1e-12 { "circular_paraboloid" } else { "elliptic_paraboloid" };
+                (Vector3::new(0.0, 0.0, centre_z_m + c), up, Vector3::x(), [-c / (a * a), -c / (b * b)], kind, 0.5 * a.min(b))
+            }
+            RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
+                let kind = if (kx - ky).abs() < 1e-12 { "circular_paraboloid" } else { "elliptic_paraboloid" };
+                let radius = 0.5 * (2.0 * height_m / kx.max(ky)).sqrt();
+                (Vector3::new(0.0, 0.0, height_m), up, Vector3::x(), [-kx, -ky], kind, radius)
+            }
+            RockShape::FlatBoulder { radius_m, height_m, top_slope: [sx, sy] } => {
+                let normal = Vector3::new(-sx, -sy, 1.0).normalize();
+                let direction_x = Vector3::new(1.0, 0.0, sx).normalize();
+                (Vector3::new(0.0, 0.0, height_m), normal, direction_x, [0.0, 0.0], "plane", radius_m)
+            }
+            RockShape::LyingCylinder { radius_m, length_m } => (
+                Vector3::new(0.0, 0.0, 2.0 * radius_m),
+                up,
+                Vector3::x(),
+                [0.0, -1.0 / radius_m],
+                "cylindric_paraboloid",
+                (0.5 * length_m).min(0.5 * radius_m),
+            ),
+        }
+    }
+}
+
+impl Rock {
+    /// Places `shape` at `(x, y)` on the table rotated by `yaw` about z; the station is `standoff`
+    /// behind it along −x, facing +x.
+    pub fn new(name: &str, shape: RockShape, trained: bool, x: f64, y: f64, yaw: f64, standoff_m: f64) -> Result<Self, SceneError> {
+        shape.validate().map_err(|reason| SceneError::InvalidRock { name: name.to_string(), reason })?;
+        Ok(Self {
+            name: name.to_string(),
+            shape,
+            trained,
+            world_from_rock: Isometry3::from_parts(Translation3::new(x, y, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, yaw)),
+            bounds_in_rock: shape.bounds(),
+            world_from_station: Isometry3::translation(x - standoff_m, y, 0.0),
+        })
+    }
+
+    /// Ground-truth foothold of the rock's top, in the world frame.
+    pub fn foothold(&self) -> Foothold {
+        let (top, normal, direction_x, curvatures_per_m, surface_type, top_radius_m) = self.shape.local_foothold();
+        Foothold {
+            top_in_world: (self.world_from_rock * nalgebra::Point3::from(top)).coords,
+            normal_in_world: self.world_from_rock.rotation * normal,
+            direction_x_in_world: self.world_from_rock.rotation * direction_x,
+            curvatures_per_m,
+            surface_type,
+            top_radius_m,
+        }
+    }
+
+    /// Bounding sphere (centre in world, radius) of the solid.
+    pub fn bounding_sphere(&self) -> (Vector3<f64>, f64) {
+        let [min, max] = self.bounds_in_rock;
+        let centre = (min + max) / 2.0;
+        ((self.world_from_rock * nalgebra::Point3::from(centre)).coords, (max - min).norm() / 2.0)
+    }
+
+    /// Nearest hit of a world ray (normal in world).
+    pub fn intersect_world(&self, ray: &Ray) -> Option<Hit> {
+        let local = Ray {
+            origin: self.world_from_rock.inverse_transform_point(&ray.origin.into()).coords,
+            direction: self.world_from_rock.inverse_transform_vector(&ray.direction),
+        };
+        let hit = self.shape.intersect(&local)?;
+        Some(Hit { t: hit.t, normal: self.world_from_rock.rotation * hit.normal })
+    }
+}
+
+/// Smallest root `t > T_MIN` of `a t² + b t + c` satisfying `accept` (handles `a ≈ 0`).
+#[inline]
+fn first_root(a: f64, b: f64, c: f64, accept: impl Fn(f64) -> bool) -> Option<f64> {
+    if a.abs() < 1e-15 {
+        if b.abs() < 1e-15 {
+            return None;
+        }
+        let t = -c / b;
+        return (t > T_MIN && accept(t)).then_some(t);
+    }
+    let discriminant = b * b - 4.0 * a * c;
+    if discriminant < 0.0 {
+        return None;
+    }
+    // Numerically stable roots.
+    let q = -0.5 * (b + b.signum() * discriminant.sqrt());
+    let (r1, r2) = if q.abs() < 1e-300 { (0.0, 0.0) } else { (q / a, c / q) };
+    let (lo, hi) = if r1 < r2 { (r1, r2) } else { (r2, r1) };
+    [lo, hi].into_iter().find(|&t| t > T_MIN && accept(t))
+}
+
+/// The table and the floor around it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TableConfig {
+    /// Table top extent along x (m), from x = 0.
+    pub length_x_m: f64,
+    /// Height of the table top above the floor (m); the floor is the plane z = −height.
+    pub height_m: f64,
+    /// Margin (m) of table beyond the first and last station along y.
+    pub margin_y_m: f64,
+}
+
+impl Default for TableConfig {
+    fn default() -> Self {
+        // A lab walking table (J Fig. 10); sizes chosen so the camera in the lookdown pose sees
+        // only table top around the rock.
+        Self { length_x_m: 1.4, height_m: 0.75, margin_y_m: 0.4 }
+    }
+}
+
+/// Scene layout and the untrained-rock generator.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SceneConfig {
+    pub table: TableConfig,
+    /// x of the rock centres on the table (m).
+    pub rock_x_m: f64,
+    /// Spacing of the stations along y (m); rock i sits at y = (i + ½)·spacing.
+    pub station_spacing_m: f64,
+    /// Distance (m) from the robot's `base_link` to the rock centre when placed in front of it.
+    pub standoff_m: f64,
+    /// The four training rocks (J 6.3: "4 solid rocks in fixed positions"); `None` = the built-in set.
+    pub training_rocks: Option<Vec<RockShape>>,
+    /// Number of procedurally generated rocks not in the training set.
+    pub untrained_rocks: usize,
+    /// Training rocks (by index) to duplicate as untrained rocks with identical geometry, the case
+    /// where J 6.3 still executes the motion.
+    pub twins_of_training: Vec<usize>,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        Self {
+            table: TableConfig::default(),
+            rock_x_m: 0.9,
+            station_spacing_m: 0.6,
+            standoff_m: 0.22,
+            training_rocks: None,
+            untrained_rocks: 4,
+            twins_of_training: Vec::new(),
+        }
+    }
+}
+
+/// The four built-in training rocks: one per patch family the RPBP trained on (J 6.3, Fig. 10).
+pub fn default_training_rocks() -> Vec<RockShape> {
+    vec![
+        // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−6.2, −13.9) m⁻¹.
+        RockShape::EllipsoidCap { semi_axes_m: [0.09, 0.06, 0.05], centre_z_m: 0.0 },
+        // rock 2: flat-topped boulder, top tilted ≈ 8° down towards the robot.
+        RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.05, top_slope: [0.14, 0.0] },
+        // rock 3: log-like cylinder across the robot's path, κ = (0, −22) m⁻¹.
+        RockShape::LyingCylinder { radius_m: 0.045, length_m: 0.2 },
+        // rock 4: round bump, circular paraboloid top κ = (−15, −15) m⁻¹.
+        RockShape::ParaboloidBump { height_m: 0.05, curvatures_per_m: [15.0, 15.0] },
+    ]
+}
+
+/// The whole scene: table, floor and rocks.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    pub table: TableConfig,
+    /// Table top y extent `[min, max]`.
+    pub table_y_m: [f64; 2],
+    pub rocks: Vec<Rock>,
+}
+
+/// What a world ray hit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Surface {
+    Table,
+    Floor,
+    Rock(usize),
+}
+
+impl Scene {
+    /// Builds the scene: training rocks (yaw 0, except the lying cylinder turned across the robot's
+    /// path) then `untrained_rocks` random ones and the twins, each at its own station.
+    pub fn new(config: &SceneConfig, seed: u64) -> Result<Self, SceneError> {
+        if !(config.station_spacing_m > 0.0 && config.standoff_m > 0.0 && config.table.length_x_m > config.rock_x_m) {
+            return Err(SceneError::Invalid("need station_spacing_m > 0, standoff_m > 0 and rock_x_m inside the table".into()));
+        }
+        let training = config.training_rocks.clone().unwrap_or_else(default_training_rocks);
+        let mut shapes: Vec<(String, RockShape, bool, f64)> = Vec::new();
+        for (i, shape) in training.iter().enumerate() {
+            let yaw = if matches!(shape, RockShape::LyingCylinder { .. }) { std::f64::consts::FRAC_PI_2 } else { 0.0 };
+            shapes.push((format!("rock {}", i + 1), *shape, true, yaw));
+        }
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0x5eed_0f_7e44a1);
+        for i in 0..config.untrained_rocks {
+            let shape = random_untrained_shape(&mut rng, &training);
+            let yaw = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+            shapes.push((format!("untrained {}", i + 1), shape, false, yaw));
+        }
+        for &index in &config.twins_of_training {
+            let (_, shape, _, yaw) = shapes
+                .get(index)
+                .filter(|entry| entry.2)
+                .cloned()
+                .ok_or(SceneError::NoSuchRock { index, count: training.len() })?;
+            shapes.push((format!("twin of rock {}", index + 1), shape, false, yaw));
+        }
+        let mut rocks = Vec::with_capacity(shapes.len());
+        for (i, (name, shape, trained, yaw)) in shapes.into_iter().enumerate() {
+            let y = (i as f64 + 0.5) * config.station_spacing_m;
+            rocks.push(Rock::new(&name, shape, trained, config.rock_x_m, y, yaw, config.standoff_m)?);
+        }
+        let y_max = rocks.len() as f64 * config.station_spacing_m;
+        Ok(Self { table: config.table, table_y_m: [-config.table.margin_y_m, y_max + config.table.margin_y_m], rocks })
+    }
+
+    /// `world_from_base` of the station in front of rock `index`.
+    pub fn station(&self, index: usize) -> Result<Isometry3<f64>, SceneError> {
+        self.rocks
+            .get(index)
+            .map(|rock| rock.world_from_station)
+            .ok_or(SceneError::NoSuchRock { index, count: self.rocks.len() })
+    }
+
+    /// Nearest hit of a world ray among table/floor and the rocks for which `consider(i)` is true.
+    pub fn intersect(&self, ray: &Ray, consider: impl Fn(usize) -> bool) -> Option<(Hit, Surface)> {
+        let mut best = self.intersect_ground(ray);
+        for (i, rock) in self.rocks.iter().enumerate() {
+            if !consider(i) {
+                continue;
+            }
+            if let Some(hit) = rock.intersect_world(ray) {
+                if best.is_none_or(|(b, _)| hit.t < b.t) {
+                    best = Some((hit, Surface::Rock(i)));
+                }
+            }
+        }
+        best
+    }
+
+    /// Hit with the table top (z = 0 inside its extent) or else the floor (z = −height).
+    pub fn intersect_ground(&self, ray: &Ray) -> Option<(Hit, Surface)> {
+        if ray.direction.z >= 0.0 {
+            return None;
+        }
+        let t = -ray.origin.z / ray.direction.z;
+        if t > T_MIN {
+            let p = ray.at(t);
+            if (0.0..=self.table.length_x_m).contains(&p.x) && (self.table_y_m[0]..=self.table_y_m[1]).contains(&p.y) {
+                return Some((Hit { t, normal: Vector3::z() }, Surface::Table));
+            }
+        }
+        let t = (-self.table.height_m - ray.origin.z) / ray.direction.z;
+        (t > T_MIN).then_some((Hit { t, normal: Vector3::z() }, Surface::Floor))
+    }
+}
+
+/// A random rock not in the training set: kind and size drawn uniformly, rejected while its top is
+/// within twice the J 6.3 match thresholds (same type, |Δκ| < 2·5 m⁻¹, |Δsize| < 2·0.015 m) of a
+/// training rock, so it should not match.
+fn random_untrained_shape(rng: &mut impl Rng, training: &[RockShape]) -> RockShape {
+    let mut candidate = RockShape::EllipsoidCap { semi_axes_m: [0.11, 0.05, 0.035], centre_z_m: -0.01 };
+    for _ in 0..100 {
+        candidate = match rng.random_range(0..4) {
+            0 => RockShape::EllipsoidCap {
+                semi_axes_m: [rng.random_range(0.05..0.12), rng.random_range(0.04..0.10), rng.random_range(0.02..0.07)],
+                centre_z_m: rng.random_range(-0.015..0.0),
+            },
+            1 => RockShape::FlatBoulder {
+                radius_m: rng.random_range(0.04..0.10),
+                height_m: rng.random_range(0.03..0.08),
+                top_slope: [rng.random_range(-0.35..0.35), rng.random_range(-0.35..0.35)],
+            },
+            2 => RockShape::LyingCylinder { radius_m: rng.random_range(0.025..0.07), length_m: rng.random_range(0.12..0.25) },
+            _ => RockShape::ParaboloidBump {
+                height_m: rng.random_range(0.03..0.07),
+                curvatures_per_m: [rng.random_range(5.0..40.0), rng.random_range(5.0..40.0)],
+            },
+        };
+        if candidate.validate().is_ok() && !training.iter().any(|t| similar_tops(t, &candidate)) {
+            break;
+        }
+    }
+    candidate
+}
+
+/// Whether two shapes have tops that the J 6.3 matcher could confuse (loose test, for generation).
+fn similar_tops(a: &RockShape, b: &RockShape) -> bool {
+    let (_, na, _, ka, type_a, ra) = a.local_foothold();
+    let (_, nb, _, kb, type_b, rb) = b.local_foothold();
+    let sorted = |k: [f64; 2]| if k[0] <= k[1] { k } else { [k[1], k[0]] };
+    let (ka, kb) = (sorted(ka), sorted(kb));
+    type_a == type_b
+        && (ka[0] - kb[0]).abs() < 10.0
+        && (ka[1] - kb[1]).abs() < 10.0
+        && (ra - rb).abs() < 0.03
+        && na.angle(&nb) < 40f64.to_radians()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn down_ray(x: f64, y: f64) -> Ray {
+        Ray { origin: Vector3::new(x, y, 1.0), direction: -Vector3::z() }
+    }
+
+    #[test]
+    fn vertical_rays_hit_the_tops_at_their_heights() {
+        for shape in default_training_rocks() {
+            let (top, normal, ..) = shape.local_foothold();
+            let hit = shape.intersect(&down_ray(top.x, top.y)).unwrap();
+            assert!((1.0 - hit.t - top.z).abs() < 1e-9, "{shape:?}: {} vs {}", 1.0 - hit.t, top.z);
+            assert!((hit.normal - normal).norm() < 1e-9, "{shape:?}");
+        }
+    }
+
+    #[test]
+    fn numeric_curvature_matches_the_foothold() {
+        // Heights along the principal directions near the top fit z = ½κ s² (with the top normal up).
+        for shape in default_training_rocks() {
+            let (top, normal, direction_x, k, ..) = shape.local_foothold();
+            if (normal - Vector3::z()).norm() > 1e-9 {
+                continue; // tilted plane: curvature 0 checked by the flat test below
+            }
+            let direction_y = normal.cross(&direction_x);
+            let s = 0.004;
+            for (direction, kappa) in [(direction_x, k[0]), (direction_y, k[1])] {
+                let p = top + direction * s;
+                let z = 1.0 - shape.intersect(&down_ray(p.x, p.y)).unwrap().t;
+                let numeric = 2.0 * (z - top.z) / (s * s);
+                assert!((numeric - kappa).abs() < 0.05 * kappa.abs().max(1.0), "{shape:?}: {numeric} vs {kappa}");
+            }
+        }
+    }
+
+    #[test]
+    fn tilted_flat_top_is_a_plane() {
+        let shape = RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.05, top_slope: [0.14, -0.05] };
+        let (top, normal, ..) = shape.local_foothold();
+        for (x, y) in [(0.03, 0.0), (-0.02, 0.04), (0.0, -0.05)] {
+            let p = Vector3::new(x, y, 1.0 - shape.intersect(&down_ray(x, y)).unwrap().t);
+            assert!((p - top).dot(&normal).abs() < 1e-9);
+        }
+        // A horizontal ray hits the side wall.
+        let hit = shape.intersect(&Ray { origin: Vector3::new(-1.0, 0.0, 0.02), direction: Vector3::x() }).unwrap();
+        assert!((hit.t - (1.0 - 0.07)).abs() < 1e-9 && (hit.normal + Vector3::x()).norm() < 1e-9);
+        // Above the top edge misses.
+        assert!(shape.intersect(&Ray { origin: Vector3::new(-1.0, 0.0, 0.2), direction: Vector3::x() }).is_none());
+    }
+
+    #[test]
+    fn lying_cylinder_caps_and_side() {
+        let shape = RockShape::LyingCylinder { radius_m: 0.05, length_m: 0.2 };
+        let hit = shape.intersect(&Ray { origin: Vector3::new(-1.0, 0.0, 0.05), direction: Vector3::x() }).unwrap();
+        assert!((hit.t - 0.9).abs() < 1e-9 && (hit.normal + Vector3::x()).norm() < 1e-12);
+        let hit = shape.intersect(&Ray { origin: Vector3::new(0.0, -1.0, 0.05), direction: Vector3::y() }).unwrap();
+        assert!((hit.t - 0.95).abs() < 1e-9);
+        assert!(shape.intersect(&down_ray(0.11, 0.0)).is_none());
+    }
+
+    #[test]
+    fn scene_is_deterministic_and_untrained_rocks_differ() {
+        let config = SceneConfig { untrained_rocks: 6, twins_of_training: vec![0], ..SceneConfig::default() };
+        let a = Scene::new(&config, 7).unwrap();
+        let b = Scene::new(&config, 7).unwrap();
+        let c = Scene::new(&config, 8).unwrap();
+        assert_eq!(a.rocks, b.rocks);
+        assert_ne!(a.rocks, c.rocks);
+        assert_eq!(a.rocks.len(), 11);
+        assert_eq!(a.rocks.iter().filter(|r| r.trained).count(), 4);
+        let training = default_training_rocks();
+        for rock in a.rocks.iter().filter(|r| r.name.starts_with("untrained")) {
+            assert!(!training.iter().any(|t| similar_tops(t, &rock.shape)), "{rock:?}");
+        }
+        assert_eq!(a.rocks[10].shape, a.rocks[0].shape);
+        // Station faces the rock from `standoff` behind.
+        let station = a.station(2).unwrap();
+        let rock = a.rocks[2].world_from_rock.translation.vector;
+        assert!((rock - station.translation.vector - Vector3::new(0.22, 0.0, 0.0)).norm() < 1e-12);
+        assert_eq!(a.station(99), Err(SceneError::NoSuchRock { index: 99, count: 11 }));
+    }
+
+    #[test]
+    fn ground_is_table_then_floor() {
+        let scene = Scene::new(&SceneConfig::default(), 1).unwrap();
+        let (hit, surface) = scene.intersect_ground(&down_ray(0.5, 0.0)).unwrap();
+        assert_eq!(surface, Surface::Table);
+        assert!((hit.t - 1.0).abs() < 1e-12);
+        let (hit, surface) = scene.intersect_ground(&down_ray(-0.5, 0.0)).unwrap();
+        assert_eq!(surface, Surface::Floor);
+        assert!((hit.t - 1.75).abs() < 1e-12);
+        // Rocks occlude the table.
+        let rock = scene.rocks[0].foothold().top_in_world;
+        let (_, surface) = scene.intersect(&down_ray(rock.x, rock.y), |_| true).unwrap();
+        assert_eq!(surface, Surface::Rock(0));
+    }
+
+    #[test]
+    fn invalid_shapes_are_errors() {
+        let bad = RockShape::EllipsoidCap { semi_axes_m: [0.1, -0.1, 0.1], centre_z_m: 0.0 };
+        assert!(matches!(Rock::new("x", bad, false, 0.0, 0.0, 0.0, 0.2), Err(SceneError::InvalidRock { .. })));
+        let config = SceneConfig { twins_of_training: vec![7], ..SceneConfig::default() };
+        assert!(Scene::new(&config, 1).is_err());
+    }
+}

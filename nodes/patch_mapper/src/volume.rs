@@ -1,1 +1,274 @@
-//! Moving-volume policy (J 4, 5.1-5.2): gravity-aligned volume frame, remaps when the camera leaves its nominal pose.
+//! Moving-volume policy (J 4, 5.1–5.2): the `volume` frame (corner origin, y along gravity, z along the
+//! camera's horizontal forward direction), its initialisation with the camera at a nominal position,
+//! and remaps (translation + rotation about the vertical) whenever the camera leaves its nominal pose by
+//! more than a distance cd or an angle ca. The y axis stays vertical through every remap.
+//!
+//! Translation-only remaps are quantised to whole blocks so the TSDF moves by re-indexing blocks
+//! (lossless, O(blocks)); remaps with a rotation resample the TSDF trilinearly.
+
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+
+use crate::fusion::{Block, TsdfVolume, BLOCK_EDGE, BLOCK_VOXELS};
+
+/// Moving-volume parameters (J 4 "moving policies", J 5.2).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MovingVolumeConfig {
+    /// cd: remap when the camera is farther than this from its nominal position (m). J gives no
+    /// value; a quarter of the default 1.28 m cube keeps the seen area inside.
+    pub distance_threshold_m: f64,
+    /// ca: remap when the camera's heading (rotation about the vertical) differs from the volume's z
+    /// axis by more than this (deg). J gives no value.
+    pub angle_threshold_deg: f64,
+    /// Nominal camera position as fractions of the cube edge along x, y, z (J 5.2: "the initial
+    /// camera position is in the middle of the volume").
+    pub nominal_position_fraction: [f64; 3],
+    /// Whether remaps happen at all (a fixed volume otherwise, e.g. for benchmarks against Open3D).
+    pub enabled: bool,
+}
+
+impl Default for MovingVolumeConfig {
+    fn default() -> Self {
+        Self { distance_threshold_m: 0.3, angle_threshold_deg: 30.0, nominal_position_fraction: [0.5, 0.5, 0.5], enabled: true }
+    }
+}
+
+impl MovingVolumeConfig {
+    /// Nominal camera position in a cube of edge `edge_m`.
+    pub fn nominal_position(&self, edge_m: f64) -> Vector3<f64> {
+        Vector3::from(self.nominal_position_fraction) * edge_m
+    }
+}
+
+/// Rotation taking volume axes to the gravity-aligned `map` frame (z up): map x = volume x,
+/// map y = volume z, map z = −volume y (volume y points down along gravity).
+pub fn map_from_volume_rotation() -> UnitQuaternion<f64> {
+    let rotation = Rotation3::from_matrix_unchecked(Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0));
+    UnitQuaternion::from_rotation_matrix(&rotation)
+}
+
+/// Initial `volume_from_camera` (J 5.2): volume y along gravity, z along the camera's forward
+/// direction made horizontal, camera at the nominal position. Without gravity the camera's own y
+/// axis is taken as down.
+pub fn initial_volume_from_camera(gravity_in_camera: Option<Vector3<f64>>, edge_m: f64, config: &MovingVolumeConfig) -> Isometry3<f64> {
+    let down = gravity_in_camera.and_then(|g| g.try_normalize(1e-9)).unwrap_or_else(Vector3::y);
+    let forward = Vector3::z();
+    let horizontal = (forward - down * down.dot(&forward))
+        .try_normalize(1e-6)
+        // Looking straight down: use the camera's "up in image" (−y) made horizontal instead.
+        .or_else(|| {
+            let up_image = -Vector3::y();
+            (up_image - down * down.dot(&up_image)).try_normalize(1e-6)
+        })
+        .unwrap_or_else(|| down.cross(&Vector3::x()).normalize());
+    let x = down.cross(&horizontal);
+    // Columns: volume axes in the camera frame → camera_from_volume rotation.
+    let camera_from_volume = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, down, horizontal]));
+    let rotation = UnitQuaternion::from_rotation_matrix(&camera_from_volume.inverse());
+    Isometry3::from_parts(Translation3::from(config.nominal_position(edge_m)), rotation)
+}
+
+/// Heading of the camera about the volume's vertical (rad): angle of its forward axis, made
+/// horizontal, from volume z toward volume x.
+pub fn camera_heading(volume_from_camera: &Isometry3<f64>) -> f64 {
+    let forward = volume_from_camera.rotation * Vector3::z();
+    forward.x.atan2(forward.z)
+}
+
+/// The remap the policy asks for, as `new_volume_from_old_volume`, or `None` while the camera stays
+/// within cd and ca of its nominal pose (J 5.2 step 5). Translation-only remaps are multiples of
+/// `block_m` on each axis.
+pub fn plan_remap(config: &MovingVolumeConfig, volume_from_camera: &Isometry3<f64>, edge_m: f64, block_m: f64) -> Option<Isometry3<f64>> {
+    if !config.enabled {
+        return None;
+    }
+    let nominal = config.nominal_position(edge_m);
+    let position = volume_from_camera.translation.vector;
+    let heading = camera_heading(volume_from_camera);
+    let forward = volume_from_camera.rotation * Vector3::z();
+    let heading_defined = forward.x.hypot(forward.z) > 0.2;
+    let rotate = heading_defined && heading.abs() > config.angle_threshold_deg.to_radians();
+    let translate = (position - nominal).norm() > config.distance_threshold_m;
+    if !(rotate || translate) {
+        return None;
+    }
+    if rotate {
+        // Rotation about the vertical (volume y) that brings the heading back to 0, then the
+        // translation that brings the camera to the nominal position.
+        let rotation = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), -heading);
+        let translation = nominal - rotation * position;
+        return Some(Isometry3::from_parts(Translation3::from(translation), rotation));
+    }
+    let shift = (nominal - position).map(|c| (c / block_m).round() * block_m);
+    (shift.norm() > 0.0).then(|| Isometry3::translation(shift.x, shift.y, shift.z))
+}
+
+/// Applies `new_from_old` to the TSDF content: block re-indexing for whole-block translations,
+/// trilinear resampling otherwise. Content leaving the cube is dropped.
+pub fn remap_tsdf(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
+    let block_m = f64::from(volume.block_size());
+    let shift_blocks = new_from_old.translation.vector / block_m;
+    let whole_blocks = shift_blocks.iter().all(|c| (c - c.round()).abs() < 1e-6);
+    if new_from_old.rotation.angle() < 1e-9 && whole_blocks {
+        let shift = shift_blocks.map(|c| c.round() as i32);
+        let blocks = volume
+            .take_blocks()
+            .into_iter()
+            .map(|(c, block)| ([c[0] as i32 + shift.x, c[1] as i32 + shift.y, c[2] as i32 + shift.z], block))
+            .collect();
+        volume.rebuild(blocks);
+        return;
+    }
+    resample(volume, new_from_old);
+}
+
+/// Trilinear resampling of the TSDF into the remapped frame.
+fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
+    let block_m = volume.block_size();
+    let n = volume.blocks_per_edge() as i32;
+    let pose = new_from_old.cast::<f32>();
+    // New blocks overlapped by the transformed bounding boxes of old blocks.
+    let mut targets: Vec<[i32; 3]> = Vec::new();
+    for (c, _) in volume.blocks() {
+        let mut lo = Vector3::repeat(f32::INFINITY);
+        let mut hi = Vector3::repeat(f32::NEG_INFINITY);
+        for corner in 0..8 {
+            let offset = Vector3::new((corner & 1) as f32, ((corner >> 1) & 1) as f32, ((corner >> 2) & 1) as f32);
+            let p = pose * Point3::from((Vector3::new(c[0] as f32, c[1] as f32, c[2] as f32) + offset) * block_m);
+            lo = lo.inf(&p.coords);
+            hi = hi.sup(&p.coords);
+        }
+        let lo = (lo / block_m).map(|v| (v.floor() as i32).max(0));
+        let hi = (hi / block_m).map(|v| (v.floor() as i32).min(n - 1));
+        for z in lo.z..=hi.z {
+            for y in lo.y..=hi.y {
+                for x in lo.x..=hi.x {
+                    targets.push([x, y, z]);
+                }
+            }
+        }
+    }
+    targets.sort_unstable();
+    targets.dedup();
+    let old_from_new = pose.inverse();
+    let voxel = volume.voxel_size();
+    let old = &*volume;
+    let blocks: Vec<([i32; 3], Box<Block>)> = targets
+        .par_iter()
+        .filter_map(|c| {
+            let mut block = Box::new(Block { tsdf: [1.0; BLOCK_VOXELS], weight: [0.0; BLOCK_VOXELS] });
+            let mut any = false;
+            for index in 0..BLOCK_VOXELS {
+                let (x, y, z) = (index % BLOCK_EDGE, (index / BLOCK_EDGE) % BLOCK_EDGE, index / (BLOCK_EDGE * BLOCK_EDGE));
+                let voxel_new = Vector3::new(
+                    (c[0] as usize * BLOCK_EDGE + x) as f32 + 0.5,
+                    (c[1] as usize * BLOCK_EDGE + y) as f32 + 0.5,
+                    (c[2] as usize * BLOCK_EDGE + z) as f32 + 0.5,
+                );
+                let voxel_old = (old_from_new * Point3::from(voxel_new * voxel)).coords / voxel;
+                let Some((_, weight)) = old.voxel(voxel_old.x.floor() as i32, voxel_old.y.floor() as i32, voxel_old.z.floor() as i32)
+                else {
+                    continue;
+                };
+                if weight <= 0.0 {
+                    continue;
+                }
+                let tsdf = match old.trilinear(&voxel_old) {
+                    Some(sample) => sample.tsdf,
+                    None => old.nearest(&voxel_old).unwrap_or(1.0),
+                };
+                if let (Some(t), Some(w)) = (block.tsdf.get_mut(index), block.weight.get_mut(index)) {
+                    *t = tsdf;
+                    *w = weight;
+                    any = true;
+                }
+            }
+            any.then_some((*c, block))
+        })
+        .collect();
+    volume.rebuild(blocks);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use crate::fusion::tests::render_plane;
+    use crate::fusion::TsdfConfig;
+
+    #[test]
+    fn initial_volume_has_y_down_and_z_forward() {
+        // Camera pitched 30° down: gravity in the camera has a +z component.
+        let pitch = 30f64.to_radians();
+        let gravity_in_camera = Vector3::new(0.0, pitch.cos(), pitch.sin());
+        let config = MovingVolumeConfig::default();
+        let pose = initial_volume_from_camera(Some(gravity_in_camera), 1.28, &config);
+        assert!((pose.rotation * gravity_in_camera - Vector3::y()).norm() < 1e-12);
+        let forward = pose.rotation * Vector3::z();
+        assert!(forward.x.abs() < 1e-12 && forward.z > 0.8, "{forward}");
+        assert!((pose.translation.vector - Vector3::repeat(0.64)).norm() < 1e-12);
+        assert!(camera_heading(&pose).abs() < 1e-12);
+        // Right-handed map rotation: volume y (down) is map −z.
+        assert!((map_from_volume_rotation() * Vector3::y() + Vector3::z()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn remaps_follow_distance_and_heading_thresholds() {
+        let config = MovingVolumeConfig { distance_threshold_m: 0.1, angle_threshold_deg: 20.0, ..MovingVolumeConfig::default() };
+        let start = initial_volume_from_camera(None, 1.28, &config);
+        assert!(plan_remap(&config, &start, 1.28, 0.04).is_none());
+        // Moved 0.25 m along x: block-quantised translation back toward the middle.
+        let moved = Isometry3::translation(0.25, 0.0, 0.0) * start;
+        let remap = plan_remap(&config, &moved, 1.28, 0.04).unwrap();
+        assert!(remap.rotation.angle() < 1e-12);
+        assert!((remap.translation.x + 0.24).abs() < 1e-9, "{}", remap.translation.x);
+        let after = remap * moved;
+        assert!((after.translation.vector - Vector3::repeat(0.64)).norm() < 0.021);
+        // Turned 40° about the vertical: rotation about y only, heading back to 0, y stays vertical.
+        let turned = Isometry3::from_parts(
+            start.translation,
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 40f64.to_radians()) * start.rotation,
+        );
+        let remap = plan_remap(&config, &turned, 1.28, 0.04).unwrap();
+        let after = remap * turned;
+        assert!(camera_heading(&after).abs() < 1e-9);
+        assert!((remap.rotation * Vector3::y() - Vector3::y()).norm() < 1e-12);
+        assert!((after.translation.vector - Vector3::repeat(0.64)).norm() < 1e-9);
+        let disabled = MovingVolumeConfig { enabled: false, ..config };
+        assert!(plan_remap(&disabled, &turned, 1.28, 0.04).is_none());
+    }
+
+    fn plane_volume() -> (TsdfVolume, Isometry3<f64>) {
+        let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
+        let mut volume = TsdfVolume::new(config).unwrap();
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let pose = crate::fusion::tests::looking_down_pose(Vector3::new(0.64, 0.3, 0.64));
+        let depth = render_plane(&intrinsics, &pose, Vector3::y(), 0.9);
+        volume.integrate(&depth, &intrinsics, &pose).unwrap();
+        (volume, pose)
+    }
+
+    #[test]
+    fn block_translation_is_lossless() {
+        let (mut volume, _) = plane_volume();
+        let before = volume.voxel(64, 89, 64).unwrap();
+        let remap = Isometry3::translation(0.08, -0.16, 0.0);
+        remap_tsdf(&mut volume, &remap);
+        assert_eq!(volume.voxel(72, 73, 64).unwrap(), before);
+    }
+
+    #[test]
+    fn rotation_resampling_keeps_the_surface() {
+        let (mut volume, _) = plane_volume();
+        let rotation = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.5);
+        let centre = Vector3::repeat(0.64);
+        let remap = Isometry3::from_parts(Translation3::from(centre - rotation * centre), rotation);
+        remap_tsdf(&mut volume, &remap);
+        assert!(volume.block_count() > 20);
+        // A horizontal plane stays at y = 0.9 under rotation about the vertical through the centre.
+        let surface = volume.surface_voxels(0.2);
+        assert!(surface.len() > 100);
+        assert!(surface.iter().all(|p| (p.y - 0.9).abs() < 0.01), "surface moved");
+    }
+}

@@ -132,8 +132,9 @@ pub fn ros_name(full: &str) -> Result<Name, NodeError> {
 /// A ROS 2 node with its context and the spinner thread (graph, parameter services, rosout).
 /// Dropping it stops the spinner and leaves the graph cleanly.
 pub struct RosNode {
-    // Field order = drop order: the node first (stops the spinner), then its thread, then the context.
-    node: Node,
+    // Dropped explicitly in `Drop` (which stops the spinner) before the spinner thread is joined; the
+    // context goes last. Always `Some` until then.
+    node: Option<Node>,
     spinner: Option<JoinHandle<()>>,
     context: Context,
     network: DdsNetwork,
@@ -168,7 +169,7 @@ impl RosNode {
             })
             .map_err(|e| node_err(format!("cannot start the spinner thread: {e}")))?;
         tracing::info!(node = name, domain_id, ?network, "ROS 2 node up");
-        Ok(RosNode { node, spinner: Some(spinner), context, network })
+        Ok(RosNode { node: Some(node), spinner: Some(spinner), context, network })
     }
 
     pub fn domain_id(&self) -> u16 {
@@ -179,32 +180,39 @@ impl RosNode {
         self.network
     }
 
+    fn node(&mut self, endpoint: &str) -> Result<&mut Node, NodeError> {
+        self.node.as_mut().ok_or_else(|| NodeError::Endpoint {
+            what: "endpoint",
+            name: endpoint.to_string(),
+            reason: "the node is shutting down".to_string(),
+        })
+    }
+
     /// Typed publisher on `topic`.
     pub fn publisher<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Publisher<M>, NodeError> {
         let err = |e: String| NodeError::Endpoint { what: "publisher", name: topic.to_string(), reason: e };
-        let dds_topic = self
-            .node
-            .create_topic(&ros_name(topic)?, M::type_name(), &qos)
-            .map_err(|e| err(format!("{e:?}")))?;
-        self.node.create_publisher::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
+        let name = ros_name(topic)?;
+        let node = self.node(topic)?;
+        let dds_topic = node.create_topic(&name, M::type_name(), &qos).map_err(|e| err(format!("{e:?}")))?;
+        node.create_publisher::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
     }
 
     /// Typed subscription on `topic`.
     pub fn subscription<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Subscription<M>, NodeError> {
         let err = |e: String| NodeError::Endpoint { what: "subscription", name: topic.to_string(), reason: e };
-        let dds_topic = self
-            .node
-            .create_topic(&ros_name(topic)?, M::type_name(), &qos)
-            .map_err(|e| err(format!("{e:?}")))?;
-        self.node.create_subscription::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
+        let name = ros_name(topic)?;
+        let node = self.node(topic)?;
+        let dds_topic = node.create_topic(&name, M::type_name(), &qos).map_err(|e| err(format!("{e:?}")))?;
+        node.create_subscription::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
     }
 
     /// Typed service server `name` (ServiceMapping::Enhanced, the mapping rmw_fastrtps/cyclonedds use).
     pub fn server<S: RosService>(&mut self, name: &str) -> Result<Server<S::Request, S::Response>, NodeError> {
-        self.node
+        let service_name = ros_name(name)?;
+        self.node(name)?
             .create_server::<S::Request, S::Response>(
                 ServiceMapping::Enhanced,
-                &ros_name(name)?,
+                &service_name,
                 &S::type_name(),
                 service_qos(),
                 service_qos(),
@@ -213,14 +221,16 @@ impl RosNode {
     }
 
     /// Escape hatch for what this wrapper does not cover (clients, actions, graph queries).
-    pub fn node_mut(&mut self) -> &mut Node {
-        &mut self.node
+    pub fn node_mut(&mut self) -> Option<&mut Node> {
+        self.node.as_mut()
     }
 }
 
 impl Drop for RosNode {
     fn drop(&mut self) {
-        self.node.stop_spinner();
+        // Dropping the node tells the spinner to stop; then wait for it so the participant leaves the
+        // graph cleanly when the context is dropped.
+        drop(self.node.take());
         if let Some(handle) = self.spinner.take() {
             if handle.join().is_err() {
                 tracing::error!("ROS 2 spinner thread panicked");
@@ -341,13 +351,20 @@ impl Shutdown {
     }
 }
 
+/// Default `tracing` filter: RustDDS warns about every loopback-only locator decision and fails to
+/// leave multicast groups it never joined on `lo`; both are expected here, so it logs errors only.
+pub const DEFAULT_LOG_FILTER: &str = "info,rustdds=error,rustdds::network::udp_listener=off,ros2_client=error";
+
 /// Logs to stderr through `tracing`; `RUST_LOG` overrides the default filter. The `log` records of
-/// ros2-client and RustDDS are forwarded (their info level is chatty, so they default to warn).
+/// ros2-client and RustDDS are forwarded (filtered by [`DEFAULT_LOG_FILTER`]).
 pub fn init_tracing() {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,rustdds=warn,ros2_client=warn"));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     // Ignore the error of a second initialisation (tests, embedded use).
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    let _ = tracing_subscriber::fmt().with_env_filter(filter)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_writer(std::io::stderr)
+        .try_init();
 }
 
 /// At most one warning per key and period, with the number of suppressed ones (journal-style

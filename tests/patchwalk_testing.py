@@ -1,0 +1,365 @@
+"""Fixture library of the patchwalk integration tests: real rclpy (ROS 2 Jazzy wheels) driving the real
+node binaries over DDS on loopback.
+
+- `ros_environment()` / `reserve_domain()`: the environment every participant of a test run shares
+  (Fast DDS loopback profile, ROS_DOMAIN_ID unique per pytest worker, logs in a temp dir).
+- `NodeProcess`: a node binary started with that environment; `stop()` sends SIGINT and checks the
+  exit code (clean shutdown) and returns its log.
+- `RosHarness`: one rclpy node spinning on a background thread with helpers that all take a timeout:
+  `wait_for_nodes`, `collect` (subscription collector with `wait_for`), `publisher`, `call`,
+  `publish_until`.
+
+No assertion here depends on timing: timeouts only bound how long a test waits for something that
+must happen.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET_DIR = Path(os.environ.get("CARGO_TARGET_DIR", REPO / "target")) / "release"
+FASTDDS_PROFILE = REPO / "tests" / "fastdds_loopback.xml"
+
+# How long to wait for something that must happen (discovery, a message, a response). Generous: CI
+# machines are small and shared; a passing test never waits this long.
+DEFAULT_TIMEOUT_S = 30.0
+
+_domain_lock_file = None
+
+
+def reserve_domain() -> int:
+    """A ROS domain id no other patchwalk test process on this machine holds (flock on a file per id,
+    released when the process exits). Domains 100..199 keep clear of the default 0."""
+    global _domain_lock_file
+    if _domain_lock_file is not None:
+        return int(os.environ["ROS_DOMAIN_ID"])
+    lock_dir = Path(tempfile.gettempdir()) / "patchwalk_ros_domains"
+    lock_dir.mkdir(exist_ok=True)
+    start = os.getpid() % 100
+    for offset in range(100):
+        domain = 100 + (start + offset) % 100
+        handle = open(lock_dir / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _domain_lock_file = handle
+        return domain
+    raise RuntimeError("no free ROS domain in 100..199")
+
+
+def ros_environment(log_dir: Path) -> dict[str, str]:
+    """Environment of the rclpy side and of the node binaries: DDS on loopback only."""
+    domain = reserve_domain()
+    env = {
+        "ROS_DOMAIN_ID": str(domain),
+        "ROS_DISTRO": "jazzy",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        # Jazzy's Fast DDS 2.14 reads FASTRTPS_*, not FASTDDS_*; without the profile's buffers large
+        # messages are silently dropped.
+        "FASTRTPS_DEFAULT_PROFILES_FILE": str(FASTDDS_PROFILE),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "ROS_LOG_DIR": str(log_dir),
+        # Wrong field types fail loudly in rclpy message constructors.
+        "ROS_PYTHON_CHECK_FIELDS": "1",
+        # patchwalk nodes: RustDDS restricted to 127.0.0.1 (also their default).
+        "PATCHWALK_DDS_NETWORK": "loopback",
+        "RUST_LOG": os.environ.get("RUST_LOG", "info"),
+    }
+    env.setdefault("HOME", os.environ.get("HOME", str(log_dir)))
+    return env
+
+
+def binary(name: str) -> Path:
+    path = TARGET_DIR / name
+    if not path.exists():
+        raise FileNotFoundError(f"{path} not built: run `cargo build --release --workspace` first")
+    return path
+
+
+class NodeProcess:
+    """A patchwalk node binary (`<name> run ...`) with its log captured to a file."""
+
+    def __init__(self, name: str, args: list[str], env: dict[str, str], log_dir: Path):
+        self.name = name
+        self.log_path = log_dir / f"{name}-{time.monotonic_ns()}.log"
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen(
+            [str(binary(name)), *args],
+            env={**os.environ, **env},
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+        )
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = DEFAULT_TIMEOUT_S) -> str:
+        """Send `sig`, wait for the exit, assert it was clean (exit code 0); return the log."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+                raise AssertionError(f"{self.name} did not exit within {timeout} s of {sig!r}:\n{self.log()}")
+        self._log.close()
+        log = self.log_path.read_text(errors="replace")
+        assert self.proc.returncode == 0, f"{self.name} exited with {self.proc.returncode}:\n{log}"
+        assert "panicked" not in log, f"{self.name} panicked:\n{log}"
+        return log
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self._log.close()
+
+
+@dataclass
+class Collector:
+    """Messages received on one topic, with a blocking wait."""
+
+    topic: str
+    messages: list = field(default_factory=list)
+    _cond: threading.Condition = field(default_factory=threading.Condition)
+
+    def _on_message(self, msg: Any) -> None:
+        with self._cond:
+            self.messages.append(msg)
+            self._cond.notify_all()
+
+    def wait_for(self, predicate: Callable[[Any], bool] = lambda _: True, timeout: float = DEFAULT_TIMEOUT_S):
+        """First message (received so far or later) that satisfies `predicate`."""
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._cond:
+            while True:
+                for msg in self.messages[seen:]:
+                    if predicate(msg):
+                        return msg
+                seen = len(self.messages)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = self.messages[-1] if self.messages else None
+                    raise AssertionError(
+                        f"no matching message on {self.topic} within {timeout} s "
+                        f"({len(self.messages)} received, last: {last})"
+                    )
+                self._cond.wait(left)
+
+    def latest(self, timeout: float = DEFAULT_TIMEOUT_S):
+        self.wait_for(timeout=timeout)
+        with self._cond:
+            return self.messages[-1]
+
+    def clear(self) -> None:
+        with self._cond:
+            self.messages.clear()
+
+
+class RosHarness:
+    """One rclpy context + node, spun by a background executor thread."""
+
+    def __init__(self, name: str = "pytest_harness"):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        from rclpy.signals import SignalHandlerOptions
+
+        # No rclpy signal handlers: Ctrl-C belongs to pytest.
+        rclpy.init(context=self.context, domain_id=int(os.environ["ROS_DOMAIN_ID"]),
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="rclpy-spin", daemon=True)
+        self._thread.start()
+        self._lock = threading.Lock()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # context shut down
+            pass
+
+    def shutdown(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self._rclpy.shutdown(context=self.context)
+        self._thread.join(timeout=5)
+
+    # --- graph -------------------------------------------------------------------------------------
+
+    def node_names(self) -> set[str]:
+        return {(ns.rstrip("/") + "/" + name) for name, ns in self.node.get_node_names_and_namespaces()}
+
+    def wait_for_nodes(self, *names: str, timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        wanted = {n if n.startswith("/") else "/" + n for n in names}
+        deadline = time.monotonic() + timeout
+        while not wanted <= self.node_names():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"nodes {sorted(wanted - self.node_names())} not on the graph within {timeout} s "
+                                     f"(graph: {sorted(self.node_names())})")
+            time.sleep(0.1)
+
+    def wait_for_topic_types(self, expected: dict[str, str], timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        """Wait until every topic of `expected` is on the graph with exactly that type."""
+        self._wait_for_types(expected, self.node.get_topic_names_and_types, "topics", timeout)
+
+    def wait_for_service_types(self, expected: dict[str, str], timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        self._wait_for_types(expected, self.node.get_service_names_and_types, "services", timeout)
+
+    def _wait_for_types(self, expected, query, what, timeout) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            graph = {name: types for name, types in query()}
+            missing = {n: t for n, t in expected.items() if t not in graph.get(n, [])}
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{what} missing or mistyped after {timeout} s: {missing}; graph has "
+                                     f"{ {n: graph.get(n) for n in missing} }")
+            time.sleep(0.1)
+
+    # --- topics --------------------------------------------------------------------------------------
+
+    def collect(self, msg_type, topic: str, qos=None) -> Collector:
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy
+
+        qos = qos or QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                                depth=10, durability=DurabilityPolicy.VOLATILE)
+        collector = Collector(topic)
+        with self._lock:
+            self.node.create_subscription(msg_type, topic, collector._on_message, qos)
+        return collector
+
+    def publisher(self, msg_type, topic: str, qos=None):
+        from rclpy.qos import qos_profile_sensor_data
+
+        with self._lock:
+            return self.node.create_publisher(msg_type, topic, qos or qos_profile_sensor_data)
+
+    def wait_for_subscriber(self, publisher, timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        deadline = time.monotonic() + timeout
+        while publisher.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no subscriber matched {publisher.topic_name} within {timeout} s")
+            time.sleep(0.05)
+
+    def publish_until(self, publisher, msg, collector: Collector, predicate: Callable[[Any], bool],
+                      period: float = 0.2, timeout: float = DEFAULT_TIMEOUT_S):
+        """Publish `msg` every `period` until `collector` receives a message satisfying `predicate`
+        (best-effort sensor topics may drop a sample; the outcome, not the count, is asserted)."""
+        self.wait_for_subscriber(publisher, timeout)
+        deadline = time.monotonic() + timeout
+        while True:
+            publisher.publish(msg)
+            try:
+                return collector.wait_for(predicate, timeout=period)
+            except AssertionError:
+                if time.monotonic() > deadline:
+                    return collector.wait_for(predicate, timeout=0.0)
+
+    # --- services ------------------------------------------------------------------------------------
+
+    def client(self, srv_type, name: str):
+        with self._lock:
+            return self.node.create_client(srv_type, name)
+
+    def call(self, srv_type, name: str, request=None, timeout: float = DEFAULT_TIMEOUT_S, attempt_s: float = 5.0):
+        """Call service `name` and return its response. A request lost while discovery settles is
+        sent again after `attempt_s` (the services used here are idempotent)."""
+        client = self.client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise AssertionError(f"service {name} not available within {timeout} s")
+            request = request if request is not None else srv_type.Request()
+            deadline = time.monotonic() + timeout
+            while True:
+                done = threading.Event()
+                future = client.call_async(request)
+                future.add_done_callback(lambda _: done.set())
+                if done.wait(min(attempt_s, max(0.0, deadline - time.monotonic()))):
+                    return future.result()
+                client.remove_pending_request(future)
+                if time.monotonic() > deadline:
+                    raise AssertionError(f"no response from {name} within {timeout} s")
+        finally:
+            with self._lock:
+                self.node.destroy_client(client)
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = DEFAULT_TIMEOUT_S, period: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}: not true within {timeout} s")
+        time.sleep(period)
+
+
+def depth_image_16uc1(width: int, height: int, frame_id: str = "camera_optical"):
+    """A sensor_msgs/Image 16UC1 (mm): a tilted plane from 0.8 m to ~1.4 m, with a hole of zeros."""
+    import numpy as np
+    from sensor_msgs.msg import Image
+
+    v, u = np.mgrid[0:height, 0:width]
+    depth_mm = (800 + 600 * v / max(height - 1, 1) + 50 * u / max(width - 1, 1)).astype("<u2")
+    depth_mm[: height // 8, : width // 8] = 0
+    msg = Image()
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = height, width
+    msg.encoding = "16UC1"
+    msg.is_bigendian = 0
+    msg.step = width * 2
+    msg.data = depth_mm.tobytes()
+    return msg
+
+
+def depth_image_32fc1(width: int, height: int, frame_id: str = "camera_optical"):
+    import numpy as np
+    from sensor_msgs.msg import Image
+
+    depth_m = np.full((height, width), 1.25, dtype="<f4")
+    depth_m[0, 0] = np.nan
+    msg = Image()
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = height, width
+    msg.encoding = "32FC1"
+    msg.step = width * 4
+    msg.data = depth_m.tobytes()
+    return msg
+
+
+def camera_info(width: int, height: int, f: float = 525.0, frame_id: str = "camera_optical"):
+    from sensor_msgs.msg import CameraInfo
+
+    msg = CameraInfo()
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = width, height
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    msg.k = [f, 0.0, (width - 1) / 2, 0.0, f, (height - 1) / 2, 0.0, 0.0, 1.0]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    msg.p = [f, 0.0, (width - 1) / 2, 0.0, 0.0, f, (height - 1) / 2, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return msg

@@ -12,3 +12,5 @@ pub mod mx28;
 pub mod patch;
 pub mod player;
 pub mod servo_bus;
+pub mod protocol;
+pub mod sim_chain;

@@ -114,6 +114,8 @@ impl ServoBus for DynamixelBus {
                 let result = match response {
                     Ok(r) if r.motor_id != id => Err(BusError::Protocol { id, detail: format!("response from servo {}", r.motor_id) }),
                     Ok(r) => Ok(SyncReadData { data: r.data.to_vec(), alert: r.alert }),
+                    // The next servo's answer arrived in this servo's slot: this one is missing.
+                    Err(ReadError::InvalidMessage(InvalidMessage::InvalidPacketId(_))) => Err(BusError::Timeout { id }),
                     Err(e) => Err(read_error(id, e)),
                 };
                 results.push((id, result));

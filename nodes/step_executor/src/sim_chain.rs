@@ -1,0 +1,641 @@
+//! A simulated chain of MX-28 servos speaking Dynamixel Protocol 2.0 at the byte level on a pty pair,
+//! so the real master code (dynamixel2, the ROBOTIS SDK, any Dynamixel tool) talks to it through the
+//! slave device path. Implements ping (unicast and broadcast), read, write, sync read, sync write and
+//! reboot over the MX-28(2.0) control table (model 30) with its semantics: EEPROM (addresses < 64)
+//! locked while torque is on, read-only fields, goal limited to the position limits, Status Return
+//! Level, Return Delay Time, and Present Position moving toward Goal Position at the profile velocity
+//! (or the velocity limit, 230 × 0.229 rpm ≈ 53 rpm, the MX-28's no-load speed) while torque is on.
+//! Wire time at the configured baud rate is simulated. Faults can be injected at run time: silence
+//! (per servo or the whole chain), corrupted CRCs, hardware error bits (alert bit set, torque off as
+//! with the Shutdown register), and extra latency.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::os::fd::{AsFd, OwnedFd};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crate::mx28;
+use crate::protocol::{self, instruction, status_error, Packet, PacketParser};
+
+/// Errors starting the simulated chain.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("cannot create pty: {0}")]
+    Pty(String),
+    #[error("invalid servo id {0} (1..=252)")]
+    InvalidId(u8),
+}
+
+/// Runtime-injectable faults.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Faults {
+    /// The whole chain stops answering.
+    pub silent_all: bool,
+    /// These servos stop answering.
+    pub silent: BTreeSet<u8>,
+    /// These servos answer with a corrupted CRC.
+    pub crc_errors: BTreeSet<u8>,
+    /// Extra delay before every response.
+    pub latency: Duration,
+}
+
+/// Chain configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimConfig {
+    /// Servo IDs on the chain.
+    pub ids: Vec<u8>,
+    /// Baud rate used for wire-time simulation (the pty itself has no baud rate).
+    pub baud: u32,
+    /// Simulate the wire time of responses at `baud`.
+    pub simulate_wire_time: bool,
+    /// Initial Return Delay Time register (2 µs units); factory default 250 (500 µs).
+    pub return_delay_register: u8,
+}
+
+impl SimConfig {
+    /// `n` servos with IDs 1..=n at 1 Mbps, factory return delay.
+    pub fn with_servos(n: u8) -> Self {
+        Self { ids: (1..=n).collect(), baud: 1_000_000, simulate_wire_time: true, return_delay_register: 250 }
+    }
+}
+
+/// Snapshot of one simulated servo.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ServoSnapshot {
+    pub id: u8,
+    pub present: f64,
+    pub goal: i32,
+    pub torque: bool,
+    pub hardware_error: u8,
+}
+
+#[derive(Debug, Clone)]
+struct SimServo {
+    table: [u8; mx28::TABLE_SIZE],
+    /// Present position with sub-tick precision.
+    present: f64,
+    /// Goal positions received while torque is on (for tests: the servo "passes through" keyframes).
+    goal_history: Vec<i32>,
+}
+
+impl SimServo {
+    fn new(id: u8, return_delay: u8, present: f64) -> Self {
+        let mut table = [0u8; mx28::TABLE_SIZE];
+        for field in mx28::FIELDS {
+            let bytes = field.default.to_le_bytes();
+            let start = usize::from(field.address);
+            table[start..start + usize::from(field.size)].copy_from_slice(&bytes[..usize::from(field.size)]);
+        }
+        table[usize::from(mx28::ID)] = id;
+        table[usize::from(mx28::RETURN_DELAY_TIME)] = return_delay;
+        let mut servo = Self { table, present, goal_history: Vec::new() };
+        servo.set_u32(mx28::GOAL_POSITION, present.round() as u32);
+        servo.sync_present(0.0);
+        servo
+    }
+
+    fn u8_at(&self, address: u16) -> u8 {
+        self.table[usize::from(address)]
+    }
+
+    fn u32_at(&self, address: u16) -> u32 {
+        let a = usize::from(address);
+        u32::from_le_bytes([self.table[a], self.table[a + 1], self.table[a + 2], self.table[a + 3]])
+    }
+
+    fn set_u32(&mut self, address: u16, value: u32) {
+        let a = usize::from(address);
+        self.table[a..a + 4].copy_from_slice(&value.to_le_bytes());
+    }
+
+    fn id(&self) -> u8 {
+        self.u8_at(mx28::ID)
+    }
+
+    fn torque(&self) -> bool {
+        self.u8_at(mx28::TORQUE_ENABLE) != 0
+    }
+
+    /// Mirror `present` (and velocity) into the control table.
+    fn sync_present(&mut self, velocity_ticks_s: f64) {
+        self.set_u32(mx28::PRESENT_POSITION, self.present.round() as i32 as u32);
+        let velocity_units = velocity_ticks_s * 60.0 / 4096.0 / mx28::VELOCITY_UNIT_RPM;
+        self.set_u32(mx28::PRESENT_VELOCITY, velocity_units.round() as i32 as u32);
+        self.table[usize::from(mx28::MOVING)] = u8::from(velocity_ticks_s != 0.0);
+    }
+
+    /// Move toward the goal for `dt` seconds at the profile velocity (0 = velocity limit).
+    fn advance(&mut self, dt: f64) {
+        let mut velocity = 0.0;
+        if self.torque() && self.u8_at(mx28::HARDWARE_ERROR_STATUS) == 0 {
+            let goal = f64::from(self.u32_at(mx28::GOAL_POSITION) as i32);
+            let profile = self.u32_at(mx28::PROFILE_VELOCITY);
+            let units = if profile == 0 { self.u32_at(mx28::VELOCITY_LIMIT) } else { profile };
+            let speed = f64::from(units) * mx28::VELOCITY_UNIT_RPM / 60.0 * 4096.0; // ticks/s
+            let delta = goal - self.present;
+            let step = speed * dt;
+            if delta.abs() <= step {
+                self.present = goal;
+            } else {
+                self.present += step * delta.signum();
+                velocity = speed * delta.signum();
+            }
+        }
+        self.sync_present(velocity);
+    }
+
+    /// Apply a write; returns the status error number (0 = ok).
+    fn write(&mut self, address: u16, data: &[u8]) -> u8 {
+        let end = usize::from(address) + data.len();
+        if data.is_empty() || end > mx28::TABLE_SIZE {
+            return status_error::DATA_LENGTH;
+        }
+        // Every touched byte must belong to a writable field, fully covered; EEPROM locked with torque on.
+        let mut a = address;
+        while usize::from(a) < end {
+            let Some(field) = mx28::field_at(a) else { return status_error::ACCESS };
+            if field.access != mx28::Access::ReadWrite || field.address != a || usize::from(a + field.size) > end {
+                return status_error::ACCESS;
+            }
+            if a < mx28::RAM_START && self.torque() {
+                return status_error::ACCESS;
+            }
+            let offset = usize::from(a - address);
+            let mut bytes = [0u8; 4];
+            bytes[..usize::from(field.size)].copy_from_slice(&data[offset..offset + usize::from(field.size)]);
+            let value = u32::from_le_bytes(bytes);
+            if let Some(error) = self.check_range(a, value) {
+                return error;
+            }
+            a += field.size;
+        }
+        let was_on = self.torque();
+        let start = usize::from(address);
+        self.table[start..end].copy_from_slice(data);
+        if !was_on && self.torque() {
+            // Enabling torque latches the goal to the present position (no jump).
+            self.set_u32(mx28::GOAL_POSITION, self.present.round() as u32);
+        }
+        if address <= mx28::GOAL_POSITION && end >= usize::from(mx28::GOAL_POSITION) + 4 && self.torque() {
+            let goal = self.u32_at(mx28::GOAL_POSITION) as i32;
+            self.goal_history.push(goal);
+        }
+        0
+    }
+
+    fn check_range(&self, address: u16, value: u32) -> Option<u8> {
+        let bad = match address {
+            mx28::TORQUE_ENABLE | mx28::LED => value > 1,
+            mx28::STATUS_RETURN_LEVEL => value > 2,
+            mx28::ID => value > 252,
+            mx28::BAUD_RATE => mx28::baud_from_register(value as u8).is_none(),
+            mx28::RETURN_DELAY_TIME => value > 254,
+            mx28::GOAL_POSITION => {
+                let (min, max) = (self.u32_at(mx28::MIN_POSITION_LIMIT), self.u32_at(mx28::MAX_POSITION_LIMIT));
+                value < min || value > max
+            }
+            mx28::MAX_POSITION_LIMIT | mx28::MIN_POSITION_LIMIT => value > 4095,
+            _ => false,
+        };
+        bad.then_some(status_error::DATA_LIMIT)
+    }
+
+    fn read(&self, address: u16, count: u16) -> Result<Vec<u8>, u8> {
+        let start = usize::from(address);
+        let end = start + usize::from(count);
+        if count == 0 || end > mx28::TABLE_SIZE {
+            return Err(status_error::DATA_RANGE);
+        }
+        Ok(self.table[start..end].to_vec())
+    }
+
+    fn reboot(&mut self) {
+        let id = self.id();
+        let eeprom: Vec<u8> = self.table[..usize::from(mx28::RAM_START)].to_vec();
+        let fresh = SimServo::new(id, self.u8_at(mx28::RETURN_DELAY_TIME), self.present);
+        self.table = fresh.table;
+        self.table[..usize::from(mx28::RAM_START)].copy_from_slice(&eeprom);
+        self.sync_present(0.0);
+    }
+
+    fn error_byte(&self, error: u8) -> u8 {
+        if self.u8_at(mx28::HARDWARE_ERROR_STATUS) != 0 {
+            error | status_error::ALERT
+        } else {
+            error
+        }
+    }
+}
+
+struct Shared {
+    stop: AtomicBool,
+    faults: Mutex<Faults>,
+    servos: Mutex<Vec<SimServo>>,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// A running simulated chain; dropping it stops the thread and closes the pty.
+pub struct SimChain {
+    device_path: PathBuf,
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+    /// Kept open so the master never sees EIO when clients disconnect.
+    _slave: Arc<OwnedFd>,
+}
+
+impl std::fmt::Debug for SimChain {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimChain").field("device_path", &self.device_path).finish()
+    }
+}
+
+impl SimChain {
+    /// Open a pty pair and start serving the chain on its own thread.
+    pub fn spawn(config: SimConfig) -> Result<Self, SimError> {
+        if let Some(&bad) = config.ids.iter().find(|&&id| id == 0 || id > 252) {
+            return Err(SimError::InvalidId(bad));
+        }
+        let pty = nix::pty::openpty(None, None).map_err(|e| SimError::Pty(e.to_string()))?;
+        let mut termios = nix::sys::termios::tcgetattr(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
+        nix::sys::termios::cfmakeraw(&mut termios);
+        nix::sys::termios::tcsetattr(pty.slave.as_fd(), nix::sys::termios::SetArg::TCSANOW, &termios)
+            .map_err(|e| SimError::Pty(e.to_string()))?;
+        let device_path = nix::unistd::ttyname(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
+        let servos = config.ids.iter().map(|&id| SimServo::new(id, config.return_delay_register, 2048.0)).collect();
+        let shared = Arc::new(Shared { stop: AtomicBool::new(false), faults: Mutex::new(Faults::default()), servos: Mutex::new(servos) });
+        let thread_shared = Arc::clone(&shared);
+        let master = pty.master;
+        let thread = std::thread::Builder::new()
+            .name("sim-mx28-chain".into())
+            .spawn(move || serve(master, thread_shared, config))
+            .map_err(|e| SimError::Pty(e.to_string()))?;
+        Ok(Self { device_path, shared, thread: Some(thread), _slave: Arc::new(pty.slave) })
+    }
+
+    /// The slave device to open with any Dynamixel master (e.g. `/dev/pts/3`).
+    pub fn device_path(&self) -> &Path {
+        &self.device_path
+    }
+
+    /// Change the injected faults.
+    pub fn set_faults(&self, update: impl FnOnce(&mut Faults)) {
+        update(&mut lock(&self.shared.faults));
+    }
+
+    /// Set hardware error bits on a servo (alert bit in its status packets; torque switched off).
+    pub fn set_hardware_error(&self, id: u8, bits: u8) {
+        let mut servos = lock(&self.shared.servos);
+        if let Some(servo) = servos.iter_mut().find(|s| s.id() == id) {
+            servo.table[usize::from(mx28::HARDWARE_ERROR_STATUS)] = bits;
+            if bits != 0 {
+                servo.table[usize::from(mx28::TORQUE_ENABLE)] = 0;
+            }
+        }
+    }
+
+    /// Move a servo by hand (torque off: compliant posing for keyframe recording).
+    pub fn set_present(&self, id: u8, ticks: f64) {
+        let mut servos = lock(&self.shared.servos);
+        if let Some(servo) = servos.iter_mut().find(|s| s.id() == id) {
+            servo.present = ticks;
+            servo.sync_present(0.0);
+        }
+    }
+
+    /// State of one servo.
+    pub fn snapshot(&self, id: u8) -> Option<ServoSnapshot> {
+        let servos = lock(&self.shared.servos);
+        servos.iter().find(|s| s.id() == id).map(|s| ServoSnapshot {
+            id,
+            present: s.present,
+            goal: s.u32_at(mx28::GOAL_POSITION) as i32,
+            torque: s.torque(),
+            hardware_error: s.u8_at(mx28::HARDWARE_ERROR_STATUS),
+        })
+    }
+
+    /// Goal positions each servo accepted while torque was on (in order).
+    pub fn goal_history(&self, id: u8) -> Vec<i32> {
+        lock(&self.shared.servos).iter().find(|s| s.id() == id).map(|s| s.goal_history.clone()).unwrap_or_default()
+    }
+
+    /// Stop the thread (also done on drop).
+    pub fn stop(&mut self) {
+        self.shared.stop.store(true, Ordering::SeqCst);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+impl Drop for SimChain {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Sleep for simulated bus time (skipped below the scheduler's resolution).
+fn bus_sleep(duration: Duration) {
+    if duration >= Duration::from_micros(20) {
+        std::thread::sleep(duration);
+    }
+}
+
+fn write_all(master: &OwnedFd, mut bytes: &[u8]) {
+    while !bytes.is_empty() {
+        match nix::unistd::write(master, bytes) {
+            Ok(0) => return,
+            Ok(n) => bytes = &bytes[n..],
+            Err(nix::errno::Errno::EAGAIN) | Err(nix::errno::Errno::EINTR) => std::thread::sleep(Duration::from_micros(50)),
+            Err(_) => return,
+        }
+    }
+}
+
+/// The chain's thread: read instructions, advance the servos, answer.
+fn serve(master: OwnedFd, shared: Arc<Shared>, config: SimConfig) {
+    let mut parser = PacketParser::new();
+    let mut buffer = [0u8; 1024];
+    let mut last = Instant::now();
+    while !shared.stop.load(Ordering::SeqCst) {
+        let readable = {
+            let mut fds = [nix::poll::PollFd::new(master.as_fd(), nix::poll::PollFlags::POLLIN)];
+            matches!(nix::poll::poll(&mut fds, nix::poll::PollTimeout::from(5u8)), Ok(n) if n > 0)
+        };
+        let now = Instant::now();
+        let dt = now.duration_since(last).as_secs_f64();
+        last = now;
+        {
+            let mut servos = lock(&shared.servos);
+            let tick = (now.elapsed().as_millis() % 32768) as u16;
+            for servo in servos.iter_mut() {
+                servo.advance(dt);
+                let a = usize::from(mx28::REALTIME_TICK);
+                servo.table[a..a + 2].copy_from_slice(&tick.to_le_bytes());
+            }
+        }
+        if !readable {
+            continue;
+        }
+        match nix::unistd::read(std::os::fd::AsRawFd::as_raw_fd(&master), &mut buffer) {
+            Ok(0) => continue,
+            Ok(n) => parser.feed(&buffer[..n]),
+            Err(nix::errno::Errno::EAGAIN) | Err(nix::errno::Errno::EINTR) => continue,
+            Err(_) => {
+                std::thread::sleep(Duration::from_millis(5));
+                continue;
+            }
+        }
+        while let Some(frame) = parser.next_packet() {
+            // Frames with a bad CRC are ignored by MX-28s when addressed by broadcast; for a unicast
+            // instruction the servo answers with a CRC error status.
+            let responses = match frame {
+                Ok(packet) => handle(&packet, &shared),
+                Err(protocol::FrameError::Crc { id, .. }) => crc_error_response(id, &shared),
+                Err(_) => Vec::new(),
+            };
+            respond(&master, &shared, &config, responses);
+        }
+    }
+}
+
+/// A response: (responding servo id, error byte, data).
+type Response = (u8, u8, Vec<u8>);
+
+fn crc_error_response(id: u8, shared: &Shared) -> Vec<Response> {
+    let servos = lock(&shared.servos);
+    servos
+        .iter()
+        .filter(|s| s.id() == id && id != protocol::BROADCAST_ID && s.u8_at(mx28::STATUS_RETURN_LEVEL) == 2)
+        .map(|s| (id, s.error_byte(status_error::CRC), Vec::new()))
+        .collect()
+}
+
+/// Execute one instruction; returns the status packets to send, in bus order.
+fn handle(packet: &Packet, shared: &Shared) -> Vec<Response> {
+    let mut servos = lock(&shared.servos);
+    let p = &packet.params;
+    let u16_at = |i: usize| -> Option<u16> { Some(u16::from_le_bytes([*p.get(i)?, *p.get(i + 1)?])) };
+    let broadcast = packet.id == protocol::BROADCAST_ID;
+    let mut out = Vec::new();
+    match packet.instruction {
+        instruction::PING => {
+            for servo in servos.iter().filter(|s| broadcast || s.id() == packet.id) {
+                let model = mx28::MODEL_NUMBER.to_le_bytes();
+                out.push((servo.id(), servo.error_byte(0), vec![model[0], model[1], servo.u8_at(mx28::FIRMWARE_VERSION_ADDR)]));
+            }
+        }
+        instruction::SYNC_READ => {
+            let (Some(address), Some(count)) = (u16_at(0), u16_at(2)) else { return out };
+            for &id in p.get(4..).unwrap_or(&[]) {
+                if let Some(servo) = servos.iter().find(|s| s.id() == id) {
+                    if servo.u8_at(mx28::STATUS_RETURN_LEVEL) >= 1 {
+                        match servo.read(address, count) {
+                            Ok(data) => out.push((id, servo.error_byte(0), data)),
+                            Err(e) => out.push((id, servo.error_byte(e), Vec::new())),
+                        }
+                    }
+                }
+            }
+        }
+        instruction::SYNC_WRITE => {
+            let (Some(address), Some(count)) = (u16_at(0), u16_at(2)) else { return out };
+            let stride = 1 + usize::from(count);
+            for chunk in p.get(4..).unwrap_or(&[]).chunks_exact(stride) {
+                if let Some(servo) = servos.iter_mut().find(|s| s.id() == chunk[0]) {
+                    let _ = servo.write(address, &chunk[1..]);
+                }
+            }
+        }
+        _ => {
+            for servo in servos.iter_mut().filter(|s| broadcast || s.id() == packet.id) {
+                let (error, data) = match packet.instruction {
+                    instruction::READ => match (u16_at(0), u16_at(2), p.len()) {
+                        (Some(address), Some(count), 4) => match servo.read(address, count) {
+                            Ok(data) => (0, data),
+                            Err(e) => (e, Vec::new()),
+                        },
+                        _ => (status_error::DATA_LENGTH, Vec::new()),
+                    },
+                    instruction::WRITE => match u16_at(0) {
+                        Some(address) if p.len() > 2 => (servo.write(address, &p[2..]), Vec::new()),
+                        _ => (status_error::DATA_LENGTH, Vec::new()),
+                    },
+                    instruction::REBOOT => {
+                        servo.reboot();
+                        (0, Vec::new())
+                    }
+                    _ => (status_error::INSTRUCTION, Vec::new()),
+                };
+                let level = servo.u8_at(mx28::STATUS_RETURN_LEVEL);
+                let answers = !broadcast && (level == 2 || (level == 1 && packet.instruction == instruction::READ));
+                if answers {
+                    out.push((servo.id(), servo.error_byte(error), data));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Send responses honouring faults, return delay and wire time.
+fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec<Response>) {
+    let faults = lock(&shared.faults).clone();
+    if faults.silent_all {
+        return;
+    }
+    let delays: BTreeMap<u8, u8> = lock(&shared.servos).iter().map(|s| (s.id(), s.u8_at(mx28::RETURN_DELAY_TIME))).collect();
+    for (id, error, data) in responses {
+        if faults.silent.contains(&id) {
+            continue;
+        }
+        let mut bytes = protocol::encode_status(id, error, &data);
+        if faults.crc_errors.contains(&id) {
+            let n = bytes.len();
+            bytes[n - 1] ^= 0xA5;
+        }
+        let mut wait = faults.latency + Duration::from_micros(2 * u64::from(delays.get(&id).copied().unwrap_or(0)));
+        if config.simulate_wire_time && config.baud > 0 {
+            wait += Duration::from_nanos(bytes.len() as u64 * 10 * 1_000_000_000 / u64::from(config.baud));
+        }
+        bus_sleep(wait);
+        write_all(master, &bytes);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::{encode, PacketParser};
+    use std::io::{Read, Write};
+
+    /// Minimal raw client over the pty for framing-level checks.
+    struct Raw {
+        port: std::fs::File,
+        parser: PacketParser,
+    }
+
+    impl Raw {
+        fn open(chain: &SimChain) -> Self {
+            let port = std::fs::OpenOptions::new().read(true).write(true).open(chain.device_path()).unwrap();
+            Self { port, parser: PacketParser::new() }
+        }
+
+        fn send(&mut self, id: u8, inst: u8, params: &[u8]) {
+            self.port.write_all(&encode(id, inst, params)).unwrap();
+        }
+
+        /// Read one status packet (blocking with a deadline).
+        fn recv(&mut self) -> Option<Packet> {
+            let deadline = Instant::now() + Duration::from_millis(300);
+            let mut buf = [0u8; 256];
+            loop {
+                if let Some(Ok(p)) = self.parser.next_packet() {
+                    return Some(p);
+                }
+                if Instant::now() > deadline {
+                    return None;
+                }
+                let mut fds = [nix::poll::PollFd::new(self.port.as_fd(), nix::poll::PollFlags::POLLIN)];
+                if matches!(nix::poll::poll(&mut fds, nix::poll::PollTimeout::from(20u8)), Ok(n) if n > 0) {
+                    let n = self.port.read(&mut buf).unwrap();
+                    self.parser.feed(&buf[..n]);
+                }
+            }
+        }
+    }
+
+    fn chain(n: u8) -> SimChain {
+        let mut config = SimConfig::with_servos(n);
+        config.return_delay_register = 0;
+        SimChain::spawn(config).unwrap()
+    }
+
+    fn raw_tty(chain: &SimChain) -> Raw {
+        let raw = Raw::open(chain);
+        let mut t = nix::sys::termios::tcgetattr(raw.port.as_fd()).unwrap();
+        nix::sys::termios::cfmakeraw(&mut t);
+        nix::sys::termios::tcsetattr(raw.port.as_fd(), nix::sys::termios::SetArg::TCSANOW, &t).unwrap();
+        raw
+    }
+
+    #[test]
+    fn broadcast_ping_answers_in_id_order() {
+        let chain = chain(3);
+        let mut raw = raw_tty(&chain);
+        raw.send(protocol::BROADCAST_ID, instruction::PING, &[]);
+        for id in 1..=3 {
+            let p = raw.recv().unwrap();
+            assert_eq!((p.id, p.instruction), (id, instruction::STATUS));
+            assert_eq!(p.params, vec![0, 30, 0, mx28::FIRMWARE_VERSION]);
+        }
+    }
+
+    #[test]
+    fn eeprom_locked_while_torque_on_and_read_only_fields_refused() {
+        let chain = chain(1);
+        let mut raw = raw_tty(&chain);
+        raw.send(1, instruction::WRITE, &[9, 0, 0]); // return delay 0, torque off: ok
+        assert_eq!(raw.recv().unwrap().params, vec![0]);
+        raw.send(1, instruction::WRITE, &[64, 0, 1]); // torque on
+        assert_eq!(raw.recv().unwrap().params, vec![0]);
+        raw.send(1, instruction::WRITE, &[9, 0, 5]);
+        assert_eq!(raw.recv().unwrap().params, vec![status_error::ACCESS]);
+        raw.send(1, instruction::WRITE, &[132, 0, 0, 0, 0, 0]); // present position is read-only
+        assert_eq!(raw.recv().unwrap().params, vec![status_error::ACCESS]);
+        raw.send(1, instruction::WRITE, &[116, 0, 0x00, 0x10, 0, 0]); // 4096 > max position limit
+        assert_eq!(raw.recv().unwrap().params, vec![status_error::DATA_LIMIT]);
+    }
+
+    #[test]
+    fn goal_is_reached_at_realistic_speed() {
+        let chain = chain(1);
+        let mut raw = raw_tty(&chain);
+        raw.send(1, instruction::WRITE, &[64, 0, 1]);
+        raw.recv().unwrap();
+        let start = Instant::now();
+        // +1024 ticks = 90°: at ≈ 52.7 rpm (316°/s) this takes ≈ 0.28 s.
+        raw.send(1, instruction::WRITE, &[116, 0, 0x00, 0x0C, 0, 0]);
+        raw.recv().unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        let mid = chain.snapshot(1).unwrap().present;
+        assert!(mid > 2048.0 && mid < 3072.0, "{mid}");
+        while chain.snapshot(1).unwrap().present < 3072.0 && start.elapsed() < Duration::from_secs(2) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert_eq!(chain.snapshot(1).unwrap().present, 3072.0);
+    }
+
+    #[test]
+    fn hardware_error_sets_alert_bit_and_reboot_clears_it() {
+        let chain = chain(2);
+        let mut raw = raw_tty(&chain);
+        chain.set_hardware_error(2, mx28::HW_OVERLOAD);
+        raw.send(2, instruction::READ, &[70, 0, 1, 0]);
+        let p = raw.recv().unwrap();
+        assert_eq!(p.params, vec![status_error::ALERT, mx28::HW_OVERLOAD]);
+        raw.send(2, instruction::REBOOT, &[]);
+        raw.recv().unwrap();
+        raw.send(2, instruction::READ, &[70, 0, 1, 0]);
+        assert_eq!(raw.recv().unwrap().params, vec![0, 0]);
+    }
+
+    #[test]
+    fn silence_and_unsupported_instruction() {
+        let chain = chain(2);
+        let mut raw = raw_tty(&chain);
+        chain.set_faults(|f| {
+            f.silent.insert(1);
+        });
+        raw.send(1, instruction::PING, &[]);
+        assert!(raw.recv().is_none());
+        raw.send(2, instruction::FACTORY_RESET, &[0xFF]);
+        assert_eq!(raw.recv().unwrap().params, vec![status_error::INSTRUCTION]);
+    }
+}

@@ -1,0 +1,139 @@
+#!/usr/bin/env bash
+# Command 1: build and start the patchwalk system on its embedded defaults, DDS on loopback.
+#
+# Starts what exists so far, in order: the simulated servo bus (`step_executor sim-bus`), the terrain
+# simulator (`terrain_sim run`), patch_mapper and step_executor. A component whose command is not
+# available yet is reported and skipped. Prints what to look at, then runs until Ctrl-C (or for
+# DEMO_DURATION seconds) and stops every process it started with SIGINT.
+#
+# Environment: ROS_DOMAIN_ID (default 0), DEMO_DURATION (seconds; default: until Ctrl-C),
+# PATCHWALK_VENV (the test venv with rclpy, used by the status monitor; created by launch_scripts/test.sh).
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$REPO"
+BIN="$REPO/target/release"
+VENV="${PATCHWALK_VENV:-$REPO/.venv}"
+RUN_DIR="$REPO/build/demo"
+mkdir -p "$RUN_DIR"
+
+export PATCHWALK_DDS_NETWORK=loopback
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-0}"
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export FASTRTPS_DEFAULT_PROFILES_FILE="$REPO/tests/fastdds_loopback.xml"
+export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+export ROS_LOG_DIR="$RUN_DIR/ros_log"
+
+echo "=== building (cargo build --release --bins)"
+cargo build --release --workspace --bins
+
+PIDS=()
+NAMES=()
+stop_all() {
+    trap - INT TERM EXIT
+    echo
+    echo "=== stopping"
+    # Reverse start order; SIGINT is each node's clean shutdown.
+    for ((i = ${#PIDS[@]} - 1; i >= 0; i--)); do
+        kill -INT "${PIDS[$i]}" 2>/dev/null || true
+    done
+    for ((i = ${#PIDS[@]} - 1; i >= 0; i--)); do
+        if wait "${PIDS[$i]}" 2>/dev/null; then
+            echo "${NAMES[$i]}: stopped cleanly"
+        else
+            echo "${NAMES[$i]}: exited with $? (log: $RUN_DIR/${NAMES[$i]}.log)"
+        fi
+    done
+}
+trap stop_all INT TERM EXIT
+
+# start NAME CMD...: run CMD in the background with its output in build/demo/NAME.log.
+start() {
+    local name=$1
+    shift
+    "$@" >"$RUN_DIR/$name.log" 2>&1 &
+    PIDS+=($!)
+    NAMES+=("$name")
+    echo "started $name (pid $!): $* (log: $RUN_DIR/$name.log)"
+}
+
+# available BINARY SUBCOMMAND: the binary has this subcommand and it is not a placeholder.
+available() {
+    "$BIN/$1" "$2" --help >/dev/null 2>&1
+}
+
+echo "=== starting (ROS_DOMAIN_ID=$ROS_DOMAIN_ID, DDS on 127.0.0.1 only)"
+EXECUTOR_ARGS=()
+# forget_if_dead NAME: a just-started component that already exited is "not available yet".
+forget_if_dead() {
+    local last=$((${#PIDS[@]} - 1))
+    if ! kill -0 "${PIDS[$last]}" 2>/dev/null; then
+        echo "skipped $1: it exited at start ($(tail -1 "$RUN_DIR/$1.log" 2>/dev/null))"
+        unset "PIDS[$last]" "NAMES[$last]"
+        PIDS=("${PIDS[@]}")
+        NAMES=("${NAMES[@]}")
+        return 1
+    fi
+}
+if available step_executor sim-bus; then
+    start sim_bus "$BIN/step_executor" sim-bus
+    # The simulated bus prints its pty path; hand it to the executor once it does.
+    PTY=""
+    for _ in $(seq 50); do
+        PTY=$(grep -oE '/dev/pts/[0-9]+' "$RUN_DIR/sim_bus.log" | head -1 || true)
+        [ -n "$PTY" ] && break
+        kill -0 "${PIDS[-1]}" 2>/dev/null || break
+        sleep 0.1
+    done
+    if forget_if_dead sim_bus; then
+        if [ -n "$PTY" ]; then
+            echo "simulated MX-28 chain on $PTY"
+            EXECUTOR_ARGS+=(--param "bus.port=$PTY")
+        else
+            echo "sim_bus printed no pty path (log: $RUN_DIR/sim_bus.log); step_executor runs without a bus"
+        fi
+    fi
+else
+    echo "skipped sim_bus: \`step_executor sim-bus\` not available yet"
+fi
+if available terrain_sim run; then
+    start terrain_sim "$BIN/terrain_sim" run
+    sleep 1
+    forget_if_dead terrain_sim || true
+else
+    echo "skipped terrain_sim: \`terrain_sim run\` not available yet (patch_mapper waits for depth images)"
+fi
+start patch_mapper "$BIN/patch_mapper" run
+start step_executor "$BIN/step_executor" run ${EXECUTOR_ARGS[@]+"${EXECUTOR_ARGS[@]}"}
+
+cat <<EOF
+
+=== what to look at
+- Node logs: tail -f $RUN_DIR/*.log
+- Status of both nodes once a second (rclpy from the test venv):
+    $VENV/bin/python launch_scripts/monitor.py
+  (create the venv first with launch_scripts/test.sh), or from a ROS 2 Jazzy install:
+    export ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+    ros2 topic echo /patch_mapper/status       # frames received/processed/skipped/rejected
+    ros2 topic echo /step_executor/status      # state, armed, torque, library size
+    ros2 service call /step_executor/list_motions patchwalk_msgs/srv/ListMotions
+  (ros2 CLI needs patchwalk_msgs: colcon build msgs/ in your workspace).
+- Depth input: publish sensor_msgs/Image (16UC1 mm or 32FC1 m) on /camera/depth/image_raw with
+  its CameraInfo on /camera/depth/camera_info; RViz: /patch_mapper/markers in frame "map".
+Ctrl-C stops everything.
+EOF
+
+if [ -n "${DEMO_DURATION:-}" ]; then
+    sleep "$DEMO_DURATION"
+else
+    # Wait until Ctrl-C or until a component exits on its own.
+    while true; do
+        for i in "${!PIDS[@]}"; do
+            if ! kill -0 "${PIDS[$i]}" 2>/dev/null; then
+                echo "${NAMES[$i]} exited; see $RUN_DIR/${NAMES[$i]}.log"
+                exit 1
+            fi
+        done
+        sleep 1
+    done
+fi

@@ -1,10 +1,24 @@
 //! Patch fitting (IROS IV steps 1-9): LLS plane, weighted Levenberg-Marquardt, type discrimination,
 //! boundary moments, output covariance.
 //!
-//! (Public API first; the full weighted-LM pipeline lands in the next commit.)
+//! The pipeline is a short sequence of stages: input checks → LLS plane (step 1) → weighted LM on the
+//! unbounded surface (steps 1-ii, 2; [`wlm`]) → curvature discrimination with significance tests
+//! (step 3) and a constrained refit → boundary and gauge from data moments (steps 4–9; [`boundary`])
+//! → covariance Σ over the minimal parameters by first-order propagation.
+//!
+//! Σ combines two independent first-order terms: the WLM information of the surface parameters
+//! (measurement noise of the points through their covariances Σ_i) and the sampling covariance of the
+//! data moments that fix the boundary extents and the directions the surface leaves free (centre of
+//! a plane, apex of spheres/cylinders along their symmetry, in-plane rotation of planes).
+
+pub mod boundary;
+pub mod simulate;
+mod wlm;
 
 use crate::patch::{BoundaryType, Patch, SurfaceType};
-use nalgebra::{Matrix3, Vector2, Vector3};
+use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse, rotation_from_normal};
+use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, Vector2, Vector3};
+use wlm::{Covariances, LmSettings, Model, SurfaceState};
 use serde::{Deserialize, Serialize};
 
 /// Which surface to fit (IROS IV input `s`).
@@ -60,15 +74,14 @@ pub struct FitConfig {
     pub max_iterations: usize,
     /// Initial Marquardt damping λ (Numerical Recipes: 1e-3).
     pub initial_damping: f64,
-    /// Convergence: stop when the relative χ² decrease is below this.
-    pub relative_tolerance: f64,
+    /// Convergence: stop when the undamped Gauss–Newton step would lower χ² by less than this
+    /// (χ² units; 1e-6 is statistically negligible).
+    pub chi2_tolerance: f64,
     /// Minimum variance of the implicit function per point (IROS footnote 10: clamp for semi-definite Σ_i).
     pub min_variance: f64,
     /// Significance level of the curvature tests replacing ε_k (IROS step 3): a curvature (or a
     /// difference of two) counts as non-zero if it is outside its (1 − α) confidence interval.
     pub significance: f64,
-    /// Fallback absolute threshold ε_k (m⁻¹) used only when no point covariances are given.
-    pub curvature_epsilon: f64,
     /// Scale the output covariance by max(1, χ²/(N − p)) (model noise beyond the sensor model).
     pub inflate_by_residual: bool,
 }
@@ -78,10 +91,9 @@ impl Default for FitConfig {
         Self {
             max_iterations: 50,
             initial_damping: 1e-3,
-            relative_tolerance: 1e-9,
+            chi2_tolerance: 1e-6,
             min_variance: 1e-14,
             significance: 0.01,
-            curvature_epsilon: 0.5,
             inflate_by_residual: true,
         }
     }
@@ -111,30 +123,646 @@ pub enum FitError {
     /// Levenberg–Marquardt produced non-finite values or failed to converge.
     #[error("Levenberg-Marquardt diverged: {0}")]
     Diverged(&'static str),
+    /// The data contradict the requested type (e.g. elliptic requested, curvature signs differ).
+    #[error("data contradict the requested type: {0}")]
+    ConstraintViolated(String),
 }
 
-/// Fit a bounded patch to points (IROS IV).
+/// The resolved target of a fit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Target {
+    /// Paraboloid family with step-3 discrimination; boundary used if the result is a plane.
+    Auto(BoundaryType),
+    /// General paraboloid (elliptic or hyperbolic by sign).
+    Paraboloid,
+    /// A specific patch type.
+    Fixed(SurfaceType, BoundaryType),
+}
+
+impl Target {
+    fn resolve(request: &FitRequest) -> Result<Self, FitError> {
+        let boundary = match request.boundary {
+            BoundaryRequest::Auto => None,
+            BoundaryRequest::Exactly(b) => Some(b),
+        };
+        match request.surface {
+            SurfaceRequest::Auto => Ok(Target::Auto(boundary.unwrap_or(BoundaryType::Ellipse))),
+            SurfaceRequest::Paraboloid => match boundary {
+                None | Some(BoundaryType::Ellipse) => Ok(Target::Paraboloid),
+                Some(b) => Err(FitError::InvalidRequest(format!("a general paraboloid has an ellipse boundary, not {}", b.name()))),
+            },
+            SurfaceRequest::Exactly(s) => {
+                let b = match (s.implied_boundary(), boundary) {
+                    (None, b) => b.unwrap_or(BoundaryType::Ellipse),
+                    (Some(implied), None) => implied,
+                    (Some(implied), Some(b)) if b == implied => b,
+                    (Some(_), Some(b)) => {
+                        return Err(FitError::InvalidRequest(format!("{} patches cannot have a {} boundary (IROS Table I)", s.name(), b.name())))
+                    }
+                };
+                Ok(Target::Fixed(s, b))
+            }
+        }
+    }
+
+    /// Minimum number of points: the DoF of the (largest possible) patch type.
+    fn min_points(self) -> usize {
+        match self {
+            Target::Auto(_) | Target::Paraboloid => crate::patch::dof(SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+            Target::Fixed(s, b) => crate::patch::dof(s, b),
+        }
+    }
+}
+
+/// The WLM model that carries the surface parameters of a patch type.
+fn model_for(surface: SurfaceType) -> Model {
+    match surface {
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => Model::Paraboloid,
+        SurfaceType::CylindricParaboloid => Model::CylindricParaboloid,
+        SurfaceType::CircularParaboloid => Model::CircularParaboloid,
+        SurfaceType::Plane => Model::Plane,
+        SurfaceType::Sphere => Model::Sphere,
+        SurfaceType::CircularCylinder => Model::Cylinder,
+    }
+}
+
+/// Fit a bounded patch to points (IROS IV, steps 1–9) and return it with its covariance Σ.
+///
+/// `point_covariances` are the per-point Σ_i (e.g. from [`crate::sensor`]); without them the points
+/// get isotropic unit covariance and Σ is scaled by the residual variance (ordinary least squares).
 pub fn fit_patch(
     points: &[Vector3<f64>],
     point_covariances: Option<&[Matrix3<f64>]>,
     request: &FitRequest,
     config: &FitConfig,
 ) -> Result<Patch, FitError> {
-    let _ = (point_covariances, config);
-    if points.len() < 3 {
-        return Err(FitError::TooFewPoints { needed: 3, got: points.len() });
+    let target = Target::resolve(request)?;
+    check_inputs(points, point_covariances, target.min_points())?;
+    if !(request.containment > 0.0 && request.containment <= 1.0) {
+        return Err(FitError::InvalidRequest(format!("containment Γ = {} outside (0, 1]", request.containment)));
     }
+    let covs = match point_covariances {
+        Some(c) => Covariances::PerPoint(c),
+        None => Covariances::Constant(Matrix3::identity()),
+    };
+    let weighted = point_covariances.is_some();
+    let settings = LmSettings {
+        max_iterations: config.max_iterations,
+        initial_damping: config.initial_damping,
+        chi2_tolerance: config.chi2_tolerance,
+        min_variance: if weighted { config.min_variance } else { 1e-12 },
+    };
+    // Step 1: LLS plane, normal towards the viewpoint, centre at the centroid.
+    let (centroid, normal) = lls_plane(points, &request.viewpoint)?;
+    let start = SurfaceState { k3: Vector3::zeros(), rot: rotation_from_normal(&normal), c: centroid };
+    // Steps 1-ii to 3: the unbounded surface.
+    let (surface, boundary, state) = fit_surface(target, start, points, &covs, &settings, config, weighted)?;
+    // Steps 4–9 and Σ.
+    finish(surface, boundary, state, points, &covs, &settings, config, request.containment, weighted)
+}
+
+/// Reject inputs that would make the fit meaningless (typed errors, never panics).
+fn check_inputs(points: &[Vector3<f64>], covs: Option<&[Matrix3<f64>]>, needed: usize) -> Result<(), FitError> {
+    if points.len() < needed {
+        return Err(FitError::TooFewPoints { needed, got: points.len() });
+    }
+    if let Some(index) = points.iter().position(|q| !q.iter().all(|v| v.is_finite())) {
+        return Err(FitError::NonFinitePoint { index });
+    }
+    if let Some(covs) = covs {
+        if covs.len() != points.len() {
+            return Err(FitError::CovarianceCountMismatch { points: points.len(), covariances: covs.len() });
+        }
+        if let Some(index) = covs.iter().position(|c| !is_psd(c)) {
+            return Err(FitError::InvalidCovariance { index });
+        }
+    }
+    Ok(())
+}
+
+/// Symmetric positive semi-definite test by principal minors (with a relative tolerance).
+pub fn is_psd(c: &Matrix3<f64>) -> bool {
+    if !c.iter().all(|v| v.is_finite()) {
+        return false;
+    }
+    let scale = c.diagonal().iter().map(|v| v.abs()).sum::<f64>().max(f64::MIN_POSITIVE);
+    let tol = 1e-9 * scale;
+    let sym = (c[(0, 1)] - c[(1, 0)]).abs() <= tol && (c[(0, 2)] - c[(2, 0)]).abs() <= tol && (c[(1, 2)] - c[(2, 1)]).abs() <= tol;
+    if !sym || c[(0, 0)] < -tol || c[(1, 1)] < -tol || c[(2, 2)] < -tol {
+        return false;
+    }
+    let tol2 = 1e-9 * scale * scale;
+    let m01 = c[(0, 0)] * c[(1, 1)] - c[(0, 1)] * c[(1, 0)];
+    let m02 = c[(0, 0)] * c[(2, 2)] - c[(0, 2)] * c[(2, 0)];
+    let m12 = c[(1, 1)] * c[(2, 2)] - c[(1, 2)] * c[(2, 1)];
+    m01 >= -tol2 && m02 >= -tol2 && m12 >= -tol2 && c.determinant() >= -1e-9 * scale * scale * scale
+}
+
+/// Step 1-i: least-squares plane through the centroid; the normal faces the viewpoint.
+fn lls_plane(points: &[Vector3<f64>], viewpoint: &Vector3<f64>) -> Result<(Vector3<f64>, Vector3<f64>), FitError> {
     let n = points.len() as f64;
-    let mean = points.iter().sum::<Vector3<f64>>() / n;
-    let scatter = points.iter().fold(Matrix3::zeros(), |acc, q| acc + (q - mean) * (q - mean).transpose());
+    let centroid = points.iter().sum::<Vector3<f64>>() / n;
+    let scatter = points.iter().fold(Matrix3::zeros(), |acc, q| {
+        let d = q - centroid;
+        acc + d * d.transpose()
+    });
     let eig = scatter.symmetric_eigen();
-    let imin = eig.eigenvalues.imin();
-    let mut normal = eig.eigenvectors.column(imin).into_owned();
-    if normal.dot(&(request.viewpoint - mean)) < 0.0 {
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let (lmin, lmid, lmax) = (eig.eigenvalues[order[0]], eig.eigenvalues[order[1]], eig.eigenvalues[order[2]]);
+    if !(lmax > 0.0) {
+        return Err(FitError::Degenerate("all points are equal"));
+    }
+    if lmid <= 1e-10 * lmax {
+        return Err(FitError::Degenerate("points are collinear"));
+    }
+    let _ = lmin;
+    let mut normal = eig.eigenvectors.column(order[0]).into_owned();
+    if normal.dot(&(viewpoint - centroid)) < 0.0 {
         normal = -normal;
     }
-    let r = crate::geometry::r_xy_from_normal(&normal);
-    let radius = (points.iter().map(|q| (q - mean).norm_squared()).sum::<f64>() / n).sqrt() * 1.4;
-    Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![radius], Vector2::zeros(), Vector3::new(r.x, r.y, 0.0), mean)
-        .map_err(|e| FitError::InvalidRequest(e.to_string()))
+    Ok((centroid, normal))
+}
+
+/// Swap local x/y so that `|κx| ≤ |κy|` (IROS footnote 5): `R ← R [ŷ −x̂ ẑ]`.
+fn order_axes(state: SurfaceState) -> (SurfaceState, bool) {
+    if state.k3.x.abs() <= state.k3.y.abs() {
+        return (state, false);
+    }
+    (swap_axes(&state), true)
+}
+
+fn swap_axes(state: &SurfaceState) -> SurfaceState {
+    let q = Matrix3::new(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+    SurfaceState { k3: Vector3::new(state.k3.y, state.k3.x, state.k3.z), rot: state.rot * q, c: state.c }
+}
+
+/// Covariance scale of the WLM information: the residual variance without point covariances,
+/// otherwise `max(1, χ²/(N − m))` if configured.
+fn residual_scale(chi2: f64, n: usize, m: usize, weighted: bool, config: &FitConfig) -> f64 {
+    let dof = n.saturating_sub(m).max(1) as f64;
+    let s2 = chi2 / dof;
+    if !weighted {
+        s2
+    } else if config.inflate_by_residual {
+        s2.max(1.0)
+    } else {
+        1.0
+    }
+}
+
+/// Outcome of the step-3 curvature discrimination.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Curvature {
+    Plane,
+    Circular,
+    /// Cylindric; `true` if the zero curvature is on local y (axes must be swapped).
+    Cylindric(bool),
+    Full,
+}
+
+/// Step 3 with significance tests instead of a fixed ε_k: the simplest curvature model whose
+/// linear constraint on `k̂` is not rejected at level α under the fit's own covariance `C_k`
+/// (Mahalanobis distance of `k̂` to the constraint vs the χ² quantile).
+fn classify(k: &Vector2<f64>, ck: &Matrix2<f64>, alpha: f64) -> Curvature {
+    let q2 = -2.0 * alpha.clamp(1e-300, 1.0).ln();
+    let z = std::f64::consts::SQRT_2 * boundary::erf_inv(1.0 - alpha.clamp(1e-300, 1.0));
+    let q1 = z * z;
+    let m_plane = match ck.try_inverse() {
+        Some(inv) => (k.transpose() * inv * k)[(0, 0)],
+        None => f64::INFINITY,
+    };
+    if m_plane <= q2 {
+        return Curvature::Plane;
+    }
+    let var_diff = (ck[(0, 0)] + ck[(1, 1)] - 2.0 * ck[(0, 1)]).max(f64::MIN_POSITIVE);
+    let m_circ = (k.x - k.y).powi(2) / var_diff;
+    let m_cx = k.x * k.x / ck[(0, 0)].max(f64::MIN_POSITIVE);
+    let m_cy = k.y * k.y / ck[(1, 1)].max(f64::MIN_POSITIVE);
+    let m_cyl = m_cx.min(m_cy);
+    let circ_ok = m_circ <= q1;
+    let cyl_ok = m_cyl <= q1;
+    if circ_ok && (!cyl_ok || m_circ <= m_cyl) {
+        Curvature::Circular
+    } else if cyl_ok {
+        Curvature::Cylindric(m_cy < m_cx)
+    } else {
+        Curvature::Full
+    }
+}
+
+/// Steps 1-ii to 3: fit the unbounded surface of the requested (or discriminated) type.
+fn fit_surface(
+    target: Target,
+    start: SurfaceState,
+    points: &[Vector3<f64>],
+    covs: &Covariances<'_>,
+    settings: &LmSettings,
+    config: &FitConfig,
+    weighted: bool,
+) -> Result<(SurfaceType, BoundaryType, SurfaceState), FitError> {
+    match target {
+        Target::Fixed(SurfaceType::Plane, b) => Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, points, covs, settings)?.state)),
+        Target::Fixed(SurfaceType::Sphere, b) => Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, points, covs, settings)?.state)),
+        _ => {
+            // Step 2: general paraboloid from the plane.
+            let par = wlm::run(Model::Paraboloid, start, points, covs, settings)?;
+            let (state, swapped) = order_axes(par.state);
+            let surface = match target {
+                Target::Auto(_) => {
+                    let normal = wlm::accumulate(Model::Paraboloid, &state, points, covs, settings.min_variance);
+                    let scale = residual_scale(normal.chi2, points.len(), Model::Paraboloid.num_free(), weighted, config);
+                    let _ = swapped;
+                    let ck = normal
+                        .h
+                        .cholesky()
+                        .map(|c| c.inverse().fixed_view::<2, 2>(0, 0).into_owned() * scale)
+                        .unwrap_or_else(|| Matrix2::identity() * f64::INFINITY);
+                    match classify(&state.k3.xy(), &ck, config.significance) {
+                        Curvature::Plane => SurfaceType::Plane,
+                        Curvature::Circular => SurfaceType::CircularParaboloid,
+                        Curvature::Cylindric(_) => SurfaceType::CylindricParaboloid,
+                        Curvature::Full => by_sign(&state.k3),
+                    }
+                }
+                Target::Paraboloid => by_sign(&state.k3),
+                Target::Fixed(s, _) => s,
+            };
+            let boundary = match target {
+                Target::Auto(b) if surface == SurfaceType::Plane => b,
+                Target::Fixed(_, b) => b,
+                _ => surface.implied_boundary().unwrap_or(BoundaryType::Ellipse),
+            };
+            let k = state.k3;
+            let refit = |model: Model, k3: Vector3<f64>, st: SurfaceState| -> Result<SurfaceState, FitError> {
+                Ok(wlm::run(model, SurfaceState { k3, ..st }, points, covs, settings)?.state)
+            };
+            let state = match surface {
+                SurfaceType::Plane => refit(Model::Plane, Vector3::zeros(), state)?,
+                SurfaceType::CircularParaboloid => {
+                    let m = 0.5 * (k.x + k.y);
+                    refit(Model::CircularParaboloid, Vector3::new(m, m, 0.0), state)?
+                }
+                SurfaceType::CylindricParaboloid => {
+                    // The curved direction is local y (|κx| ≤ |κy| after ordering).
+                    refit(Model::CylindricParaboloid, Vector3::new(0.0, k.y, 0.0), state)?
+                }
+                SurfaceType::CircularCylinder => refit(Model::Cylinder, Vector3::new(0.0, k.y, k.y), state)?,
+                SurfaceType::Sphere => refit(Model::Sphere, Vector3::new(0.5 * (k.x + k.y), 0.5 * (k.x + k.y), 0.5 * (k.x + k.y)), state)?,
+                SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => {
+                    if by_sign(&k) != surface {
+                        return Err(FitError::ConstraintViolated(format!(
+                            "{} requested but the fitted curvatures are ({:.3}, {:.3})",
+                            surface.name(),
+                            k.x,
+                            k.y
+                        )));
+                    }
+                    state
+                }
+            };
+            Ok((surface, boundary, state))
+        }
+    }
+}
+
+fn by_sign(k: &Vector3<f64>) -> SurfaceType {
+    if k.x * k.y >= 0.0 {
+        SurfaceType::EllipticParaboloid
+    } else {
+        SurfaceType::HyperbolicParaboloid
+    }
+}
+
+/// Height and gradient of a sphere (`s = uᵀu`) or cylinder (`s = u_y²`) of curvature κ (eq 23, 27).
+fn round_height(kappa: f64, s: f64) -> Option<(f64, f64)> {
+    let arg = 1.0 - kappa * kappa * s;
+    if !(arg > 0.0) {
+        return None;
+    }
+    let root = arg.sqrt();
+    Some((kappa * s / (1.0 + root), kappa / root))
+}
+
+/// Move the frame along the surface's free directions to where the data moments put it
+/// (steps 6, 9; the apex of spheres and cylinders follows the data around the centre/axis).
+fn apply_gauge(surface: SurfaceType, boundary: BoundaryType, state: &SurfaceState, m: &boundary::Moments, in_plane_angle: f64) -> Result<SurfaceState, FitError> {
+    let (xm, ym) = (m[0], m[1]);
+    let rot = state.rot;
+    let z_world = rot.column(2).into_owned();
+    let out = match surface {
+        SurfaceType::Plane => {
+            let c = state.c + rot * Vector3::new(xm, ym, 0.0);
+            let rot = if boundary == BoundaryType::Circle {
+                rotation_from_normal(&z_world)
+            } else {
+                rot * exp_map(&Vector3::new(0.0, 0.0, in_plane_angle))
+            };
+            SurfaceState { rot, c, ..*state }
+        }
+        SurfaceType::CylindricParaboloid => SurfaceState { c: state.c + rot * Vector3::new(xm, 0.0, 0.0), ..*state },
+        SurfaceType::CircularParaboloid => SurfaceState { rot: rotation_from_normal(&z_world), ..*state },
+        SurfaceType::Sphere => {
+            let kappa = state.k3.x;
+            let (z, dz) = round_height(kappa, xm * xm + ym * ym).ok_or(FitError::Degenerate("data centroid beyond the fitted sphere"))?;
+            let n_l = Vector3::new(-xm * dz, -ym * dz, 1.0).normalize();
+            let c = state.c + rot * Vector3::new(xm, ym, z);
+            SurfaceState { rot: rotation_from_normal(&(rot * n_l)), c, ..*state }
+        }
+        SurfaceType::CircularCylinder => {
+            let kappa = state.k3.y;
+            let (z, dz) = round_height(kappa, ym * ym).ok_or(FitError::Degenerate("data centroid beyond the fitted cylinder"))?;
+            let z_l = Vector3::new(0.0, -ym * dz, 1.0).normalize();
+            let x_l = Vector3::x();
+            let y_l = z_l.cross(&x_l);
+            let c = state.c + rot * Vector3::new(xm, ym, z);
+            SurfaceState { rot: rot * Matrix3::from_columns(&[x_l, y_l, z_l]), c, ..*state }
+        }
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => *state,
+    };
+    Ok(out)
+}
+
+/// Steps 4–9 and the covariance Σ over the minimal parameters.
+#[allow(clippy::too_many_arguments)]
+fn finish(
+    surface: SurfaceType,
+    boundary: BoundaryType,
+    state: SurfaceState,
+    points: &[Vector3<f64>],
+    covs: &Covariances<'_>,
+    settings: &LmSettings,
+    config: &FitConfig,
+    containment: f64,
+    weighted: bool,
+) -> Result<Patch, FitError> {
+    // Step 4: λ = √2 erf⁻¹(Γ); eq 30 uses −ln(1 − Γ). Γ = 1 would be unbounded: clamp just below.
+    let gamma = containment.min(1.0 - 1e-9);
+    let lambda = std::f64::consts::SQRT_2 * boundary::erf_inv(gamma);
+    let ln_term = -(1.0 - gamma).ln();
+    let kappa = match surface {
+        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => state.k3.y,
+        _ => state.k3.x,
+    };
+    // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
+    let (m0, _) = boundary::moments(points, &state.rot, &state.c);
+    let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
+    let state = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
+    let (m, cov_m) = boundary::moments(points, &state.rot, &state.c);
+    let from_m = boundary::from_moments(surface, boundary, &m, kappa, lambda, ln_term);
+    let mut d: Vec<f64> = from_m.d.iter().take(from_m.nd).copied().collect();
+    // Table I: |κ| d ≤ 1 for spheres (d_c) and cylinders (d_y).
+    match surface {
+        SurfaceType::Sphere if kappa != 0.0 => d.iter_mut().for_each(|v| *v = v.min(1.0 / kappa.abs())),
+        SurfaceType::CircularCylinder if kappa != 0.0 => {
+            if let Some(v) = d.get_mut(1) {
+                *v = v.min(1.0 / kappa.abs());
+            }
+        }
+        _ => {}
+    }
+
+    // Surface part of Σ: WLM information at the final frame (measurement noise).
+    let model = model_for(surface);
+    let mfree = model.num_free();
+    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance);
+    let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
+    let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
+    let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();
+    for r in 0..mfree {
+        for c in 0..mfree {
+            cov_free[(r, c)] = h_inv[(r, c)] * scale;
+        }
+    }
+    // Local layout (14): [d (5) | κx κy κz | δx δy δz | δcx δcy δcz].
+    let mut cov_local = SMatrix::<f64, 14, 14>::zeros();
+    let embed = model.embedding();
+    let surf = embed * cov_free * embed.transpose();
+    cov_local.fixed_view_mut::<9, 9>(5, 5).copy_from(&surf);
+    // Moment part of Σ: sampling of the boundary/gauge moments.
+    let jm = boundary::from_moments_jacobian(surface, boundary, &m, kappa, lambda, ln_term);
+    let mut g = SMatrix::<f64, 14, 5>::zeros();
+    for j in 0..5 {
+        for i in 0..5 {
+            g[(i, j)] = jm[(i, j)];
+        }
+        for i in 0..6 {
+            g[(8 + i, j)] = jm[(5 + i, j)];
+        }
+    }
+    cov_local += g * cov_m * g.transpose();
+
+    // Minimal parameters and the map from local increments to them.
+    let is5 = crate::patch::is_5dof(surface, boundary);
+    let z_world = state.rot.column(2).into_owned();
+    let r = if is5 {
+        let rxy = r_xy_from_normal(&z_world);
+        Vector3::new(rxy.x, rxy.y, 0.0)
+    } else {
+        log_map(&state.rot)
+    };
+    let curv = match surface {
+        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => Vector2::new(0.0, state.k3.y),
+        SurfaceType::CircularParaboloid | SurfaceType::Sphere => Vector2::new(state.k3.x, state.k3.x),
+        SurfaceType::Plane => Vector2::zeros(),
+        _ => state.k3.xy(),
+    };
+    let mut patch = Patch::new(surface, boundary, d, curv, r, state.c).map_err(|e| FitError::InvalidRequest(e.to_string()))?;
+    let p = patch.dof();
+    let nd = boundary.num_params();
+    let nk = surface.num_curvatures();
+    let mut t = DMatrix::<f64>::zeros(p, 14);
+    for i in 0..nd {
+        t[(i, i)] = 1.0;
+    }
+    match surface {
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => {
+            t[(nd, 5)] = 1.0;
+            t[(nd + 1, 6)] = 1.0;
+        }
+        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => t[(nd, 6)] = 1.0,
+        SurfaceType::CircularParaboloid | SurfaceType::Sphere => t[(nd, 5)] = 1.0,
+        SurfaceType::Plane => {}
+    }
+    let jr_inv = right_jacobian_inverse(&r);
+    let nr = if is5 { 2 } else { 3 };
+    if is5 {
+        // The final frame of 5-DoF types is R([r_xy 0]); the local tilt maps through eq 45.
+        let a = r_xy_jacobian(&r) * jr_inv;
+        for i in 0..2 {
+            for j in 0..3 {
+                t[(nd + nk + i, 8 + j)] = a[(i, j)];
+            }
+        }
+    } else {
+        for i in 0..3 {
+            for j in 0..3 {
+                t[(nd + nk + i, 8 + j)] = jr_inv[(i, j)];
+            }
+        }
+    }
+    for i in 0..3 {
+        for j in 0..3 {
+            t[(nd + nk + nr + i, 11 + j)] = state.rot[(i, j)];
+        }
+    }
+    let cov_local_d = DMatrix::from_iterator(14, 14, cov_local.iter().copied());
+    let cov = &t * cov_local_d * t.transpose();
+    if !cov.iter().all(|v| v.is_finite()) {
+        return Err(FitError::Diverged("non-finite covariance"));
+    }
+    patch.covariance = (&cov + cov.transpose()) * 0.5;
+    patch.residual = (normal.sampson_sq / points.len() as f64).sqrt();
+    patch.num_points = points.len();
+    Ok(patch)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::simulate::{random_patch, sample_sensor, SceneConfig};
+    use super::*;
+    use crate::sensor::ErrorModel;
+    use rand::SeedableRng;
+
+    const ALL_TYPES: [(SurfaceType, BoundaryType); 10] = [
+        (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+        (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
+        (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
+        (SurfaceType::CircularParaboloid, BoundaryType::Circle),
+        (SurfaceType::Plane, BoundaryType::Ellipse),
+        (SurfaceType::Plane, BoundaryType::Circle),
+        (SurfaceType::Plane, BoundaryType::Rectangle),
+        (SurfaceType::Plane, BoundaryType::Quadrilateral),
+        (SurfaceType::Sphere, BoundaryType::Circle),
+        (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
+    ];
+
+    fn near_kinect() -> SceneConfig {
+        SceneConfig { range: (0.8, 1.2), ..SceneConfig::default() }
+    }
+
+    /// Angle between the normals, centre distance, max curvature difference.
+    fn errors(fit: &Patch, truth: &Patch) -> (f64, f64, f64) {
+        let angle = fit.normal().dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees();
+        let centre = (fit.center - truth.center).norm();
+        let k = (fit.curvatures - truth.curvatures).abs().max();
+        (angle, centre, k)
+    }
+
+    #[test]
+    fn every_type_is_recovered_when_requested() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let model = ErrorModel::default();
+        for (s, b) in ALL_TYPES {
+            for _ in 0..5 {
+                let truth = random_patch(&mut rng, s, b, &near_kinect()).unwrap();
+                let (pts, covs) = sample_sensor(&mut rng, &truth, 400, &model);
+                let request = FitRequest {
+                    surface: SurfaceRequest::Exactly(s),
+                    boundary: BoundaryRequest::Exactly(b),
+                    ..FitRequest::default()
+                };
+                let fit = fit_patch(&pts, Some(&covs), &request, &FitConfig::default()).unwrap();
+                assert_eq!((fit.surface, fit.boundary), (s, b));
+                let (angle, centre, k) = errors(&fit, &truth);
+                // Tolerances: ~4σ of the 400-point fits at 0.8–1.2 m (the apex of a curved patch is
+                // less determined than a plane's centroid).
+                assert!(angle < 4.0, "{s:?} {b:?}: normal error {angle}°");
+                assert!(centre < 0.02, "{s:?} {b:?}: centre error {centre} m");
+                assert!(k < 2.5, "{s:?} {b:?}: curvature error {k} 1/m (fit {:?} truth {:?})", fit.curvatures, truth.curvatures);
+                let p = fit.dof();
+                assert_eq!(fit.covariance.shape(), (p, p));
+                let eig = fit.covariance.clone().symmetric_eigen();
+                assert!(eig.eigenvalues.iter().all(|&v| v > -1e-12), "{s:?} {b:?} Σ not PSD");
+                assert!(fit.residual < 0.02);
+            }
+        }
+    }
+
+    #[test]
+    fn auto_discriminates_clear_cases() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(12);
+        let model = ErrorModel::default();
+        let family = [
+            (SurfaceType::Plane, BoundaryType::Ellipse),
+            (SurfaceType::CircularParaboloid, BoundaryType::Circle),
+            (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
+            (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+            (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
+        ];
+        let cfg = SceneConfig { range: (0.7, 0.9), curvature: (6.0, 10.0), ..SceneConfig::default() };
+        let mut correct = 0;
+        let mut total = 0;
+        for (s, b) in family {
+            for _ in 0..6 {
+                let truth = random_patch(&mut rng, s, b, &cfg).unwrap();
+                let (pts, covs) = sample_sensor(&mut rng, &truth, 500, &model);
+                let fit = fit_patch(&pts, Some(&covs), &FitRequest::default(), &FitConfig::default()).unwrap();
+                total += 1;
+                if fit.surface == s {
+                    correct += 1;
+                }
+            }
+        }
+        assert!(correct >= total - 2, "{correct}/{total} classified correctly");
+    }
+
+    #[test]
+    fn constrained_fits_reject_contradictions_and_invalid_pairs() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(13);
+        let truth = random_patch(&mut rng, SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse, &near_kinect()).unwrap();
+        let (pts, covs) = sample_sensor(&mut rng, &truth, 400, &ErrorModel::default());
+        let req = FitRequest { surface: SurfaceRequest::Exactly(SurfaceType::EllipticParaboloid), ..FitRequest::default() };
+        assert!(matches!(fit_patch(&pts, Some(&covs), &req, &FitConfig::default()), Err(FitError::ConstraintViolated(_))));
+        let bad = FitRequest {
+            surface: SurfaceRequest::Exactly(SurfaceType::Sphere),
+            boundary: BoundaryRequest::Exactly(BoundaryType::Rectangle),
+            ..FitRequest::default()
+        };
+        assert!(matches!(fit_patch(&pts, Some(&covs), &bad, &FitConfig::default()), Err(FitError::InvalidRequest(_))));
+        // A plane forced onto curved data still fits (and reports a larger residual).
+        let plane = FitRequest { surface: SurfaceRequest::Exactly(SurfaceType::Plane), ..FitRequest::default() };
+        let fit = fit_patch(&pts, Some(&covs), &plane, &FitConfig::default()).unwrap();
+        assert_eq!(fit.surface, SurfaceType::Plane);
+        assert_eq!(fit.boundary, BoundaryType::Ellipse);
+    }
+
+    #[test]
+    fn unweighted_fit_without_covariances() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(14);
+        let truth = random_patch(&mut rng, SurfaceType::EllipticParaboloid, BoundaryType::Ellipse, &near_kinect()).unwrap();
+        let (pts, _) = sample_sensor(&mut rng, &truth, 400, &ErrorModel::default());
+        let req = FitRequest { surface: SurfaceRequest::Paraboloid, ..FitRequest::default() };
+        let fit = fit_patch(&pts, None, &req, &FitConfig::default()).unwrap();
+        let (angle, centre, k) = errors(&fit, &truth);
+        assert!(angle < 5.0 && centre < 0.03 && k < 3.0, "{angle} {centre} {k}");
+        assert!(fit.covariance.diagonal().iter().all(|&v| v > 0.0));
+    }
+
+    #[test]
+    fn bad_inputs_give_typed_errors() {
+        let cfg = FitConfig::default();
+        let req = FitRequest::default();
+        let few = vec![Vector3::new(0.0, 0.0, 1.0); 5];
+        assert_eq!(fit_patch(&few, None, &req, &cfg), Err(FitError::TooFewPoints { needed: 10, got: 5 }));
+        let same = vec![Vector3::new(0.1, 0.2, 1.0); 20];
+        assert!(matches!(fit_patch(&same, None, &req, &cfg), Err(FitError::Degenerate(_))));
+        let line: Vec<_> = (0..20).map(|i| Vector3::new(i as f64 * 0.01, 0.0, 1.0)).collect();
+        assert!(matches!(fit_patch(&line, None, &req, &cfg), Err(FitError::Degenerate(_))));
+        let mut grid: Vec<_> = (0..25).map(|i| Vector3::new((i % 5) as f64 * 0.01, (i / 5) as f64 * 0.01, 1.0)).collect();
+        let covs = vec![Matrix3::identity() * 1e-6; 25];
+        assert_eq!(fit_patch(&grid, Some(&covs[..24]), &req, &cfg), Err(FitError::CovarianceCountMismatch { points: 25, covariances: 24 }));
+        let mut bad_covs = covs.clone();
+        bad_covs[3] = Matrix3::from_diagonal(&Vector3::new(1e-6, -1e-6, 1e-6));
+        assert_eq!(fit_patch(&grid, Some(&bad_covs), &req, &cfg), Err(FitError::InvalidCovariance { index: 3 }));
+        bad_covs[3] = Matrix3::new(1.0, 2.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0) * 1e-6;
+        assert_eq!(fit_patch(&grid, Some(&bad_covs), &req, &cfg), Err(FitError::InvalidCovariance { index: 3 }));
+        // Semi-definite (rank-1 range model) covariances are accepted.
+        let semi: Vec<_> = grid.iter().map(|q| q.normalize() * q.normalize().transpose() * 1e-6).collect();
+        assert!(fit_patch(&grid, Some(&semi), &FitRequest { surface: SurfaceRequest::Exactly(SurfaceType::Plane), ..req }, &cfg).is_ok());
+        let bad_gamma = FitRequest { containment: 0.0, ..req };
+        assert!(matches!(fit_patch(&grid, None, &bad_gamma, &cfg), Err(FitError::InvalidRequest(_))));
+        grid[7].y = f64::NAN;
+        assert_eq!(fit_patch(&grid, None, &req, &cfg), Err(FitError::NonFinitePoint { index: 7 }));
+    }
 }

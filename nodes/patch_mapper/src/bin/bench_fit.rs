@@ -1,0 +1,282 @@
+//! Patch-fit benchmark: accuracy, covariance honesty and type classification over random synthetic
+//! patches seen by a virtual Kinect (Murray–Little noise), and the speed of fit + validate.
+//!
+//! `cargo run --release -p patch_mapper --bin bench_fit -- [--trials 1000] [--points 150] [--seed 1]
+//! [--skip-accuracy] [--skip-speed]`
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{DMatrix, DVector, Vector3};
+use patch_mapper::fit::simulate::{boundary_estimand, random_patch, sample_sensor, SceneConfig};
+use patch_mapper::fit::{fit_patch, BoundaryRequest, FitConfig, FitRequest, SurfaceRequest};
+use patch_mapper::geometry::{exp_map, log_map};
+use patch_mapper::patch::{BoundaryType, Patch, SurfaceType};
+use patch_mapper::sensor::ErrorModel;
+use patch_mapper::validate::{validate_patch, ValidateConfig};
+use rand::SeedableRng;
+use std::time::Instant;
+
+const ALL_TYPES: [(SurfaceType, BoundaryType); 10] = [
+    (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+    (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
+    (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
+    (SurfaceType::CircularParaboloid, BoundaryType::Circle),
+    (SurfaceType::Plane, BoundaryType::Ellipse),
+    (SurfaceType::Plane, BoundaryType::Circle),
+    (SurfaceType::Plane, BoundaryType::Rectangle),
+    (SurfaceType::Plane, BoundaryType::Quadrilateral),
+    (SurfaceType::Sphere, BoundaryType::Circle),
+    (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
+];
+
+const AUTO_FAMILY: [(SurfaceType, BoundaryType); 5] = [
+    (SurfaceType::Plane, BoundaryType::Ellipse),
+    (SurfaceType::CircularParaboloid, BoundaryType::Circle),
+    (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
+    (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+    (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
+];
+
+struct Args {
+    trials: usize,
+    points: usize,
+    seed: u64,
+    accuracy: bool,
+    speed: bool,
+}
+
+fn parse_args() -> Result<Args> {
+    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true };
+    let mut it = std::env::args().skip(1);
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--trials" => args.trials = it.next().context("--trials N")?.parse()?,
+            "--points" => args.points = it.next().context("--points N")?.parse()?,
+            "--seed" => args.seed = it.next().context("--seed N")?.parse()?,
+            "--skip-accuracy" => args.accuracy = false,
+            "--skip-speed" => args.speed = false,
+            other => bail!("unknown argument {other}"),
+        }
+    }
+    Ok(args)
+}
+
+fn quantile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let idx = ((v.len() - 1) as f64 * q).round() as usize;
+    v.get(idx).copied().unwrap_or(f64::NAN)
+}
+
+/// χ²_k 95% quantile (Wilson–Hilferty; within 0.1% for k ≥ 2).
+fn chi2_95(k: usize) -> f64 {
+    let k = k as f64;
+    let z = 1.644_853_626_951_472_2;
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// Truth parameter vector in the fit's representation: boundary estimand, and of the discrete
+/// symmetries (rotation by π about the normal) the one nearest the estimate.
+fn truth_params(rng: &mut rand::rngs::StdRng, truth: &Patch, fit: &Patch, containment: f64) -> Option<DVector<f64>> {
+    let d = boundary_estimand(rng, truth, containment);
+    let rot = truth.rotation_matrix();
+    let flipped = log_map(&(rot * exp_map(&Vector3::new(0.0, 0.0, std::f64::consts::PI))));
+    let candidates = [truth.rotation, flipped];
+    let best = candidates.iter().min_by(|a, b| {
+        let da = (exp_map(a) - fit.rotation_matrix()).norm();
+        let db = (exp_map(b) - fit.rotation_matrix()).norm();
+        da.total_cmp(&db)
+    })?;
+    let mut t = Patch::new(truth.surface, truth.boundary, d, truth.curvatures, *best, truth.center).ok()?;
+    // Exp-map vectors near ‖r‖ = π can differ by a 2π wrap although the rotations agree.
+    let rf = fit.rotation;
+    if (t.rotation - rf).norm() > 1.0 {
+        let th = t.rotation.norm();
+        if th > 0.0 {
+            let alt = t.rotation * (1.0 - 2.0 * std::f64::consts::PI / th);
+            if (alt - rf).norm() < (t.rotation - rf).norm() {
+                t.rotation = alt;
+            }
+        }
+    }
+    Some(t.params())
+}
+
+/// Mahalanobis distance² of the truth under Σ (pseudo-inverse) and the rank used as χ² dof.
+fn mahalanobis(err: &DVector<f64>, cov: &DMatrix<f64>) -> Option<(f64, usize)> {
+    let eig = cov.clone().symmetric_eigen();
+    let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+    if !(max > 0.0) {
+        return None;
+    }
+    let mut m2 = 0.0;
+    let mut rank = 0;
+    for (i, &l) in eig.eigenvalues.iter().enumerate() {
+        if l > 1e-12 * max {
+            let proj = eig.eigenvectors.column(i).dot(err);
+            m2 += proj * proj / l;
+            rank += 1;
+        }
+    }
+    Some((m2, rank))
+}
+
+fn accuracy(args: &Args) {
+    let model = ErrorModel::default();
+    let scene = SceneConfig::default();
+    let cfg = FitConfig::default();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+    println!(
+        "== accuracy: {} trials/type, {} points, range {:.1}-{:.1} m, Kinect Murray-Little noise (requested type) ==",
+        args.trials, args.points, scene.range.0, scene.range.1
+    );
+    println!(
+        "{:<34} {:>6} {:>14} {:>14} {:>16} {:>9} {:>9}",
+        "type", "fails", "normal ° med/p95", "centre mm med/p95", "curv 1/m med/p95", "in95%", "in95%srf"
+    );
+    let mut all_in = (0usize, 0usize);
+    for (s, b) in ALL_TYPES {
+        let (mut normal, mut centre, mut curv) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut inside, mut inside_surf, mut counted, mut fails) = (0usize, 0usize, 0usize, 0usize);
+        let debug = std::env::var("BENCH_DEBUG").is_ok();
+        let mut z2 = vec![0.0; 11];
+        let mut worse = 0usize;
+        for _ in 0..args.trials {
+            let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
+            let (pts, covs) = sample_sensor(&mut rng, &truth, args.points, &model);
+            let request = FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
+            let Ok(fit) = fit_patch(&pts, Some(&covs), &request, &cfg) else {
+                fails += 1;
+                continue;
+            };
+            normal.push(fit.normal().dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees());
+            centre.push((fit.center - truth.center).norm() * 1000.0);
+            if s != SurfaceType::Plane {
+                curv.push((fit.curvatures - truth.curvatures).abs().max());
+            }
+            if let Some(tp) = truth_params(&mut rng, &truth, &fit, 0.95) {
+                let err = fit.params() - tp;
+                if debug {
+                    for i in 0..err.len() {
+                        z2[i] += err[i] * err[i] / fit.covariance[(i, i)].max(1e-300);
+                    }
+                    let truth_res = (pts.iter().map(|q| truth.distance(q).powi(2)).sum::<f64>() / pts.len() as f64).sqrt();
+                    let fit_res = (pts.iter().map(|q| fit.distance(q).powi(2)).sum::<f64>() / pts.len() as f64).sqrt();
+                    if fit_res > truth_res * 1.05 {
+                        worse += 1;
+                    }
+                }
+                if let Some((m2, rank)) = mahalanobis(&err, &fit.covariance) {
+                    counted += 1;
+                    if m2 <= chi2_95(rank) {
+                        inside += 1;
+                    }
+                }
+                // Surface + pose only (without the boundary extents).
+                let nd = b.num_params();
+                let p = fit.dof();
+                let sub_err = err.rows(nd, p - nd).into_owned();
+                let sub_cov = fit.covariance.view((nd, nd), (p - nd, p - nd)).into_owned();
+                if let Some((m2, rank)) = mahalanobis(&sub_err, &sub_cov) {
+                    if m2 <= chi2_95(rank) {
+                        inside_surf += 1;
+                    }
+                }
+            }
+        }
+        if debug {
+            let z: Vec<String> = z2.iter().take(b.num_params() + s.num_curvatures() + 6).map(|v| format!("{:.2}", (v / counted.max(1) as f64).sqrt())).collect();
+            println!("  rms z per param {:?}; fit residual worse than truth's in {worse} trials", z);
+        }
+        all_in.0 += inside;
+        all_in.1 += counted;
+        let name = format!("{}/{}", s.name(), b.name());
+        let (nm, n95) = (quantile(&mut normal, 0.5), quantile(&mut normal, 0.95));
+        let (cm, c95) = (quantile(&mut centre, 0.5), quantile(&mut centre, 0.95));
+        let (km, k95) = (quantile(&mut curv, 0.5), quantile(&mut curv, 0.95));
+        let pct = |a: usize| 100.0 * a as f64 / counted.max(1) as f64;
+        println!(
+            "{name:<34} {fails:>6} {nm:>6.2} / {n95:>5.2} {cm:>6.2} / {c95:>5.2}   {km:>6.2} / {k95:>5.2}  {:>7.1}% {:>7.1}%",
+            pct(inside),
+            pct(inside_surf)
+        );
+    }
+    println!("covariance honesty over all types: {:.1}% of {} trials inside the 95% ellipsoid", 100.0 * all_in.0 as f64 / all_in.1.max(1) as f64, all_in.1);
+
+    println!("\n== type classification (surface auto, {} trials/type) ==", args.trials);
+    let mut correct_all = 0;
+    let mut total_all = 0;
+    for (s, b) in AUTO_FAMILY {
+        let mut counts = std::collections::BTreeMap::<&'static str, usize>::new();
+        let mut correct = 0;
+        let mut total = 0;
+        for _ in 0..args.trials {
+            let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
+            let (pts, covs) = sample_sensor(&mut rng, &truth, args.points, &model);
+            total += 1;
+            match fit_patch(&pts, Some(&covs), &FitRequest::default(), &cfg) {
+                Ok(fit) => {
+                    *counts.entry(fit.surface.name()).or_default() += 1;
+                    if fit.surface == s {
+                        correct += 1;
+                    }
+                }
+                Err(_) => *counts.entry("error").or_default() += 1,
+            }
+        }
+        correct_all += correct;
+        total_all += total;
+        println!("{:<24} {:>6.1}%  {:?}", s.name(), 100.0 * correct as f64 / total.max(1) as f64, counts);
+    }
+    println!("overall classification rate: {:.1}% of {}", 100.0 * correct_all as f64 / total_all.max(1) as f64, total_all);
+}
+
+fn speed(args: &Args) {
+    let model = ErrorModel::default();
+    let scene = SceneConfig::default();
+    let cfg = FitConfig::default();
+    let vcfg = ValidateConfig::default();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed + 1);
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!("\n== speed: fit (surface auto) + validate on the same points, one thread; loadavg {}", load.trim());
+    for nf in [50usize, 150] {
+        let samples: Vec<_> = (0..2000)
+            .filter_map(|i| {
+                let (s, b) = AUTO_FAMILY[i % AUTO_FAMILY.len()];
+                let truth = random_patch(&mut rng, s, b, &scene).ok()?;
+                Some(sample_sensor(&mut rng, &truth, nf, &model))
+            })
+            .collect();
+        let mut fit_us = Vec::with_capacity(samples.len());
+        let mut total_us = Vec::with_capacity(samples.len());
+        for _round in 0..3 {
+            for (pts, covs) in &samples {
+                let t0 = Instant::now();
+                let fit = fit_patch(pts, Some(covs), &FitRequest::default(), &cfg);
+                let t1 = Instant::now();
+                if let Ok(p) = &fit {
+                    std::hint::black_box(validate_patch(p, pts, &vcfg));
+                }
+                let t2 = Instant::now();
+                fit_us.push((t1 - t0).as_secs_f64() * 1e6);
+                total_us.push((t2 - t0).as_secs_f64() * 1e6);
+            }
+        }
+        let (f50, f95, f99) = (quantile(&mut fit_us, 0.5), quantile(&mut fit_us, 0.95), quantile(&mut fit_us, 0.99));
+        let (t50, t95, t99) = (quantile(&mut total_us, 0.5), quantile(&mut total_us, 0.95), quantile(&mut total_us, 0.99));
+        println!("nf = {nf:>3}: fit µs median {f50:.1} p95 {f95:.1} p99 {f99:.1} | fit+validate µs median {t50:.1} p95 {t95:.1} p99 {t99:.1} ({} calls)", fit_us.len());
+    }
+}
+
+fn main() -> Result<()> {
+    let args = parse_args()?;
+    if args.accuracy {
+        accuracy(&args);
+    }
+    if args.speed {
+        speed(&args);
+    }
+    Ok(())
+}

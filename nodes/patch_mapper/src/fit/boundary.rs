@@ -1,0 +1,250 @@
+//! Boundary fitting from 1D/2D data moments (IROS IV steps 4–9, eq 30–32) and the gauge directions
+//! of the surface (centre along symmetric directions, in-plane rotation), with their sampling
+//! covariance.
+//!
+//! The moments are treated as sample means of i.i.d. draws from the patch area; their covariance is
+//! the empirical covariance of the per-point terms divided by N (delta method). This is the
+//! uncertainty of everything the fit takes from moments (boundary extents, centre of a plane, the
+//! apex of spheres/cylinders along their symmetry directions, a plane's in-plane rotation).
+
+use crate::patch::{BoundaryType, SurfaceType};
+use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
+
+/// `[x̄, ȳ, α, φ, c_xy]`: means and central second moments of the projected points (eq 30 uses
+/// `β = 2 c_xy`).
+pub type Moments = SVector<f64, 5>;
+
+/// Moments of `u_i = Π_xy Rᵀ(q_i − c)` (eq 16) and their sampling covariance.
+pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> (Moments, SMatrix<f64, 5, 5>) {
+    let n = points.len().max(1) as f64;
+    let rt = rot.transpose();
+    let mut mean = Vector2::zeros();
+    for q in points {
+        mean += (rt * (q - c)).xy();
+    }
+    mean /= n;
+    let mut second = Vector3::zeros();
+    for q in points {
+        let d = (rt * (q - c)).xy() - mean;
+        second += Vector3::new(d.x * d.x, d.y * d.y, d.x * d.y);
+    }
+    second /= n;
+    let m = Moments::from_column_slice(&[mean.x, mean.y, second.x, second.y, second.z]);
+    let mut cov = SMatrix::<f64, 5, 5>::zeros();
+    for q in points {
+        let d = (rt * (q - c)).xy() - mean;
+        let psi = Moments::from_column_slice(&[d.x, d.y, d.x * d.x - second.x, d.y * d.y - second.y, d.x * d.y - second.z]);
+        cov += psi * psi.transpose();
+    }
+    // Unbiased empirical covariance of ψ, divided by N for the mean.
+    cov /= (n - 1.0).max(1.0) * n;
+    (m, cov)
+}
+
+/// Values taken from the moments: boundary params (up to 5) and the moment-fixed local increments
+/// `[δx, δy, δz, δcx, δcy, δcz]` of the final frame.
+pub struct FromMoments {
+    pub d: [f64; 5],
+    pub nd: usize,
+    pub local: [f64; 6],
+}
+
+/// Boundary parameters and gauge increments as functions of the moments (IROS steps 5–9).
+/// `kappa` is the curvature of spheres/cylinders (for the rotation that follows the apex),
+/// `lambda = √2 erf⁻¹(Γ)` (step 4), `ln_term = −ln(1 − Γ)` (eq 30).
+pub fn from_moments(surface: SurfaceType, boundary: BoundaryType, m: &Moments, kappa: f64, lambda: f64, ln_term: f64) -> FromMoments {
+    let (xm, ym, alpha, phi, cxy) = (m[0], m[1], m[2], m[3], m[4]);
+    let sq = |v: f64| v.max(0.0).sqrt();
+    let mut out = FromMoments { d: [0.0; 5], nd: boundary.num_params(), local: [0.0; 6] };
+    match surface {
+        SurfaceType::Plane => {
+            // Step 9: centre at the centroid, eq 30–32 for extents and in-plane rotation.
+            let beta = 2.0 * cxy;
+            let root = (beta * beta + (alpha - phi).powi(2)).sqrt();
+            let lp = sq(ln_term * (alpha + phi + root));
+            let lm = sq(ln_term * (alpha + phi - root));
+            out.local[3] = xm;
+            out.local[4] = ym;
+            match boundary {
+                BoundaryType::Circle => out.d[0] = lp.max(lm),
+                BoundaryType::Ellipse | BoundaryType::Rectangle => {
+                    out.d[0] = lp;
+                    out.d[1] = lm;
+                    out.local[2] = 0.5 * beta.atan2(alpha - phi);
+                }
+                BoundaryType::Quadrilateral => {
+                    // eq 31
+                    let d = (lm * lm + lp * lp).sqrt();
+                    out.d = [d, d, d, d, lm.atan2(lp)];
+                    out.local[2] = 0.5 * beta.atan2(alpha - phi);
+                }
+            }
+        }
+        SurfaceType::CylindricParaboloid => {
+            // Step 6: d_r = λ[√(v_x − x̄²) √v_y], centre slides to x̄ along the axis.
+            out.d[0] = lambda * sq(alpha);
+            out.d[1] = lambda * sq(phi + ym * ym);
+            out.local[3] = xm;
+        }
+        SurfaceType::CircularCylinder => {
+            out.d[0] = lambda * sq(alpha);
+            out.d[1] = lambda * sq(phi + ym * ym);
+            // Apex follows the data around the axis: rotation about x by κȳ with the apex.
+            out.local[3] = xm;
+            out.local[4] = ym;
+            out.local[0] = kappa * ym;
+        }
+        SurfaceType::CircularParaboloid => {
+            // Step 7
+            out.d[0] = lambda * sq(alpha + xm * xm).max(sq(phi + ym * ym));
+        }
+        SurfaceType::Sphere => {
+            out.d[0] = lambda * sq(alpha + xm * xm).max(sq(phi + ym * ym));
+            // Apex follows the data over the sphere: tilt (κȳ, −κx̄) with the apex at (x̄, ȳ).
+            out.local[3] = xm;
+            out.local[4] = ym;
+            out.local[0] = kappa * ym;
+            out.local[1] = -kappa * xm;
+        }
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => {
+            // Step 8
+            out.d[0] = lambda * sq(alpha + xm * xm);
+            out.d[1] = lambda * sq(phi + ym * ym);
+        }
+    }
+    out
+}
+
+/// `∂(d, local)/∂m` by central differences (the maps are smooth closed forms; 10 evaluations).
+pub(crate) fn from_moments_jacobian(
+    surface: SurfaceType,
+    boundary: BoundaryType,
+    m: &Moments,
+    kappa: f64,
+    lambda: f64,
+    ln_term: f64,
+) -> SMatrix<f64, 11, 5> {
+    let scale = (m[2] + m[3]).abs().sqrt().max(1e-6);
+    let mut jac = SMatrix::<f64, 11, 5>::zeros();
+    for j in 0..5 {
+        let h = if j < 2 { 1e-6 * scale } else { 1e-6 * scale * scale };
+        let mut mp = *m;
+        let mut mm = *m;
+        mp[j] += h;
+        mm[j] -= h;
+        let p = from_moments(surface, boundary, &mp, kappa, lambda, ln_term);
+        let q = from_moments(surface, boundary, &mm, kappa, lambda, ln_term);
+        for i in 0..5 {
+            jac[(i, j)] = (p.d[i] - q.d[i]) / (2.0 * h);
+        }
+        for i in 0..6 {
+            jac[(5 + i, j)] = (p.local[i] - q.local[i]) / (2.0 * h);
+        }
+    }
+    jac
+}
+
+/// Error function (Numerical Recipes `erfc` Chebyshev fit, fractional error < 1.2e-7, refined by the
+/// series for small arguments).
+pub fn erf(x: f64) -> f64 {
+    if x.abs() < 0.5 {
+        // Maclaurin series, converges fast here.
+        let x2 = x * x;
+        let mut term = x;
+        let mut sum = x;
+        for n in 1..30 {
+            term *= -x2 / n as f64;
+            let add = term / (2 * n + 1) as f64;
+            sum += add;
+            if add.abs() < 1e-17 {
+                break;
+            }
+        }
+        return sum * 2.0 / std::f64::consts::PI.sqrt();
+    }
+    let z = x.abs();
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let poly = -z * z - 1.265_512_23
+        + t * (1.000_023_68
+            + t * (0.374_091_96
+                + t * (0.096_784_18
+                    + t * (-0.186_288_06 + t * (0.278_868_07 + t * (-1.135_203_98 + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
+    let erfc = t * poly.exp();
+    if x >= 0.0 {
+        1.0 - erfc
+    } else {
+        erfc - 1.0
+    }
+}
+
+/// Inverse error function on (−1, 1) (Giles' approximation refined by Newton steps on [`erf`]).
+pub fn erf_inv(y: f64) -> f64 {
+    if y <= -1.0 {
+        return f64::NEG_INFINITY;
+    }
+    if y >= 1.0 {
+        return f64::INFINITY;
+    }
+    let w = -((1.0 - y) * (1.0 + y)).ln();
+    let mut x = if w < 5.0 {
+        let w = w - 2.5;
+        let mut p = 2.810_226_36e-08;
+        for c in [3.432_739_39e-07, -3.523_387_7e-06, -4.391_506_54e-06, 0.000_218_580_87, -0.001_253_725_03, -0.004_177_681_64, 0.246_640_727, 1.501_409_41] {
+            p = c + p * w;
+        }
+        p * y
+    } else {
+        let w = w.sqrt() - 3.0;
+        let mut p = -0.000_200_214_257;
+        for c in [0.000_100_950_558, 0.001_349_343_22, -0.003_673_428_44, 0.005_739_507_73, -0.007_622_461_3, 0.009_438_870_47, 1.001_674_06, 2.832_976_82] {
+            p = c + p * w;
+        }
+        p * y
+    };
+    for _ in 0..3 {
+        let err = erf(x) - y;
+        let deriv = 2.0 / std::f64::consts::PI.sqrt() * (-x * x).exp();
+        if deriv <= 0.0 {
+            break;
+        }
+        x -= err / deriv;
+    }
+    x
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn erf_and_inverse() {
+        // erf(1) = 0.8427007929497149
+        assert!((erf(1.0) - 0.842_700_792_949_714_9).abs() < 2e-7);
+        assert!((erf(0.3) - 0.328_626_759_459_127_4).abs() < 1e-12);
+        for y in [-0.99, -0.5, 0.0, 0.2, 0.6827, 0.95, 0.999] {
+            assert!((erf(erf_inv(y)) - y).abs() < 1e-9, "{y}");
+        }
+        // λ for Γ = 0.95 is the 97.5% normal quantile 1.959964.
+        assert!((2f64.sqrt() * erf_inv(0.95) - 1.959_964).abs() < 1e-5);
+    }
+
+    #[test]
+    fn plane_ellipse_moments_give_orientation_and_extents() {
+        // Uniform ellipse with radii (a, b) rotated by 0.4 rad: α' = a²/4, φ' = b²/4.
+        let (a, b, th) = (0.1f64, 0.05f64, 0.4f64);
+        let (s, c) = th.sin_cos();
+        let (va, vb) = (a * a / 4.0, b * b / 4.0);
+        let alpha = c * c * va + s * s * vb;
+        let phi = s * s * va + c * c * vb;
+        let cxy = s * c * (va - vb);
+        let m = Moments::from_column_slice(&[0.01, -0.02, alpha, phi, cxy]);
+        let ln_term = -(1.0f64 - 0.95).ln();
+        let out = from_moments(SurfaceType::Plane, BoundaryType::Ellipse, &m, 0.0, 1.96, ln_term);
+        assert!((out.local[2] - th).abs() < 1e-12);
+        assert!((out.d[0] - (2.0 * ln_term * va).sqrt()).abs() < 1e-12);
+        assert!((out.d[1] - (2.0 * ln_term * vb).sqrt()).abs() < 1e-12);
+        assert_eq!((out.local[3], out.local[4]), (0.01, -0.02));
+        let jac = from_moments_jacobian(SurfaceType::Plane, BoundaryType::Ellipse, &m, 0.0, 1.96, ln_term);
+        assert!((jac[(8, 0)] - 1.0).abs() < 1e-6 && (jac[(9, 1)] - 1.0).abs() < 1e-6);
+    }
+}

@@ -228,6 +228,13 @@ mod tests {
     }
 
     #[test]
+    fn shipped_config_file_is_valid_and_equals_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/step_executor.yaml");
+        let config = StepExecutorConfig::load(&path).unwrap();
+        assert_eq!(config, StepExecutorConfig::default());
+    }
+
+    #[test]
     fn unknown_key_is_named() {
         let err = StepExecutorConfig::from_yaml("bus:\n  bogus_key: 3\n", Path::new("c.yaml")).unwrap_err();
         assert!(err.to_string().contains("bogus_key"), "{err}");

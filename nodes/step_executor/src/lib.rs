@@ -14,3 +14,4 @@ pub mod player;
 pub mod servo_bus;
 pub mod protocol;
 pub mod sim_chain;
+pub mod executor;

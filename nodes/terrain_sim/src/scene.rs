@@ -102,6 +102,8 @@ pub struct Rock {
     pub bounds_in_rock: [Vector3<f64>; 2],
     /// Where the robot stands (`base_link`) to look at this rock.
     pub world_from_station: Isometry3<f64>,
+    /// `(cos, sin)` of the yaw in `world_from_rock` (rocks only turn about z): fast ray transforms.
+    yaw_cos_sin: (f64, f64),
 }
 
 impl RockShape {
@@ -292,6 +294,7 @@ impl Rock {
             world_from_rock: Isometry3::from_parts(Translation3::new(x, y, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, yaw)),
             bounds_in_rock: shape.bounds(),
             world_from_station: Isometry3::translation(x - standoff_m, y, 0.0),
+            yaw_cos_sin: (yaw.cos(), yaw.sin()),
         })
     }
 
@@ -316,13 +319,15 @@ impl Rock {
     }
 
     /// Nearest hit of a world ray (normal in world).
+    #[inline]
     pub fn intersect_world(&self, ray: &Ray) -> Option<Hit> {
-        let local = Ray {
-            origin: self.world_from_rock.inverse_transform_point(&ray.origin.into()).coords,
-            direction: self.world_from_rock.inverse_transform_vector(&ray.direction),
-        };
+        let (c, s) = self.yaw_cos_sin;
+        // rock_from_world = Rz(−yaw)·(p − t).
+        let to_rock = |v: Vector3<f64>| Vector3::new(c * v.x + s * v.y, -s * v.x + c * v.y, v.z);
+        let local = Ray { origin: to_rock(ray.origin - self.world_from_rock.translation.vector), direction: to_rock(ray.direction) };
         let hit = self.shape.intersect(&local)?;
-        Some(Hit { t: hit.t, normal: self.world_from_rock.rotation * hit.normal })
+        let n = hit.normal;
+        Some(Hit { t: hit.t, normal: Vector3::new(c * n.x - s * n.y, s * n.x + c * n.y, n.z) })
     }
 }
 
@@ -478,11 +483,16 @@ impl Scene {
 
     /// Nearest hit of a world ray among table/floor and the rocks for which `consider(i)` is true.
     pub fn intersect(&self, ray: &Ray, consider: impl Fn(usize) -> bool) -> Option<(Hit, Surface)> {
+        self.intersect_among(ray, (0..self.rocks.len()).filter(|&i| consider(i)))
+    }
+
+    /// Nearest hit of a world ray among table/floor and the rocks with the given indices (unknown
+    /// indices are ignored).
+    #[inline]
+    pub fn intersect_among(&self, ray: &Ray, rocks: impl IntoIterator<Item = usize>) -> Option<(Hit, Surface)> {
         let mut best = self.intersect_ground(ray);
-        for (i, rock) in self.rocks.iter().enumerate() {
-            if !consider(i) {
-                continue;
-            }
+        for i in rocks {
+            let Some(rock) = self.rocks.get(i) else { continue };
             if let Some(hit) = rock.intersect_world(ray) {
                 if best.is_none_or(|(b, _)| hit.t < b.t) {
                     best = Some((hit, Surface::Rock(i)));
@@ -493,6 +503,7 @@ impl Scene {
     }
 
     /// Hit with the table top (z = 0 inside its extent) or else the floor (z = −height).
+    #[inline]
     pub fn intersect_ground(&self, ray: &Ray) -> Option<(Hit, Surface)> {
         if ray.direction.z >= 0.0 {
             return None;
@@ -648,6 +659,21 @@ mod tests {
         let rock = scene.rocks[0].foothold().top_in_world;
         let (_, surface) = scene.intersect(&down_ray(rock.x, rock.y), |_| true).unwrap();
         assert_eq!(surface, Surface::Rock(0));
+    }
+
+    #[test]
+    fn yawed_rock_intersection_matches_isometry() {
+        let shape = RockShape::EllipsoidCap { semi_axes_m: [0.09, 0.05, 0.04], centre_z_m: 0.0 };
+        let rock = Rock::new("r", shape, true, 0.4, 0.3, 0.7, 0.2).unwrap();
+        let ray = Ray { origin: Vector3::new(0.1, 0.05, 0.5), direction: Vector3::new(0.6, 0.5, -1.0) };
+        let hit = rock.intersect_world(&ray).unwrap();
+        let local = Ray {
+            origin: rock.world_from_rock.inverse_transform_point(&ray.origin.into()).coords,
+            direction: rock.world_from_rock.inverse_transform_vector(&ray.direction),
+        };
+        let reference = shape.intersect(&local).unwrap();
+        assert!((hit.t - reference.t).abs() < 1e-12);
+        assert!((hit.normal - rock.world_from_rock.rotation * reference.normal).norm() < 1e-12);
     }
 
     #[test]

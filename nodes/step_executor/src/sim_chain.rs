@@ -491,6 +491,8 @@ fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec
         return;
     }
     let delays: BTreeMap<u8, u8> = lock(&shared.servos).iter().map(|s| (s.id(), s.u8_at(mx28::RETURN_DELAY_TIME))).collect();
+    // Absolute due times, so sleep overshoot does not accumulate over a 12-servo burst.
+    let mut due = Instant::now() + faults.latency;
     for (id, error, data) in responses {
         if faults.silent.contains(&id) {
             continue;
@@ -500,11 +502,11 @@ fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec
             let n = bytes.len();
             bytes[n - 1] ^= 0xA5;
         }
-        let mut wait = faults.latency + Duration::from_micros(2 * u64::from(delays.get(&id).copied().unwrap_or(0)));
+        due += Duration::from_micros(2 * u64::from(delays.get(&id).copied().unwrap_or(0)));
         if config.simulate_wire_time && config.baud > 0 {
-            wait += Duration::from_nanos(bytes.len() as u64 * 10 * 1_000_000_000 / u64::from(config.baud));
+            due += Duration::from_nanos(bytes.len() as u64 * 10 * 1_000_000_000 / u64::from(config.baud));
         }
-        bus_sleep(wait);
+        bus_sleep(due.saturating_duration_since(Instant::now()));
         write_all(master, &bytes);
     }
 }

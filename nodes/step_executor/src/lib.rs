@@ -15,3 +15,4 @@ pub mod servo_bus;
 pub mod protocol;
 pub mod sim_chain;
 pub mod executor;
+pub mod runtime;

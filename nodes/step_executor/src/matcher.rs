@@ -167,14 +167,13 @@ pub struct Matcher {
 /// All parameterisations of the same geometry (see module doc).
 fn equivalents(patch: &PatchGeometry, allow_normal_flip: bool) -> Vec<Equivalent> {
     let base = patch.rotation();
-    let swappable = matches!(patch.boundary, BoundaryType::Ellipse | BoundaryType::Rectangle);
-    let quarter_turns: &[u8] = if swappable {
-        &[0, 1, 2, 3]
-    } else if patch.boundary == BoundaryType::Circle {
-        &[0]
-    } else {
-        // Quadrilateral corners are listed explicitly: no parameter-free rotation symmetry.
-        &[0]
+    let two_axes = matches!(patch.boundary, BoundaryType::Ellipse | BoundaryType::Rectangle);
+    // A single curvature (cylindric paraboloid, cylinder) is bound to the local y axis: only half
+    // turns keep that form. Circles are continuously symmetric; quadrilaterals have none for free.
+    let quarter_turns: &[u8] = match (two_axes, patch.k.len()) {
+        (true, 1) => &[0, 2],
+        (true, _) => &[0, 1, 2, 3],
+        (false, _) => &[0],
     };
     let flips: &[bool] = if allow_normal_flip && patch.boundary != BoundaryType::Quadrilateral { &[false, true] } else { &[false] };
     let mut out = Vec::new();

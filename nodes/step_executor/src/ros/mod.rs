@@ -4,20 +4,22 @@
 //! The loop is single-threaded and never blocks on input: drain the patch map, serve every service,
 //! publish the status every `1 / status_rate_hz`, sleep `poll_period_ms`.
 //!
-//! Connected so far: the status, arm/disarm, e-stop and the (empty until the library is connected)
-//! motion list. Services that need the servo bus or the motion library answer `success = false` with
-//! a message saying so; the library wiring (issue 4) replaces [`Executor`]'s handlers.
+//! The handlers delegate to the library's [`Runtime`] (motion library, J 6.3 matcher, servo bus
+//! thread); this layer converts messages (`convert`). Without a servo bus (port missing) the node
+//! still starts: bus services answer `success = false` with the reason, the status carries it too.
+
+mod convert;
 
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
-use serde::{Deserialize, Serialize};
 
-use patchwalk_msgs::msg::{ExecutorStatus, PatchArray};
+use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
 use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::JointState;
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
+use step_executor::runtime::{RunState, Runtime};
 
 /// Arguments of `step_executor run`.
 #[derive(clap::Args, Debug, Default)]
@@ -26,30 +28,9 @@ pub struct RunArgs {
     pub node: NodeArgs,
 }
 
-/// The part of `config/step_executor.yaml` the ROS layer reads (its `ros:` section). The other
-/// sections belong to the library's `StepExecutorConfig`, which checks them (and rejects unknown keys)
-/// once it is wired in here.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(default)]
-pub struct ExecutorFileView {
-    pub ros: ExecutorRosParams,
-}
-
-/// ROS-level parameters of the node.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ExecutorRosParams {
-    /// /joint_states rate while idle (during playback every control cycle is published), Hz.
-    pub joint_state_rate_hz: f64,
-    /// /step_executor/status rate, Hz.
-    pub status_rate_hz: f64,
-}
-
-impl Default for ExecutorRosParams {
-    fn default() -> Self {
-        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0 }
-    }
-}
+/// `config/step_executor.yaml`: the library's config (unknown keys rejected naming the key); its
+/// `ros:` section holds the ROS-level parameters.
+pub type ExecutorFileView = step_executor::config::StepExecutorConfig;
 
 /// Topic and service names (names.md).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
@@ -68,74 +49,162 @@ pub const ARM: &str = "/step_executor/arm";
 /// Poll period of the loop in ms.
 const POLL_PERIOD_MS: u64 = 2;
 
-const NO_BUS: &str = "not available yet: the servo bus is not connected to the ROS node";
-const NO_LIBRARY: &str = "not available yet: the motion library is not connected to the ROS node";
 
-/// Node state and the service handlers.
-#[derive(Default)]
+/// Node state and the service handlers (delegating to the library's [`Runtime`]).
 struct Executor {
-    status: ExecutorStatus,
-    latest_map: Option<PatchArray>,
+    runtime: Runtime,
     maps_received: u64,
+    log: RateLimitedLog,
 }
 
 impl Executor {
+    fn new(runtime: Runtime) -> Self {
+        Self { runtime, maps_received: 0, log: RateLimitedLog::default() }
+    }
+
+    /// A patch map: convert, express in base_link, match (J 6.3), auto-play when armed.
     fn on_patches(&mut self, map: PatchArray) {
         self.maps_received += 1;
-        self.latest_map = Some(map);
+        let map_from_camera = match convert::isometry_from_pose(&map.camera_pose) {
+            Ok(pose) => pose,
+            Err(e) => {
+                self.log.warn("camera_pose", format_args!("{PATCHES_TOPIC}: map ignored, camera_pose: {e}"));
+                return;
+            }
+        };
+        let mut patches = Vec::with_capacity(map.patches.len());
+        for msg in &map.patches {
+            match convert::patch_from_msg(msg) {
+                Ok(patch) => patches.push(patch),
+                Err(e) => {
+                    self.log.warn("patch", format_args!("{PATCHES_TOPIC}: patch skipped: {e}"));
+                }
+            }
+        }
+        match self.runtime.on_patch_map(&patches, &map_from_camera) {
+            Ok(report) => match (&report.best, report.near_misses.first()) {
+                (Some(best), _) => tracing::debug!(?best, "patch map matched"),
+                (None, Some(miss)) => tracing::debug!("no match; nearest: map patch {} vs trained {}: {}", miss.map_index, miss.trained_index, miss.reason),
+                (None, None) => {}
+            },
+            Err(e) => {
+                self.log.warn("match", format_args!("{PATCHES_TOPIC}: {e}"));
+            }
+        }
+    }
+
+    fn status(&self) -> ExecutorStatus {
+        let s = self.runtime.status();
+        ExecutorStatus {
+            stamp: node::now_stamp(),
+            state: match s.state {
+                RunState::Idle => ExecutorStatus::STATE_IDLE,
+                RunState::Playing => ExecutorStatus::STATE_PLAYING,
+                RunState::HoldingFault => ExecutorStatus::STATE_HOLDING_FAULT,
+                RunState::EStopped => ExecutorStatus::STATE_ESTOPPED,
+            },
+            armed: s.armed,
+            torque_enabled: s.torque_enabled,
+            current_motion: s.current_motion,
+            keyframe_index: s.keyframe_index,
+            last_match: s.last_match,
+            fault_servo_id: s.fault_servo_id,
+            last_fault: s.last_fault,
+            library_size: s.library_size,
+            recorded_keyframes: s.recorded_keyframes,
+        }
     }
 
     fn set_torque(&mut self, request: SetBoolRequest) -> SetBoolResponse {
-        failure_bool(format!("set_torque({}): {NO_BUS}", request.data))
+        match self.runtime.set_torque(request.data) {
+            Ok(message) => SetBoolResponse { success: true, message },
+            Err(e) => failure_bool(format!("set_torque({}): {e}", request.data)),
+        }
     }
 
-    fn record_keyframe(&mut self, _request: srv::RecordKeyframeRequest) -> srv::RecordKeyframeResponse {
-        srv::RecordKeyframeResponse { success: false, message: format!("record_keyframe: {NO_BUS}"), ..Default::default() }
+    fn record_keyframe(&mut self, request: srv::RecordKeyframeRequest) -> srv::RecordKeyframeResponse {
+        match self.runtime.record_keyframe(request.duration, request.pause) {
+            Ok((index, positions)) => {
+                let mut fixed = [0.0; 12];
+                for (slot, q) in fixed.iter_mut().zip(&positions) {
+                    *slot = *q;
+                }
+                srv::RecordKeyframeResponse {
+                    success: true,
+                    message: format!("keyframe {index} recorded"),
+                    keyframe_index: index as u32,
+                    positions: fixed,
+                }
+            }
+            Err(e) => srv::RecordKeyframeResponse { success: false, message: format!("record_keyframe: {e}"), ..Default::default() },
+        }
     }
 
-    fn select_target(&mut self, _request: srv::SelectTargetRequest) -> srv::SelectTargetResponse {
-        let patches = self.latest_map.as_ref().map_or(0, |map| map.patches.len());
-        srv::SelectTargetResponse {
-            success: false,
-            message: format!("select_target: {NO_LIBRARY} (latest patch map: {patches} patches)"),
-            ..Default::default()
+    fn select_target(&mut self, request: srv::SelectTargetRequest) -> srv::SelectTargetResponse {
+        if request.mode != srv::SelectTargetRequest::MODE_NEAREST_POINT {
+            return srv::SelectTargetResponse {
+                success: false,
+                message: "select_target: only MODE_NEAREST_POINT is supported by step_executor (fitting needs the \
+                          mapper's point cloud; fit with patch_mapper and pick the nearest patch)"
+                    .into(),
+                ..Default::default()
+            };
+        }
+        let p = &request.point;
+        match self.runtime.select_nearest([p.x, p.y, p.z]) {
+            Ok(patch) => srv::SelectTargetResponse {
+                success: true,
+                message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.c),
+                patch: convert::msg_from_patch(&patch),
+            },
+            Err(e) => srv::SelectTargetResponse { success: false, message: format!("select_target: {e}"), ..Default::default() },
         }
     }
 
     fn save_motion(&mut self, request: srv::SaveMotionRequest) -> srv::SaveMotionResponse {
-        srv::SaveMotionResponse { success: false, message: format!("save_motion({:?}): {NO_LIBRARY}", request.name) }
+        match self.runtime.save_motion(&request.name) {
+            Ok(message) => srv::SaveMotionResponse { success: true, message },
+            Err(e) => srv::SaveMotionResponse { success: false, message: format!("save_motion({:?}): {e}", request.name) },
+        }
     }
 
     fn list_motions(&mut self, _request: srv::ListMotionsRequest) -> srv::ListMotionsResponse {
-        srv::ListMotionsResponse { success: true, message: "0 motions".into(), motions: Vec::new() }
+        let motions: Vec<MotionSummary> = self
+            .runtime
+            .list_motions()
+            .into_iter()
+            .map(|m| MotionSummary { name: m.name, surface: m.surface, boundary: m.boundary, keyframe_count: m.keyframe_count, duration: m.duration })
+            .collect();
+        srv::ListMotionsResponse { success: true, message: format!("{} motions", motions.len()), motions }
     }
 
     fn delete_motion(&mut self, request: srv::DeleteMotionRequest) -> srv::DeleteMotionResponse {
-        srv::DeleteMotionResponse { success: false, message: format!("no motion named {:?} (library is empty)", request.name) }
+        match self.runtime.delete_motion(&request.name) {
+            Ok(message) => srv::DeleteMotionResponse { success: true, message },
+            Err(e) => srv::DeleteMotionResponse { success: false, message: e },
+        }
     }
 
     fn play_motion(&mut self, request: srv::PlayMotionRequest) -> srv::PlayMotionResponse {
-        srv::PlayMotionResponse { success: false, message: format!("play_motion({:?}): {NO_BUS}", request.name) }
+        match self.runtime.play_motion(&request.name) {
+            Ok(message) => srv::PlayMotionResponse { success: true, message },
+            Err(e) => srv::PlayMotionResponse { success: false, message: format!("play_motion({:?}): {e}", request.name) },
+        }
     }
 
-    /// E-stop: always succeeds; disarms and latches `STATE_ESTOPPED` until re-armed.
+    /// E-stop: always succeeds; disarms, stops the servos within one cycle and latches
+    /// `STATE_ESTOPPED` until re-armed.
     fn stop(&mut self) -> TriggerResponse {
-        self.status.state = ExecutorStatus::STATE_ESTOPPED;
-        self.status.armed = false;
-        self.status.current_motion.clear();
+        let message = self.runtime.stop();
         tracing::warn!("e-stop requested");
-        TriggerResponse { success: true, message: "stopped; disarmed".into() }
+        TriggerResponse { success: true, message }
     }
 
     /// Arm/disarm automatic execution on match; arming clears a latched e-stop.
     fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
-        self.status.armed = request.data;
-        if request.data && self.status.state == ExecutorStatus::STATE_ESTOPPED {
-            self.status.state = ExecutorStatus::STATE_IDLE;
-        }
-        let message = if request.data { "armed" } else { "disarmed" };
+        let message = self.runtime.arm(request.data);
         tracing::info!("{message}");
-        SetBoolResponse { success: true, message: message.into() }
+        SetBoolResponse { success: true, message }
     }
 }
 
@@ -153,16 +222,22 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
     let config: ExecutorFileView = patchwalk_msgs::params::load_config(args.node.config.as_deref(), &args.node.params)?;
-    let params = config.ros;
+    config.validate()?;
+    let params = config.ros.clone();
     let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
-    period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
+    let joint_state_period = period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
+    // Library, URDF and the servo bus thread (a missing bus or a broken library file is reported, not fatal).
+    let (runtime, warnings) = Runtime::new(config)?;
+    for warning in &warnings {
+        tracing::warn!("{warning}");
+    }
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
 
     let mut ros = RosNode::new("step_executor", network)?;
     let patches_sub = ros.subscription::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
-    // Joint states come from the servo bus (issue 4); nothing is published without one.
-    let _joint_states_pub = ros.publisher::<JointState>(JOINT_STATES_TOPIC, node::reliable_qos())?;
+    // Joint states come from the servo bus thread; nothing is published without a bus.
+    let joint_states_pub = ros.publisher::<JointState>(JOINT_STATES_TOPIC, node::reliable_qos())?;
     let status_pub = ros.publisher::<ExecutorStatus>(STATUS_TOPIC, node::reliable_qos())?;
     let set_torque_srv = ros.server::<SetBool>(SET_TORQUE)?;
     let record_keyframe_srv = ros.server::<srv::RecordKeyframe>(RECORD_KEYFRAME)?;
@@ -175,8 +250,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let arm_srv = ros.server::<SetBool>(ARM)?;
 
     let mut log = RateLimitedLog::default();
-    let mut executor = Executor::default();
+    let mut executor = Executor::new(runtime);
+    let joint_names = executor.runtime.joint_names().to_vec();
     let mut next_status = Instant::now();
+    let mut next_joint_state = Instant::now();
     tracing::info!("step_executor running");
 
     while !shutdown.requested() {
@@ -191,10 +268,21 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r));
         node::serve(&delete_motion_srv, DELETE_MOTION, &mut log, |r| executor.delete_motion(r));
         node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r));
+        // Every control cycle while playing, at joint_state_rate_hz otherwise.
+        for telemetry in executor.runtime.poll() {
+            let playing = telemetry.goal.is_some();
+            let now = Instant::now();
+            if playing || now >= next_joint_state {
+                let mut msg = JointState { name: joint_names.clone(), ..Default::default() };
+                msg.header.stamp = node::now_stamp();
+                msg.position = telemetry.positions.iter().map(|p| p.unwrap_or(f64::NAN)).collect();
+                node::publish(&joint_states_pub, JOINT_STATES_TOPIC, msg, &mut log);
+                next_joint_state = now + joint_state_period;
+            }
+        }
         let now = Instant::now();
         if now >= next_status {
-            executor.status.stamp = node::now_stamp();
-            node::publish(&status_pub, STATUS_TOPIC, executor.status.clone(), &mut log);
+            node::publish(&status_pub, STATUS_TOPIC, executor.status(), &mut log);
             next_status = now + status_period;
         }
         std::thread::sleep(Duration::from_millis(POLL_PERIOD_MS));
@@ -207,33 +295,67 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 mod tests {
     use super::*;
 
+    /// An executor on the real config and URDF with no servo bus.
+    fn without_bus() -> (Executor, tempfile::TempDir) {
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let mut config: ExecutorFileView = patchwalk_msgs::params::load_config(Some(&root.join("config/step_executor.yaml")), &[]).unwrap();
+        config.urdf_path = root.join("urdf/rpbp.urdf");
+        config.library_path = dir.path().join("motions.yaml");
+        let (runtime, _) = Runtime::with_bus(config, || Err("no bus in this test".into())).unwrap();
+        (Executor::new(runtime), dir)
+    }
+
     #[test]
     fn stop_latches_and_arming_clears_it() {
-        let mut executor = Executor::default();
+        let (mut executor, _dir) = without_bus();
         assert!(executor.arm(SetBoolRequest { data: true }).success);
-        assert!(executor.status.armed);
+        assert!(executor.status().armed);
         assert!(executor.stop().success);
-        assert_eq!(executor.status.state, ExecutorStatus::STATE_ESTOPPED);
-        assert!(!executor.status.armed);
+        assert_eq!(executor.status().state, ExecutorStatus::STATE_ESTOPPED);
+        assert!(!executor.status().armed);
         executor.arm(SetBoolRequest { data: true });
-        assert_eq!(executor.status.state, ExecutorStatus::STATE_IDLE);
+        assert_eq!(executor.status().state, ExecutorStatus::STATE_IDLE);
     }
 
     #[test]
-    fn unconnected_services_fail_with_a_reason() {
-        let mut executor = Executor::default();
+    fn services_without_a_bus_fail_with_a_reason() {
+        let (mut executor, _dir) = without_bus();
         let response = executor.play_motion(srv::PlayMotionRequest { name: "rock1".into() });
-        assert!(!response.success && response.message.contains("not available yet"));
+        assert!(!response.success && response.message.contains("not available"), "{}", response.message);
         let response = executor.list_motions(srv::ListMotionsRequest::default());
         assert!(response.success && response.motions.is_empty());
+        let response = executor.select_target(srv::SelectTargetRequest::default());
+        assert!(!response.success && response.message.contains("no patch map"));
     }
 
     #[test]
-    fn ros_section_is_read_and_other_sections_are_left_to_the_library() {
+    fn patch_map_is_converted_and_kept_for_target_selection() {
+        let (mut executor, _dir) = without_bus();
+        let patch = step_executor::patch::PatchGeometry {
+            surface: step_executor::patch::SurfaceType::Plane,
+            boundary: step_executor::patch::BoundaryType::Circle,
+            d: vec![0.03],
+            k: vec![],
+            r: [0.0; 3],
+            c: [0.0, 0.1, 0.4],
+        };
+        let mut bad = convert::msg_from_patch(&patch);
+        bad.surface = 42;
+        let map = PatchArray { patches: vec![convert::msg_from_patch(&patch), bad], ..Default::default() };
+        executor.on_patches(map);
+        let response = executor.select_target(srv::SelectTargetRequest::default());
+        assert!(response.success, "{}", response.message);
+        assert_eq!(response.patch.surface, patchwalk_msgs::msg::Patch::PLANE);
+    }
+
+    #[test]
+    fn config_file_view_is_the_library_config() {
         let mut file = tempfile::NamedTempFile::new().unwrap();
         std::io::Write::write_all(&mut file, b"bus:\n  baud: 57600\nros:\n  status_rate_hz: 2.0\n").unwrap();
         let view: ExecutorFileView = patchwalk_msgs::params::load_config(Some(file.path()), &[]).unwrap();
         assert_eq!(view.ros.status_rate_hz, 2.0);
+        assert_eq!(view.bus.baud, 57600);
         let err = patchwalk_msgs::params::load_config::<ExecutorFileView>(None, &["ros.status_rate=1".into()]);
         assert!(err.unwrap_err().to_string().contains("status_rate"));
         assert!(period(0.0, "x").is_err());

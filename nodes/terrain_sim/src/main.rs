@@ -1,5 +1,115 @@
-//! `terrain_sim` binary: publishes simulated depth, CameraInfo and IMU like the real sensors.
+//! `terrain_sim` binary: publishes simulated depth, CameraInfo and IMU like the real sensors
+//! (`run`, the default), writes the stream as a TUM-format dataset (`record`), or prints the scene
+//! with its ground-truth footholds (`scene`).
+
+mod node;
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use clap::{Parser, Subcommand};
+use terrain_sim::config::SimConfig;
+use terrain_sim::sim::Simulator;
+
+#[derive(Parser, Debug)]
+#[command(name = "terrain_sim", version, about = "Rough-terrain simulator: rocks on a table, a Carmine-like depth camera and an IMU")]
+#[command(args_conflicts_with_subcommands = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    /// Options of `run` when no subcommand is given.
+    #[command(flatten)]
+    run: node::RunArgs,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// ROS 2 node: /camera/depth/image_raw, /camera/depth/camera_info, /imu/data (default).
+    Run(node::RunArgs),
+    /// Write a TUM-format dataset (depth PNGs 1/5000 m, depth.txt, accelerometer.txt,
+    /// groundtruth.txt, intrinsics.json, scene.json) readable by `patch_mapper`.
+    Record(RecordArgs),
+    /// Print the scene (rocks, stations, ground-truth footholds) as JSON.
+    Scene(ConfigArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct ConfigArgs {
+    /// YAML config (config/terrain_sim.yaml); defaults when omitted.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Override `dotted.key=value` (YAML value), e.g. `-p seed=3 -p motion.sway.enabled=true`.
+    #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
+    params: Vec<String>,
+}
+
+#[derive(clap::Args, Debug)]
+struct RecordArgs {
+    /// Output directory (created).
+    out_dir: PathBuf,
+    /// Number of depth frames (at the camera rate).
+    #[arg(long, default_value_t = 90)]
+    frames: usize,
+    /// Rock to stand in front of (overrides `start_rock`).
+    #[arg(long)]
+    rock: Option<usize>,
+    /// Walking-like sway with jitter (overrides `motion.sway.enabled`).
+    #[arg(long)]
+    sway: bool,
+    #[command(flatten)]
+    config: ConfigArgs,
+}
+
 fn main() -> std::process::ExitCode {
-    eprintln!("terrain_sim: not available yet");
-    std::process::ExitCode::FAILURE
+    let cli = Cli::parse();
+    let result = match cli.command {
+        None => node::run(cli.run),
+        Some(Command::Run(args)) => node::run(args),
+        Some(Command::Record(args)) => record(args),
+        Some(Command::Scene(args)) => scene(args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("terrain_sim: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn load(args: &ConfigArgs) -> anyhow::Result<SimConfig> {
+    Ok(patchwalk_msgs::params::load_config(args.config.as_deref(), &args.params)?)
+}
+
+fn record(args: RecordArgs) -> anyhow::Result<()> {
+    let mut config = load(&args.config)?;
+    if let Some(rock) = args.rock {
+        config.start_rock = rock;
+    }
+    config.motion.sway.enabled |= args.sway;
+    let sim = Simulator::new(config)?;
+    let started = std::time::Instant::now();
+    let summary = terrain_sim::record::record(&sim, &args.out_dir, args.frames, |i| {
+        if (i + 1) % 30 == 0 {
+            eprint!("\rterrain_sim record: {}/{} frames", i + 1, args.frames);
+        }
+    })
+    .with_context(|| format!("recording into {}", args.out_dir.display()))?;
+    eprintln!();
+    println!(
+        "wrote {} depth frames, {} IMU samples ({:.2} s of data, in front of {:?}) to {} in {:.1} s",
+        summary.frames,
+        summary.imu_samples,
+        summary.duration_s,
+        sim.scene.rocks.get(sim.config.start_rock).map(|r| r.name.as_str()).unwrap_or("?"),
+        args.out_dir.display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn scene(args: ConfigArgs) -> anyhow::Result<()> {
+    let sim = Simulator::new(load(&args)?)?;
+    println!("{}", serde_json::to_string_pretty(&terrain_sim::record::scene_json(&sim))?);
+    Ok(())
 }

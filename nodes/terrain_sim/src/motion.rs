@@ -40,7 +40,8 @@ impl Default for SwayConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MotionConfig {
-    /// `base_link` height above the table with straight legs (URDF: sole 0.285 m below base_link).
+    /// `base_link` height above the table with straight legs (forward kinematics of `urdf/rpbp.urdf`
+    /// at zero angles: sole 0.295 m below base_link; the URDF header comment says 0.285).
     pub base_height_m: f64,
     /// `camera_optical` origin in `base_link` (URDF head 0.01,0,0.14 + camera 0.03,0,0.03).
     pub camera_in_base_m: [f64; 3],
@@ -51,7 +52,7 @@ pub struct MotionConfig {
 
 impl Default for MotionConfig {
     fn default() -> Self {
-        Self { base_height_m: 0.285, camera_in_base_m: [0.04, 0.0, 0.17], camera_pitch_rad: 0.85, sway: SwayConfig::default() }
+        Self { base_height_m: 0.295, camera_in_base_m: [0.04, 0.0, 0.17], camera_pitch_rad: 0.85, sway: SwayConfig::default() }
     }
 }
 
@@ -175,7 +176,7 @@ mod tests {
         let base_from_camera = base_from_camera_lookdown(&config);
         let motion = HeadMotion::new(config, 1);
         let world_from_camera = motion.world_from_camera(&Isometry3::translation(0.5, 0.2, 0.0), &base_from_camera, 0.0);
-        assert!((world_from_camera.translation.z - 0.455).abs() < 1e-12);
+        assert!((world_from_camera.translation.z - 0.465).abs() < 1e-12);
         let optical_axis = world_from_camera.rotation * Vector3::z();
         let pitch_down = (-optical_axis.z).asin();
         assert!((pitch_down - 0.85).abs() < 1e-9, "{pitch_down}");

@@ -3,11 +3,16 @@
 #
 # Starts what exists so far, in order: the simulated servo bus (`step_executor sim-bus`), the terrain
 # simulator (`terrain_sim run`), patch_mapper and step_executor. A component whose command is not
-# available yet is reported and skipped. Prints what to look at, then runs until Ctrl-C (or for
-# DEMO_DURATION seconds) and stops every process it started with SIGINT.
+# available yet is reported and skipped. Then runs the four-rock experiment of J 6.3
+# (launch_scripts/experiment.py: scripted training on the 4 training rocks, DEMO_TRIALS trials per
+# trained rock, trials in front of the untrained rocks), prints its table and where the pictures are,
+# and stops every process it started with SIGINT. With DEMO_EXPERIMENT=0 (or without the venv) it
+# prints what to look at instead and runs until Ctrl-C (or for DEMO_DURATION seconds).
 #
-# Environment: ROS_DOMAIN_ID (default 0), DEMO_DURATION (seconds; default: until Ctrl-C),
-# PATCHWALK_VENV (the test venv with rclpy, used by the status monitor; created by launch_scripts/test.sh).
+# Environment: ROS_DOMAIN_ID (default 0), DEMO_EXPERIMENT (1|0, default 1), DEMO_TRIALS (default 20),
+# DEMO_UNTRAINED_TRIALS (per untrained rock, default 5), DEMO_DURATION (seconds; default: until
+# Ctrl-C), PATCHWALK_VENV (the venv with rclpy, used by the experiment and the status monitor; created by
+# launch_scripts/test.sh).
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -47,11 +52,12 @@ stop_all() {
 }
 trap stop_all INT TERM EXIT
 
-# start NAME CMD...: run CMD in the background with its output in build/demo/NAME.log.
+# start NAME CMD...: run CMD in the background with its output in build/demo/NAME.log (stdin:
+# $START_STDIN, default /dev/null).
 start() {
     local name=$1
     shift
-    "$@" >"$RUN_DIR/$name.log" 2>&1 &
+    "$@" <"${START_STDIN:-/dev/null}" >"$RUN_DIR/$name.log" 2>&1 &
     PIDS+=($!)
     NAMES+=("$name")
     echo "started $name (pid $!): $* (log: $RUN_DIR/$name.log)"
@@ -75,8 +81,17 @@ forget_if_dead() {
         return 1
     fi
 }
+# The experiment poses the simulated servos by hand (torque off) through sim-bus's stdin: a FIFO that
+# this script keeps open (fd 3) so the bus never sees end-of-file.
+SIM_BUS_STDIN="$RUN_DIR/sim_bus.stdin"
+rm -f "$SIM_BUS_STDIN"
+mkfifo "$SIM_BUS_STDIN"
+exec 3<>"$SIM_BUS_STDIN"
+# A fresh motion library per run (the experiment trains it).
+rm -f "$RUN_DIR/motions.yaml"
+EXECUTOR_ARGS+=(--param "library_path=$RUN_DIR/motions.yaml" --param ros.status_rate_hz=20)
 if available step_executor sim-bus; then
-    start sim_bus "$BIN/step_executor" sim-bus
+    START_STDIN="$SIM_BUS_STDIN" start sim_bus "$BIN/step_executor" sim-bus
     # The simulated bus prints its pty path; hand it to the executor once it does.
     PTY=""
     for _ in $(seq 50); do
@@ -105,6 +120,30 @@ else
 fi
 start patch_mapper "$BIN/patch_mapper" run
 start step_executor "$BIN/step_executor" run ${EXECUTOR_ARGS[@]+"${EXECUTOR_ARGS[@]}"}
+
+RUN_EXPERIMENT=0
+if [ "${DEMO_EXPERIMENT:-1}" != 0 ]; then
+    if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import rclpy, patchwalk_msgs.msg' 2>/dev/null; then
+        echo "skipped the experiment: no venv with rclpy and patchwalk_msgs at $VENV (launch_scripts/test.sh creates it)"
+    elif [ ${#PIDS[@]} -lt 4 ]; then
+        echo "skipped the experiment: it needs sim_bus, terrain_sim, patch_mapper and step_executor (started: ${NAMES[*]})"
+    else
+        RUN_EXPERIMENT=1
+    fi
+fi
+if [ "$RUN_EXPERIMENT" = 1 ]; then
+    echo
+    echo "=== experiment (J 6.3): training on 4 rocks, ${DEMO_TRIALS:-20} trials per trained rock, untrained rocks"
+    set +e
+    "$VENV/bin/python" -u launch_scripts/experiment.py --sim-bus-stdin "$SIM_BUS_STDIN" \
+        --trials "${DEMO_TRIALS:-20}" --untrained-trials "${DEMO_UNTRAINED_TRIALS:-5}" \
+        --out "$RUN_DIR/experiment" 2>&1 | tee "$RUN_DIR/experiment.log"
+    EXPERIMENT_STATUS=${PIPESTATUS[0]}
+    set -e
+    echo "experiment log: $RUN_DIR/experiment.log; node logs: $RUN_DIR/*.log"
+    stop_all
+    exit "$EXPERIMENT_STATUS"
+fi
 
 cat <<EOF
 

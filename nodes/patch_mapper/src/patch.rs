@@ -189,7 +189,8 @@ pub fn dof(surface: SurfaceType, boundary: BoundaryType) -> usize {
 impl Patch {
     /// A patch from its parts, with zero covariance (a designed patch). Checks the type pair, the
     /// number of boundary parameters and finiteness; normalises `r_z = 0` for 5-DoF types and the
-    /// curvature pattern of the surface type.
+    /// curvature pattern of the surface type; for 5-DoF types a full `r` is replaced by
+    /// `[r_xy(r) 0]` (same normal, eq 8).
     pub fn new(
         surface: SurfaceType,
         boundary: BoundaryType,
@@ -227,7 +228,17 @@ impl Patch {
             SurfaceType::CircularParaboloid | SurfaceType::Sphere => Vector2::new(curvatures.x, curvatures.x),
             _ => curvatures,
         };
-        let rotation = if is_5dof(surface, boundary) { Vector3::new(rotation.x, rotation.y, 0.0) } else { rotation };
+        // 5-DoF types keep only the normal: r → [r_xy(r) 0] (eq 7–8), which preserves R(r) ẑ.
+        let rotation = if is_5dof(surface, boundary) {
+            if rotation.z == 0.0 {
+                rotation
+            } else {
+                let rxy = crate::geometry::r_xy(&rotation);
+                Vector3::new(rxy.x, rxy.y, 0.0)
+            }
+        } else {
+            rotation
+        };
         let p = dof(surface, boundary);
         Ok(Self {
             surface,

@@ -6,7 +6,7 @@
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{DMatrix, DVector, Vector3};
-use patch_mapper::fit::simulate::{boundary_estimand, random_patch, sample_sensor, SceneConfig};
+use patch_mapper::fit::simulate::{boundary_estimand, random_visible_patch as random_patch, sample_sensor, SceneConfig};
 use patch_mapper::fit::{fit_patch, BoundaryRequest, FitConfig, FitRequest, SurfaceRequest};
 use patch_mapper::geometry::{exp_map, log_map};
 use patch_mapper::patch::{BoundaryType, Patch, SurfaceType};
@@ -80,16 +80,33 @@ fn chi2_95(k: usize) -> f64 {
 /// Truth parameter vector in the fit's representation: boundary estimand, and of the discrete
 /// symmetries (rotation by π about the normal) the one nearest the estimate.
 fn truth_params(rng: &mut rand::rngs::StdRng, truth: &Patch, fit: &Patch, containment: f64) -> Option<DVector<f64>> {
-    let d = boundary_estimand(rng, truth, containment);
     let rot = truth.rotation_matrix();
-    let flipped = log_map(&(rot * exp_map(&Vector3::new(0.0, 0.0, std::f64::consts::PI))));
-    let candidates = [truth.rotation, flipped];
-    let best = candidates.iter().min_by(|a, b| {
-        let da = (exp_map(a) - fit.rotation_matrix()).norm();
-        let db = (exp_map(b) - fit.rotation_matrix()).norm();
-        da.total_cmp(&db)
-    })?;
-    let mut t = Patch::new(truth.surface, truth.boundary, d, truth.curvatures, *best, truth.center).ok()?;
+    // Equivalent descriptions of the same patch: rotations by kπ/2 about the normal (k odd swaps
+    // the x/y roles, allowed only where the types are symmetric under the swap: ellipse-bounded
+    // paraboloids, IROS footnote 5).
+    let quarter_turns: &[u32] = match truth.surface {
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => &[0, 1, 2, 3],
+        _ => &[0, 2],
+    };
+    let mut best: Option<(f64, Patch)> = None;
+    for &k in quarter_turns {
+        let angle = k as f64 * std::f64::consts::FRAC_PI_2;
+        let r = log_map(&(rot * exp_map(&Vector3::new(0.0, 0.0, angle))));
+        let (curv, bparams) = if k % 2 == 1 {
+            let mut d = truth.boundary_params.clone();
+            d.swap(0, 1);
+            (nalgebra::Vector2::new(truth.curvatures.y, truth.curvatures.x), d)
+        } else {
+            (truth.curvatures, truth.boundary_params.clone())
+        };
+        let Ok(candidate) = Patch::new(truth.surface, truth.boundary, bparams, curv, r, truth.center) else { continue };
+        let dist = (candidate.rotation_matrix() - fit.rotation_matrix()).norm();
+        if best.as_ref().is_none_or(|(b, _)| dist < *b) {
+            best = Some((dist, candidate));
+        }
+    }
+    let (_, mut t) = best?;
+    t.boundary_params = boundary_estimand(rng, &t, containment);
     // Exp-map vectors near ‖r‖ = π can differ by a 2π wrap although the rotations agree.
     let rf = fit.rotation;
     if (t.rotation - rf).norm() > 1.0 {
@@ -136,9 +153,11 @@ fn accuracy(args: &Args) {
         "{:<34} {:>6} {:>14} {:>14} {:>16} {:>9} {:>9}",
         "type", "fails", "normal ° med/p95", "centre mm med/p95", "curv 1/m med/p95", "in95%", "in95%srf"
     );
+    println!("  (last two columns: the fitted surface at the true centre — normal ° and distance mm, med/p95)");
     let mut all_in = (0usize, 0usize);
     for (s, b) in ALL_TYPES {
         let (mut normal, mut centre, mut curv) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut s_normal, mut s_offset) = (Vec::new(), Vec::new());
         let (mut inside, mut inside_surf, mut counted, mut fails) = (0usize, 0usize, 0usize, 0usize);
         let debug = std::env::var("BENCH_DEBUG").is_ok();
         let mut z2 = vec![0.0; 11];
@@ -153,8 +172,21 @@ fn accuracy(args: &Args) {
             };
             normal.push(fit.normal().dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees());
             centre.push((fit.center - truth.center).norm() * 1000.0);
+            {
+                // The fitted surface where the true centre is: closest point and its normal.
+                let q_l = fit.to_local(&truth.center);
+                let p = fit.closest_point_local(&q_l);
+                let g = fit.height(&p.xy()).map(|(_, g)| g).unwrap_or_default();
+                let n_w = fit.rotation_matrix() * Vector3::new(-g.x, -g.y, 1.0).normalize();
+                s_normal.push(n_w.dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees());
+                s_offset.push((p - q_l).norm() * 1000.0);
+            }
             if s != SurfaceType::Plane {
-                curv.push((fit.curvatures - truth.curvatures).abs().max());
+                let swapped = nalgebra::Vector2::new(fit.curvatures.y, fit.curvatures.x);
+                let direct = (fit.curvatures - truth.curvatures).abs().max();
+                let alt = (swapped - truth.curvatures).abs().max();
+                let symmetric = matches!(s, SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid);
+                curv.push(if symmetric { direct.min(alt) } else { direct });
             }
             if let Some(tp) = truth_params(&mut rng, &truth, &fit, 0.95) {
                 let err = fit.params() - tp;
@@ -162,9 +194,9 @@ fn accuracy(args: &Args) {
                     for i in 0..err.len() {
                         z2[i] += err[i] * err[i] / fit.covariance[(i, i)].max(1e-300);
                     }
-                    let truth_res = (pts.iter().map(|q| truth.distance(q).powi(2)).sum::<f64>() / pts.len() as f64).sqrt();
-                    let fit_res = (pts.iter().map(|q| fit.distance(q).powi(2)).sum::<f64>() / pts.len() as f64).sqrt();
-                    if fit_res > truth_res * 1.05 {
+                    let truth_res = patch_mapper::fit::chi_square(&truth, &pts, Some(&covs), &cfg);
+                    let fit_res = patch_mapper::fit::chi_square(&fit, &pts, Some(&covs), &cfg);
+                    if fit_res > truth_res + 1e-6 {
                         worse += 1;
                     }
                 }
@@ -188,7 +220,7 @@ fn accuracy(args: &Args) {
         }
         if debug {
             let z: Vec<String> = z2.iter().take(b.num_params() + s.num_curvatures() + 6).map(|v| format!("{:.2}", (v / counted.max(1) as f64).sqrt())).collect();
-            println!("  rms z per param {:?}; fit residual worse than truth's in {worse} trials", z);
+            println!("  rms z per param {:?}; fit χ² above the truth's in {worse} trials", z);
         }
         all_in.0 += inside;
         all_in.1 += counted;
@@ -196,41 +228,80 @@ fn accuracy(args: &Args) {
         let (nm, n95) = (quantile(&mut normal, 0.5), quantile(&mut normal, 0.95));
         let (cm, c95) = (quantile(&mut centre, 0.5), quantile(&mut centre, 0.95));
         let (km, k95) = (quantile(&mut curv, 0.5), quantile(&mut curv, 0.95));
+        let (sn, sn95) = (quantile(&mut s_normal, 0.5), quantile(&mut s_normal, 0.95));
+        let (so, so95) = (quantile(&mut s_offset, 0.5), quantile(&mut s_offset, 0.95));
         let pct = |a: usize| 100.0 * a as f64 / counted.max(1) as f64;
         println!(
-            "{name:<34} {fails:>6} {nm:>6.2} / {n95:>5.2} {cm:>6.2} / {c95:>5.2}   {km:>6.2} / {k95:>5.2}  {:>7.1}% {:>7.1}%",
+            "{name:<34} {fails:>6} {nm:>6.2} / {n95:>5.2} {cm:>6.2} / {c95:>5.2}   {km:>6.2} / {k95:>5.2}  {:>7.1}% {:>7.1}%   {sn:>5.2} / {sn95:>5.2}  {so:>5.2} / {so95:>5.2}",
             pct(inside),
             pct(inside_surf)
         );
     }
     println!("covariance honesty over all types: {:.1}% of {} trials inside the 95% ellipsoid", 100.0 * all_in.0 as f64 / all_in.1.max(1) as f64, all_in.1);
 
-    println!("\n== type classification (surface auto, {} trials/type) ==", args.trials);
-    let mut correct_all = 0;
-    let mut total_all = 0;
+    println!("\n== type classification (surface auto, {} trials/type, significance α = {}) ==", args.trials, cfg.significance);
+    println!("  SNR = (smallest curvature feature's sag ½|κ|d²) · √N / σ_z; columns: all | SNR < 10 | 10–30 | ≥ 30");
+    let mut tally = [[0usize; 2]; 4];
     for (s, b) in AUTO_FAMILY {
         let mut counts = std::collections::BTreeMap::<&'static str, usize>::new();
-        let mut correct = 0;
-        let mut total = 0;
+        let mut t = [[0usize; 2]; 4];
         for _ in 0..args.trials {
             let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
             let (pts, covs) = sample_sensor(&mut rng, &truth, args.points, &model);
-            total += 1;
-            match fit_patch(&pts, Some(&covs), &FitRequest::default(), &cfg) {
+            let ok = match fit_patch(&pts, Some(&covs), &FitRequest::default(), &cfg) {
                 Ok(fit) => {
                     *counts.entry(fit.surface.name()).or_default() += 1;
-                    if fit.surface == s {
-                        correct += 1;
-                    }
+                    fit.surface == s
                 }
-                Err(_) => *counts.entry("error").or_default() += 1,
+                Err(_) => {
+                    *counts.entry("error").or_default() += 1;
+                    false
+                }
+            };
+            let bin = match snr(&truth, pts.len()) {
+                x if x < 10.0 => 1,
+                x if x < 30.0 => 2,
+                _ => 3,
+            };
+            for idx in [0, bin] {
+                t[idx][0] += usize::from(ok);
+                t[idx][1] += 1;
             }
         }
-        correct_all += correct;
-        total_all += total;
-        println!("{:<24} {:>6.1}%  {:?}", s.name(), 100.0 * correct as f64 / total.max(1) as f64, counts);
+        let rate = |x: [usize; 2]| if x[1] == 0 { "   -  ".to_string() } else { format!("{:5.1}% ({})", 100.0 * x[0] as f64 / x[1] as f64, x[1]) };
+        println!("{:<24} {} | {} | {} | {}  {:?}", s.name(), rate(t[0]), rate(t[1]), rate(t[2]), rate(t[3]), counts);
+        for i in 0..4 {
+            tally[i][0] += t[i][0];
+            tally[i][1] += t[i][1];
+        }
     }
-    println!("overall classification rate: {:.1}% of {}", 100.0 * correct_all as f64 / total_all.max(1) as f64, total_all);
+    let rate = |x: [usize; 2]| 100.0 * x[0] as f64 / x[1].max(1) as f64;
+    println!(
+        "overall classification rate: {:.1}% of {} | SNR<10 {:.1}% | 10-30 {:.1}% | >=30 {:.1}%",
+        rate(tally[0]),
+        tally[0][1],
+        rate(tally[1]),
+        rate(tally[2]),
+        rate(tally[3])
+    );
+}
+
+/// Signal-to-noise of the weakest curvature feature that separates the type from its simpler
+/// neighbours: sag `½|κ|d²` of the smallest non-zero curvature (or curvature difference) over the
+/// smallest boundary extent, times √N, over the Kinect depth noise at the patch range.
+fn snr(truth: &Patch, n: usize) -> f64 {
+    let k = truth.curvatures;
+    let feature = match truth.surface {
+        SurfaceType::EllipticParaboloid => k.x.abs().min((k.x - k.y).abs()),
+        SurfaceType::HyperbolicParaboloid => k.x.abs().min(k.y.abs()),
+        SurfaceType::Plane => return f64::INFINITY,
+        _ => k.y.abs(),
+    };
+    let d = truth.boundary_half_extents().min();
+    let p = patch_mapper::sensor::StereoErrorParams::default();
+    let z = truth.center.z;
+    let sigma_z = z * z * p.sigma_disparity_px / (p.focal_px * p.baseline_m);
+    0.5 * feature * d * d * (n as f64).sqrt() / sigma_z
 }
 
 fn speed(args: &Args) {

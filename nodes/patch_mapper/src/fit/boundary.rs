@@ -8,37 +8,63 @@
 //! apex of spheres/cylinders along their symmetry directions, a plane's in-plane rotation).
 
 use crate::patch::{BoundaryType, SurfaceType};
-use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 
 /// `[x̄, ȳ, α, φ, c_xy]`: means and central second moments of the projected points (eq 30 uses
 /// `β = 2 c_xy`).
 pub type Moments = SVector<f64, 5>;
 
-/// Moments of `u_i = Π_xy Rᵀ(q_i − c)` (eq 16) and their sampling covariance.
-pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> (Moments, SMatrix<f64, 5, 5>) {
+/// Moments of `u_i = Π_xy Rᵀ(q_i − c)` (eq 16), their sampling covariance, and their first-order
+/// dependence on the surface frame.
+pub(crate) struct MomentStats {
+    /// `[x̄, ȳ, α, φ, c_xy]`.
+    pub m: Moments,
+    /// Sampling covariance of `m` (empirical covariance of the per-point terms / N).
+    pub cov: SMatrix<f64, 5, 5>,
+    /// `∂m/∂(κ3, δ, δc)`: how the moments move with a local increment of the frame (eq 16 with
+    /// `q_l' = q_l + [q_l]× δ − δc`).
+    pub frame_jacobian: SMatrix<f64, 5, 9>,
+}
+
+pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> MomentStats {
     let n = points.len().max(1) as f64;
     let rt = rot.transpose();
-    let mut mean = Vector2::zeros();
+    let mut mean = Vector3::zeros();
     for q in points {
-        mean += (rt * (q - c)).xy();
+        mean += rt * (q - c);
     }
     mean /= n;
-    let mut second = Vector3::zeros();
+    let mut c3 = Matrix3::zeros();
     for q in points {
-        let d = (rt * (q - c)).xy() - mean;
-        second += Vector3::new(d.x * d.x, d.y * d.y, d.x * d.y);
+        let d = rt * (q - c) - mean;
+        c3 += d * d.transpose();
     }
-    second /= n;
-    let m = Moments::from_column_slice(&[mean.x, mean.y, second.x, second.y, second.z]);
+    c3 /= n;
+    let m = Moments::from_column_slice(&[mean.x, mean.y, c3[(0, 0)], c3[(1, 1)], c3[(0, 1)]]);
     let mut cov = SMatrix::<f64, 5, 5>::zeros();
     for q in points {
-        let d = (rt * (q - c)).xy() - mean;
-        let psi = Moments::from_column_slice(&[d.x, d.y, d.x * d.x - second.x, d.y * d.y - second.y, d.x * d.y - second.z]);
+        let d = rt * (q - c) - mean;
+        let psi = Moments::from_column_slice(&[d.x, d.y, d.x * d.x - c3[(0, 0)], d.y * d.y - c3[(1, 1)], d.x * d.y - c3[(0, 1)]]);
         cov += psi * psi.transpose();
     }
     // Unbiased empirical covariance of ψ, divided by N for the mean.
     cov /= (n - 1.0).max(1.0) * n;
-    (m, cov)
+    // Δx = q_y δz − q_z δy − δcx, Δy = q_z δx − q_x δz − δcy (local slots 3..6 = δ, 6..9 = δc).
+    let mut a = SMatrix::<f64, 5, 9>::zeros();
+    a[(0, 4)] = -mean.z;
+    a[(0, 5)] = mean.y;
+    a[(0, 6)] = -1.0;
+    a[(1, 3)] = mean.z;
+    a[(1, 5)] = -mean.x;
+    a[(1, 7)] = -1.0;
+    a[(2, 4)] = -2.0 * c3[(0, 2)];
+    a[(2, 5)] = 2.0 * c3[(0, 1)];
+    a[(3, 3)] = 2.0 * c3[(1, 2)];
+    a[(3, 5)] = -2.0 * c3[(0, 1)];
+    a[(4, 3)] = c3[(0, 2)];
+    a[(4, 4)] = -c3[(1, 2)];
+    a[(4, 5)] = c3[(1, 1)] - c3[(0, 0)];
+    MomentStats { m, cov, frame_jacobian: a }
 }
 
 /// Values taken from the moments: boundary params (up to 5) and the moment-fixed local increments

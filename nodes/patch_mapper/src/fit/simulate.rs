@@ -51,14 +51,15 @@ pub fn random_patch<R: Rng + ?Sized>(
     let mut size = || rng.random_range(lo..hi);
     let d = match boundary {
         BoundaryType::Circle => vec![size()],
-        BoundaryType::Ellipse | BoundaryType::Rectangle => {
-            // Clearly elongated (d_y ≤ 0.75 d_x) so the principal axes are defined.
+        BoundaryType::Ellipse | BoundaryType::Rectangle if surface == SurfaceType::Plane => {
+            // Clearly elongated (d_y ≤ 0.75 d_x) so the in-plane principal axes are defined.
             let a = size();
             vec![a, a * rng.random_range(0.45..0.75)]
         }
+        BoundaryType::Ellipse | BoundaryType::Rectangle => vec![size(), size()],
         BoundaryType::Quadrilateral => {
             let dd = size() * 1.2;
-            vec![dd, dd, dd, dd, rng.random_range(0.45..0.75)]
+            vec![dd, dd, dd, dd, rng.random_range(0.4..0.6)]
         }
     };
     let k = match surface {
@@ -98,6 +99,39 @@ pub fn random_patch<R: Rng + ?Sized>(
     let rot = exp_map(&Vector3::new(rxy.x, rxy.y, 0.0)) * exp_map(&Vector3::new(0.0, 0.0, twist));
     let r = crate::geometry::log_map(&rot);
     Patch::new(surface, boundary, d, k, r, center)
+}
+
+/// A random patch (see [`random_patch`]) whose whole surface faces the sensor at the origin, so that
+/// uniform samples of its boundary are all visible (up to 100 attempts).
+pub fn random_visible_patch<R: Rng + ?Sized>(
+    rng: &mut R,
+    surface: SurfaceType,
+    boundary: BoundaryType,
+    cfg: &SceneConfig,
+) -> Result<Patch, crate::patch::PatchError> {
+    let mut patch = random_patch(rng, surface, boundary, cfg)?;
+    for _ in 0..100 {
+        if fully_visible(rng, &patch) {
+            break;
+        }
+        patch = random_patch(rng, surface, boundary, cfg)?;
+    }
+    Ok(patch)
+}
+
+fn fully_visible<R: Rng + ?Sized>(rng: &mut R, patch: &Patch) -> bool {
+    let rot = patch.rotation_matrix();
+    (0..300).all(|_| {
+        let u = patch.sample_uv(rng);
+        match patch.height(&u) {
+            Some((z, g)) => {
+                let q = rot * Vector3::new(u.x, u.y, z) + patch.center;
+                // Visible with some margin (incidence below ~80°).
+                (rot * Vector3::new(-g.x, -g.y, 1.0)).normalize().dot(&(-q).normalize()) > 0.17
+            }
+            None => false,
+        }
+    })
 }
 
 /// `n` noisy samples of a patch seen by a sensor at the origin: uniform in the boundary, visible

@@ -368,7 +368,7 @@ impl Default for TableConfig {
     fn default() -> Self {
         // A lab walking table (J Fig. 10); sizes chosen so the camera in the lookdown pose sees
         // only table top around the rock.
-        Self { length_x_m: 1.4, height_m: 0.75, margin_y_m: 0.4 }
+        Self { length_x_m: 2.0, height_m: 0.75, margin_y_m: 0.4 }
     }
 }
 
@@ -398,7 +398,7 @@ impl Default for SceneConfig {
             table: TableConfig::default(),
             rock_x_m: 0.9,
             station_spacing_m: 0.6,
-            standoff_m: 0.22,
+            standoff_m: 0.28,
             training_rocks: None,
             untrained_rocks: 4,
             twins_of_training: Vec::new(),
@@ -642,7 +642,7 @@ mod tests {
         // Station faces the rock from `standoff` behind.
         let station = a.station(2).unwrap();
         let rock = a.rocks[2].world_from_rock.translation.vector;
-        assert!((rock - station.translation.vector - Vector3::new(0.22, 0.0, 0.0)).norm() < 1e-12);
+        assert!((rock - station.translation.vector - Vector3::new(0.28, 0.0, 0.0)).norm() < 1e-12);
         assert_eq!(a.station(99), Err(SceneError::NoSuchRock { index: 99, count: 11 }));
     }
 

@@ -268,6 +268,7 @@ class Trial:
     last_match: str
     perturbation: dict
     seconds_to_match: Optional[float]
+    fault: str = ""
 
     @property
     def outcome(self) -> str:
@@ -323,7 +324,9 @@ class Experiment:
         self.place_pub = node.create_publisher(UInt32, "/terrain_sim/place_at_rock", reliable)
         self.ExecutorStatus = ExecutorStatus
         self.UInt32 = UInt32
+        self.faults: list[str] = []  # bus faults seen (and cleared) while posing by hand
         self.trained_targets: dict[str, object] = {}  # motion name -> trained Patch (base_link)
+        self.target_miss_m: dict[str, float] = {}      # motion name -> distance of its patch to the true top
         self.match_snapshots: dict[str, tuple] = {}   # rock name -> (PatchArray, PointCloud2 or None, motion)
 
     def close(self) -> None:
@@ -361,8 +364,25 @@ class Experiment:
     def pose_by_hand(self, pose: dict[str, float]) -> None:
         """Torque must be off. Moves the servos and waits until /joint_states reports the pose."""
         target = [pose.get(j, 0.0) for j in JOINTS]
-        self.hand.pose(pose)
-        self.joints.wait(lambda m: self._close_to(m, target), self.config.map_timeout_s, "joint_states reach the hand pose")
+        for attempt in range(3):
+            self.hand.pose(pose)
+            try:
+                self.joints.wait(lambda m: self._close_to(m, target), self.config.map_timeout_s / 3,
+                                 "joint_states reach the hand pose")
+                break
+            except TimeoutError as e:
+                status = self.status.msg
+                order = {n: i for i, n in enumerate(self.joints.msg.name)} if self.joints.msg else {}
+                off = {j: round(self.joints.msg.position[order[j]] - q, 4) for j, q in zip(JOINTS, target) if j in order}
+                problem = (f"{e}; torque_enabled={getattr(status, 'torque_enabled', '?')} "
+                           f"state={getattr(status, 'state', '?')} fault={getattr(status, 'last_fault', '?')!r}; "
+                           f"joint_states - hand pose: {off}")
+                if attempt == 2:
+                    raise TimeoutError(problem) from None
+                # A bus fault (e.g. a lost status packet) holds the servos until torque off clears it.
+                self.faults.append(problem)
+                self.log(f"  retrying the hand pose: {problem}")
+                self.set_torque(False)
         # One more joint state so terrain_sim (which follows /joint_states) has it too.
         count = self.joints.count
         self.joints.wait(lambda _: self.joints.count > count + 2, 5.0, "joint_states after the hand pose")
@@ -433,6 +453,7 @@ class Experiment:
                        RecordKeyframe.Request(duration=move_s, pause=pause_s))
         self._call(SaveMotion, "/step_executor/save_motion", SaveMotion.Request(name=name))
         self.trained_targets[name] = target
+        self.target_miss_m[name] = miss
         return name
 
     # -- tests (J 6.3 "Foot Placement Tests") -------------------------------------------------------------
@@ -450,7 +471,7 @@ class Experiment:
         self.reset_mapper()
         armed_at = time.monotonic()
         self.arm(True)
-        played, last_match, seen_at = None, "", None
+        played, last_match, seen_at, fault = None, "", None, ""
         snapshot = None
         deadline = armed_at + cfg.trial_timeout_s
         status_count = self.status.count
@@ -467,16 +488,18 @@ class Experiment:
         self.arm(False)  # one execution per trial: the motion in progress finishes
         if played is not None:
             started = seen_at - self.t0
-            self._wait_idle()
+            final = self._wait_idle()
+            if final.state == self.ExecutorStatus.STATE_HOLDING_FAULT:
+                fault = final.last_fault
             self.played_windows.append((started, time.monotonic() - self.t0, played))
             if rock.name not in self.match_snapshots and snapshot[0] is not None:
                 self.match_snapshots[rock.name] = (snapshot[0], snapshot[1], played)
         return Trial(rock.name, expected, played, last_match,
                      {k: round(v, 5) for k, v in perturbation.items()},
-                     None if seen_at is None else round(seen_at - armed_at, 3))
+                     None if seen_at is None else round(seen_at - armed_at, 3), fault)
 
-    def _wait_idle(self) -> None:
-        self.status.wait(lambda s: s.state != self.ExecutorStatus.STATE_PLAYING, 60.0, "motion finished")
+    def _wait_idle(self):
+        return self.status.wait(lambda s: s.state != self.ExecutorStatus.STATE_PLAYING, 60.0, "motion finished")
 
     # -- the whole experiment ---------------------------------------------------------------------------
 
@@ -516,8 +539,9 @@ class Experiment:
         if trained:
             self.place_at(trained[0])
         table = make_table(self.rocks, trials)
-        results = {"table": table, "trials": [t.__dict__ | {"outcome": t.outcome} for t in trials],
-                   "trained_targets": {name: patch_dict(p) for name, p in self.trained_targets.items()}}
+        results = {"table": table, "bus_faults_while_posing": self.faults, "trials": [t.__dict__ | {"outcome": t.outcome} for t in trials],
+                   "trained_targets": {name: patch_dict(p) | {"miss_from_true_top_m": round(self.target_miss_m[name], 4)}
+                                       for name, p in self.trained_targets.items()}}
         return results
 
     def write_pictures(self, out_dir: Path) -> list[Path]:
@@ -591,7 +615,7 @@ _FONT = {
     "G": "34553", "H": "55755", "I": "72227", "J": "11152", "K": "55655", "L": "44447", "M": "57755", "N": "65555",
     "O": "25552", "P": "65644", "Q": "25563", "R": "65655", "S": "34216", "T": "72222", "U": "55557", "V": "55552",
     "W": "55775", "X": "55255", "Y": "55222", "Z": "71247", " ": "00000", ".": "00002", ":": "02020", "-": "00700",
-    "_": "00007", "/": "11244", "(": "24442", ")": "42224", "%": "51245", "=": "07070", ",": "00024", "+": "02720",
+    "_": "00007", ";": "02024", "/": "11244", "(": "24442", ")": "42224", "%": "51245", "=": "07070", ",": "00024", "+": "02720",
 }
 
 
@@ -766,7 +790,12 @@ def render_trajectories(history: list[tuple[float, list[float]]], windows: list[
     img[top:bottom, left] = img[bottom, left:right] = (0, 0, 0)
     draw_text(img, left, 12, f"servo positions (rad) from /joint_states over {t1 - t0:.0f} s; shaded: "
               f"{len(windows)} automatic executions", (0, 0, 0))
-    draw_text(img, right - 60, bottom + 12, "time (s)", (0, 0, 0))
+    step = max(5.0, round((t1 - t0) / 10.0 / 5.0) * 5.0)
+    for tick in np.arange(math.ceil(t0 / step) * step, t1, step):
+        x = int(px(np.array([tick]), np.array([0.0]))[0, 0])
+        img[bottom:bottom + 5, x] = (0, 0, 0)
+        draw_text(img, x - 8, bottom + 8, f"{tick:.0f}", (0, 0, 0))
+    draw_text(img, right - 60, bottom + 22, "time (s)", (0, 0, 0))
     return img
 
 

@@ -6,7 +6,8 @@
 # 127.0.0.1. The last line is `patchwalk tests: PASS (...)` or `patchwalk tests: FAIL (...)`.
 #
 # Environment: PATCHWALK_VENV (default .venv), PATCHWALK_PYTHON (interpreter for the venv),
-# PATCHWALK_PYTEST_ARGS (extra pytest arguments), PATCHWALK_SKIP_RUST=1 / PATCHWALK_SKIP_PYTHON=1.
+# PATCHWALK_PYTEST_ARGS (extra pytest arguments), PATCHWALK_SKIP_RUST=1 / PATCHWALK_SKIP_PYTHON=1,
+# PATCHWALK_NETNS=1 (rclpy tests inside `unshare -n`: a network namespace with only loopback).
 set -uo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -147,9 +148,15 @@ PY_STATUS=0
 if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     log "pytest tests/ (real rclpy against the node binaries, DDS on loopback)"
     # -n: one worker per core; every worker reserves its own ROS domain (tests/patchwalk_testing.py).
+    # PATCHWALK_NETNS=1: run them in a fresh network namespace with only `lo` (needs root/unshare).
+    NETNS=()
+    if [ "${PATCHWALK_NETNS:-0}" = 1 ]; then
+        unshare -n true 2>/dev/null || die "PATCHWALK_NETNS=1 but unshare -n is not permitted here"
+        NETNS=(unshare -n sh -c 'ip link set lo up && exec "$@"' sh)
+    fi
     # shellcheck disable=SC2086
-    "$VENV/bin/python" -m pytest tests -n "$(nproc)" -p no:cacheprovider -W ignore::DeprecationWarning \
-        ${PATCHWALK_PYTEST_ARGS:-} 2>&1 | tee "$LOG_DIR/python.log"
+    ${NETNS[@]+"${NETNS[@]}"} "$VENV/bin/python" -m pytest tests -n "$(nproc)" -p no:cacheprovider \
+        -W ignore::DeprecationWarning ${PATCHWALK_PYTEST_ARGS:-} 2>&1 | tee "$LOG_DIR/python.log"
     PY_STATUS=${PIPESTATUS[0]}
     grep -E '^=+ .*[0-9]+ (passed|failed|errors?|no tests ran).* =+$' "$LOG_DIR/python.log" | tail -1 > "$LOG_DIR/python.summary"
     PY_PASSED=$(count passed "$LOG_DIR/python.summary")

@@ -21,11 +21,17 @@ os.environ.update(ENV)  # before rclpy is imported anywhere
 
 
 @pytest.fixture(scope="session")
-def ros():
-    """The rclpy harness of this pytest process."""
+def _ros_session():
     harness = pw.RosHarness()
     yield harness
     harness.shutdown()
+
+
+@pytest.fixture
+def ros(_ros_session):
+    """The rclpy harness of this pytest process; what a test subscribes/publishes is destroyed after it."""
+    yield _ros_session
+    _ros_session.destroy_entities()
 
 
 @pytest.fixture

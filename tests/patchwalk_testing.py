@@ -196,12 +196,25 @@ class RosHarness:
         self._thread = threading.Thread(target=self._spin, name="rclpy-spin", daemon=True)
         self._thread.start()
         self._lock = threading.Lock()
+        self._entities: list = []  # subscriptions and publishers made for the current test
 
     def _spin(self) -> None:
         try:
             self.executor.spin()
         except Exception:  # context shut down
             pass
+
+    def destroy_entities(self) -> None:
+        """Destroy the subscriptions and publishers created since the last call (end of a test)."""
+        with self._lock:
+            from rclpy.subscription import Subscription
+
+            for entity in self._entities:
+                if isinstance(entity, Subscription):
+                    self.node.destroy_subscription(entity)
+                else:
+                    self.node.destroy_publisher(entity)
+            self._entities.clear()
 
     def shutdown(self) -> None:
         self.executor.shutdown()
@@ -251,14 +264,16 @@ class RosHarness:
                                 depth=10, durability=DurabilityPolicy.VOLATILE)
         collector = Collector(topic)
         with self._lock:
-            self.node.create_subscription(msg_type, topic, collector._on_message, qos)
+            self._entities.append(self.node.create_subscription(msg_type, topic, collector._on_message, qos))
         return collector
 
     def publisher(self, msg_type, topic: str, qos=None):
         from rclpy.qos import qos_profile_sensor_data
 
         with self._lock:
-            return self.node.create_publisher(msg_type, topic, qos or qos_profile_sensor_data)
+            publisher = self.node.create_publisher(msg_type, topic, qos or qos_profile_sensor_data)
+            self._entities.append(publisher)
+            return publisher
 
     def wait_for_subscriber(self, publisher, timeout: float = DEFAULT_TIMEOUT_S) -> None:
         deadline = time.monotonic() + timeout

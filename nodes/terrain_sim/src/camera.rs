@@ -5,8 +5,9 @@
 //! Noise (J eq. 2, Murray & Little): each pixel's measurement ray is perturbed by the pointing error
 //! σp (pixels, in u and v), and its disparity `d = f·b/z` by the matching error σm (pixels); the
 //! depth is `z = f·b/d`, so to first order σz = z²·σm/(f·b). Disparity is then quantised to the
-//! sensor's sub-pixel step and depth to millimetres. (`patch_mapper::sensor` was not committed yet
-//! when this was written, so the disparity model is implemented here directly.)
+//! sensor's sub-pixel step and depth to millimetres. The simulation samples the disparity itself
+//! (exact, not linearised); a test checks its σz against `patch_mapper::sensor::murray_little`, the
+//! covariance model perception uses (`CameraConfig::stereo_error_params` gives matching parameters).
 //!
 //! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
 //! camera and the projector images so that per pixel only the rocks that can be hit are tested.
@@ -108,6 +109,17 @@ impl CameraConfig {
     /// First-order depth standard deviation of J eq. 2 at depth `z`: σz = z²·σm/(f·b).
     pub fn depth_sigma(&self, z: f64) -> f64 {
         z * z * self.noise.sigma_disparity_px / (self.fx * self.baseline_m)
+    }
+
+    /// This sensor's parameters for the mapper's Murray–Little covariance model
+    /// (`patch_mapper::sensor::murray_little`), so perception can use the simulator's true noise.
+    pub fn stereo_error_params(&self) -> patch_mapper::sensor::StereoErrorParams {
+        patch_mapper::sensor::StereoErrorParams {
+            sigma_pointing_px: self.noise.sigma_pointing_px,
+            sigma_disparity_px: self.noise.sigma_disparity_px,
+            baseline_m: self.baseline_m,
+            focal_px: self.fx,
+        }
     }
 }
 
@@ -554,6 +566,9 @@ mod tests {
             let mean = values.iter().sum::<f64>() / n;
             let std = (values.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / n).sqrt();
             let model = config.depth_sigma(h);
+            // Same σz as the mapper's covariance model (J eq. 2) at the image centre.
+            let covariance = patch_mapper::sensor::murray_little(&Vector3::new(0.0, 0.0, h), &config.stereo_error_params()).unwrap();
+            assert!((covariance[(2, 2)].sqrt() - model).abs() < 1e-12 * model.max(1.0));
             assert!((mean - h).abs() < 0.1 * model, "mean {mean} at {h}");
             assert!((std / model - 1.0).abs() < 0.1, "std {std} vs model {model} at {h}");
         }

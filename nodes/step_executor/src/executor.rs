@@ -48,6 +48,8 @@ pub struct Telemetry {
     /// Time the cycle's bus traffic took.
     pub busy: Duration,
     pub cycle_index: u64,
+    /// Keyframe being played (0 when idle).
+    pub keyframe_index: usize,
     /// Measured joint positions (rad, joint order) where known.
     pub positions: Vec<Option<f64>>,
     pub goal: Option<Vec<f64>>,
@@ -107,6 +109,7 @@ impl Executor {
                         started,
                         busy: started.elapsed(),
                         cycle_index,
+                        keyframe_index: player.keyframe_index(),
                         positions: report.present,
                         goal: report.goal,
                         state: player.state().clone(),

@@ -182,7 +182,7 @@ fn equivalents(patch: &PatchGeometry, allow_normal_flip: bool) -> Vec<Equivalent
             let swap = turns % 2 == 1;
             let mut d = patch.d.clone();
             let mut k = patch.k.clone();
-            if swap {
+            if swap && d.len() >= 2 {
                 d.swap(0, 1);
                 if k.len() == 2 {
                     k.swap(0, 1);
@@ -482,7 +482,7 @@ mod tests {
             r: [0.0, 0.0, 0.3],
             c: [0.1, 0.0, -0.28],
         };
-        let frame = Matcher::new(MatcherConfig { orientation: OrientationCheck::Frame, ..Default::default() }, &[rect.clone()]);
+        let frame = Matcher::new(MatcherConfig { orientation: OrientationCheck::Frame, ..Default::default() }, std::slice::from_ref(&rect));
         let mut half = rect.clone();
         half.r = [0.0, 0.0, 0.3 + std::f64::consts::PI];
         assert!(frame.best_match(&[half]).is_some());

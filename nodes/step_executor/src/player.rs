@@ -149,6 +149,18 @@ impl Trajectory {
         self.duration
     }
 
+    /// Index of the keyframe being moved to (or paused at) at time `t` (s).
+    pub fn keyframe_index(&self, t: f64) -> usize {
+        let mut end = 0.0;
+        for (i, frame) in self.keyframes.iter().enumerate() {
+            end += frame.move_s + frame.pause_s;
+            if t < end {
+                return i;
+            }
+        }
+        self.keyframes.len().saturating_sub(1)
+    }
+
     /// Positions at time `t` (s) from the start; the last keyframe after the end.
     pub fn sample(&self, t: f64) -> Vec<f64> {
         let mut from = self.start.as_slice();
@@ -203,6 +215,11 @@ impl Player {
         &self.last_present
     }
 
+    /// Keyframe being played (0 when idle).
+    pub fn keyframe_index(&self) -> usize {
+        self.trajectory.as_ref().map_or(0, |t| t.keyframe_index(self.elapsed()))
+    }
+
     /// Seconds into the current motion.
     pub fn elapsed(&self) -> f64 {
         self.cycle_index as f64 * self.config.cycle_ms / 1000.0
@@ -218,7 +235,7 @@ impl Player {
             let lower = joint.limits.lower + margin;
             let upper = joint.limits.upper - margin;
             let ticks = joint.servo.ticks_from_joint(value);
-            if !(value >= lower && value <= upper) || !(0.0..=4095.0).contains(&ticks.round()) {
+            if !(value >= lower && value <= upper && (0.0..=4095.0).contains(&ticks.round())) {
                 return Err(PlayerError::JointLimit { keyframe, joint: joint.servo.joint.clone(), value, lower, upper });
             }
         }
@@ -415,6 +432,7 @@ mod tests {
         assert_eq!(traj.sample(1.2), vec![1.0]);
         assert!((traj.sample(2.5)[0] - 0.0).abs() < 1e-12);
         assert_eq!(traj.sample(9.0), vec![-1.0]);
+        assert_eq!((traj.keyframe_index(0.0), traj.keyframe_index(1.4), traj.keyframe_index(1.5), traj.keyframe_index(9.0)), (0, 0, 1, 1));
         let zero_move = Trajectory::new(vec![0.0], vec![frame(0.3, 1, 0.0, 0.1)]);
         assert_eq!(zero_move.sample(0.0), vec![0.3]);
     }

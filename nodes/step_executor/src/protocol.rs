@@ -157,40 +157,38 @@ impl PacketParser {
 
     /// Next complete packet, a framing error (the bad frame is consumed), or None if more bytes are needed.
     pub fn next_packet(&mut self) -> Option<Result<Packet, FrameError>> {
-        loop {
-            let start = find_header(&self.buffer);
-            self.buffer.drain(..start);
-            if self.buffer.len() < 7 {
-                return None;
-            }
-            let id = self.buffer[4];
-            let length = usize::from(u16::from_le_bytes([self.buffer[5], self.buffer[6]]));
-            if length < 3 || length + 7 > MAX_PACKET {
-                // Not a real header: drop its first byte and resynchronise.
-                self.buffer.drain(..1);
-                return Some(Err(FrameError::Length { id, length }));
-            }
-            let total = 7 + length;
-            if self.buffer.len() < total {
-                return None;
-            }
-            let frame: Vec<u8> = self.buffer.drain(..total).collect();
-            let received = u16::from_le_bytes([frame[total - 2], frame[total - 1]]);
-            let computed = crc16(&frame[..total - 2]);
-            if received != computed {
-                return Some(Err(FrameError::Crc { id, received, computed }));
-            }
-            let instruction = frame[7];
-            let raw = &frame[8..total - 2];
-            let params = if instruction == instruction::STATUS && !raw.is_empty() {
-                let mut params = vec![raw[0]];
-                params.extend(unstuff(&raw[1..]));
-                params
-            } else {
-                unstuff(raw)
-            };
-            return Some(Ok(Packet { id, instruction, params }));
+        let start = find_header(&self.buffer);
+        self.buffer.drain(..start);
+        if self.buffer.len() < 7 {
+            return None;
         }
+        let id = self.buffer[4];
+        let length = usize::from(u16::from_le_bytes([self.buffer[5], self.buffer[6]]));
+        if length < 3 || length + 7 > MAX_PACKET {
+            // Not a real header: drop its first byte and resynchronise.
+            self.buffer.drain(..1);
+            return Some(Err(FrameError::Length { id, length }));
+        }
+        let total = 7 + length;
+        if self.buffer.len() < total {
+            return None;
+        }
+        let frame: Vec<u8> = self.buffer.drain(..total).collect();
+        let received = u16::from_le_bytes([frame[total - 2], frame[total - 1]]);
+        let computed = crc16(&frame[..total - 2]);
+        if received != computed {
+            return Some(Err(FrameError::Crc { id, received, computed }));
+        }
+        let instruction = frame[7];
+        let raw = &frame[8..total - 2];
+        let params = if instruction == instruction::STATUS && !raw.is_empty() {
+            let mut params = vec![raw[0]];
+            params.extend(unstuff(&raw[1..]));
+            params
+        } else {
+            unstuff(raw)
+        };
+        Some(Ok(Packet { id, instruction, params }))
     }
 }
 

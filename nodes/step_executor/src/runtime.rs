@@ -71,6 +71,7 @@ pub struct Runtime {
     torque: bool,
     player_state: PlayerState,
     current_motion: String,
+    keyframe_index: u32,
     last_match: String,
     last_fault: Option<(u8, String)>,
     positions: Vec<Option<f64>>,
@@ -145,6 +146,7 @@ impl Runtime {
             torque: false,
             player_state: PlayerState::Idle,
             current_motion: String::new(),
+            keyframe_index: 0,
             last_match: String::new(),
             last_fault: None,
             positions: vec![None; n],
@@ -174,6 +176,7 @@ impl Runtime {
             self.positions = t.positions.clone();
             self.torque = t.torque;
             self.player_state = t.state.clone();
+            self.keyframe_index = u32::try_from(t.keyframe_index).unwrap_or(u32::MAX);
             match &t.event {
                 Some(PlayerEvent::Fault(fault)) => {
                     self.last_fault = Some((fault.servo_id.unwrap_or(0), fault.to_string()));
@@ -375,7 +378,7 @@ impl Runtime {
             armed: self.armed,
             torque_enabled: self.torque,
             current_motion: self.current_motion.clone(),
-            keyframe_index: 0,
+            keyframe_index: self.keyframe_index,
             last_match: self.last_match.clone(),
             fault_servo_id,
             last_fault,
@@ -442,7 +445,7 @@ mod tests {
             r: [0.0; 3],
             c: [0.0, 0.1, 0.4],
         };
-        runtime.on_patch_map(&[camera_patch.clone()], &map_from_camera).unwrap();
+        runtime.on_patch_map(std::slice::from_ref(&camera_patch), &map_from_camera).unwrap();
         let base_from_camera = runtime.base_from_camera().unwrap();
         let expected_c = base_from_camera * Point3::from(camera_patch.c);
         let target = runtime.select_nearest(expected_c.coords.into()).unwrap();

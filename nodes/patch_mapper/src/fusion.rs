@@ -21,6 +21,15 @@ pub const BLOCK_EDGE: usize = 8;
 /// Voxels per block.
 pub const BLOCK_VOXELS: usize = BLOCK_EDGE * BLOCK_EDGE * BLOCK_EDGE;
 const NONE: u32 = u32::MAX;
+/// Blocks per superblock edge of the coarse occupancy grid used for empty-space leaping.
+pub const SUPERBLOCK_EDGE: usize = 4;
+
+/// `floor` as an integer without a libm call (not inlined without SSE4.1).
+#[inline(always)]
+pub fn floor_i(x: f32) -> i32 {
+    let i = x as i32;
+    i - i32::from((i as f32) > x)
+}
 
 /// Errors from building or updating a TSDF volume.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -123,6 +132,12 @@ pub struct TsdfVolume {
     blocks: Vec<Box<Block>>,
     /// Block coordinates of every pooled block.
     coords: Vec<[u16; 3]>,
+    /// Allocated blocks per superblock (SUPERBLOCK_EDGE³ blocks), for empty-space leaping.
+    occupancy: Vec<u32>,
+    superblocks_per_edge: usize,
+    /// Inclusive block-coordinate bounds of the allocated blocks (min > max when empty).
+    bounds_min: [i32; 3],
+    bounds_max: [i32; 3],
 }
 
 impl TsdfVolume {
@@ -130,12 +145,17 @@ impl TsdfVolume {
     pub fn new(config: TsdfConfig) -> Result<Self, FusionError> {
         config.validate()?;
         let blocks_per_edge = (config.size_m / (config.voxel_size_m * BLOCK_EDGE as f32)).ceil().max(1.0) as usize;
+        let superblocks_per_edge = blocks_per_edge.div_ceil(SUPERBLOCK_EDGE);
         Ok(Self {
             config,
             blocks_per_edge,
             slots: vec![NONE; blocks_per_edge * blocks_per_edge * blocks_per_edge],
             blocks: Vec::new(),
             coords: Vec::new(),
+            occupancy: vec![0; superblocks_per_edge * superblocks_per_edge * superblocks_per_edge],
+            superblocks_per_edge,
+            bounds_min: [i32::MAX; 3],
+            bounds_max: [i32::MIN; 3],
         })
     }
 
@@ -176,6 +196,50 @@ impl TsdfVolume {
         self.slots.fill(NONE);
         self.blocks.clear();
         self.coords.clear();
+        self.occupancy.fill(0);
+        self.bounds_min = [i32::MAX; 3];
+        self.bounds_max = [i32::MIN; 3];
+    }
+
+    /// Pools a new block at block coordinates `c` for slot `slot_index` (caller checked it is free).
+    fn allocate(&mut self, slot_index: usize, c: [u16; 3], block: Box<Block>) {
+        if let Some(slot) = self.slots.get_mut(slot_index) {
+            *slot = self.blocks.len() as u32;
+        }
+        self.blocks.push(block);
+        self.coords.push(c);
+        let n = self.superblocks_per_edge;
+        let s = |v: u16| v as usize / SUPERBLOCK_EDGE;
+        if let Some(count) = self.occupancy.get_mut((s(c[2]) * n + s(c[1])) * n + s(c[0])) {
+            *count += 1;
+        }
+        for axis in 0..3 {
+            self.bounds_min[axis] = self.bounds_min[axis].min(i32::from(c[axis]));
+            self.bounds_max[axis] = self.bounds_max[axis].max(i32::from(c[axis]));
+        }
+    }
+
+    /// Axis-aligned bounds (m, volume frame) of the allocated blocks, if any.
+    pub fn allocated_bounds(&self) -> Option<(Vector3<f32>, Vector3<f32>)> {
+        if self.blocks.is_empty() {
+            return None;
+        }
+        let b = self.block_size();
+        let lo = Vector3::new(self.bounds_min[0] as f32, self.bounds_min[1] as f32, self.bounds_min[2] as f32) * b;
+        let hi = Vector3::new(self.bounds_max[0] as f32 + 1.0, self.bounds_max[1] as f32 + 1.0, self.bounds_max[2] as f32 + 1.0) * b;
+        Some((lo, hi))
+    }
+
+    /// Whether the superblock containing voxel `(i, j, k)` holds any allocated block.
+    #[inline]
+    pub fn superblock_occupied(&self, i: i32, j: i32, k: i32) -> bool {
+        let shift = (BLOCK_EDGE * SUPERBLOCK_EDGE).trailing_zeros();
+        let n = self.superblocks_per_edge as i32;
+        let (x, y, z) = (i >> shift, j >> shift, k >> shift);
+        if x < 0 || y < 0 || z < 0 || x >= n || y >= n || z >= n {
+            return false;
+        }
+        self.occupancy.get(((z * n + y) * n + x) as usize).is_some_and(|c| *c > 0)
     }
 
     /// Whether a point (volume frame, m) lies inside the cube.
@@ -203,26 +267,24 @@ impl TsdfVolume {
         self.blocks.get(slot as usize).map(|b| &**b)
     }
 
-    /// Whether the block containing a point (voxel units) is allocated.
+    /// The block containing voxel `(i, j, k)`, if allocated.
     #[inline]
-    pub fn is_block_allocated_at_voxel(&self, voxel: &Vector3<f32>) -> bool {
-        let e = BLOCK_EDGE as f32;
-        self.block((voxel.x / e).floor() as i32, (voxel.y / e).floor() as i32, (voxel.z / e).floor() as i32).is_some()
+    pub fn block_of_voxel(&self, i: i32, j: i32, k: i32) -> Option<&Block> {
+        self.block(i >> 3, j >> 3, k >> 3)
     }
 
     /// TSDF and weight of voxel `(i, j, k)`; `None` outside allocated blocks.
     #[inline]
     pub fn voxel(&self, i: i32, j: i32, k: i32) -> Option<(f32, f32)> {
-        let e = BLOCK_EDGE as i32;
-        let block = self.block(i.div_euclid(e), j.div_euclid(e), k.div_euclid(e))?;
-        let local = (i.rem_euclid(e) + e * (j.rem_euclid(e) + e * k.rem_euclid(e))) as usize;
+        let block = self.block_of_voxel(i, j, k)?;
+        let local = local_index(i, j, k);
         Some((*block.tsdf.get(local)?, *block.weight.get(local)?))
     }
 
-    /// Observed TSDF of the voxel nearest to a point given in voxel units (`None` if unobserved).
+    /// Observed TSDF of the voxel containing a point given in voxel units (`None` if unobserved).
     #[inline]
     pub fn nearest(&self, voxel: &Vector3<f32>) -> Option<f32> {
-        let (t, w) = self.voxel(voxel.x.floor() as i32, voxel.y.floor() as i32, voxel.z.floor() as i32)?;
+        let (t, w) = self.voxel(floor_i(voxel.x), floor_i(voxel.y), floor_i(voxel.z))?;
         (w > 0.0).then_some(t)
     }
 
@@ -231,17 +293,33 @@ impl TsdfVolume {
     pub fn trilinear(&self, voxel: &Vector3<f32>) -> Option<TsdfSample> {
         // Voxel centres sit at integer + 0.5.
         let g = voxel - Vector3::repeat(0.5);
-        let (i, j, k) = (g.x.floor(), g.y.floor(), g.z.floor());
-        let (fx, fy, fz) = (g.x - i, g.y - j, g.z - k);
-        let (i, j, k) = (i as i32, j as i32, k as i32);
+        let (i, j, k) = (floor_i(g.x), floor_i(g.y), floor_i(g.z));
+        let (fx, fy, fz) = (g.x - i as f32, g.y - j as f32, g.z - k as f32);
         let mut c = [0.0f32; 8];
-        for (n, value) in c.iter_mut().enumerate() {
-            let (dx, dy, dz) = ((n & 1) as i32, ((n >> 1) & 1) as i32, ((n >> 2) & 1) as i32);
-            let (t, w) = self.voxel(i + dx, j + dy, k + dz)?;
-            if w <= 0.0 {
-                return None;
+        let edge = BLOCK_EDGE as i32 - 1;
+        if (i & 7) < edge && (j & 7) < edge && (k & 7) < edge {
+            // Fast path: all 8 corners in one block.
+            let block = self.block_of_voxel(i, j, k)?;
+            let base = local_index(i, j, k);
+            for (n, value) in c.iter_mut().enumerate() {
+                let offset = (n & 1) + ((n >> 1) & 1) * BLOCK_EDGE + ((n >> 2) & 1) * BLOCK_EDGE * BLOCK_EDGE;
+                let (Some(&t), Some(&w)) = (block.tsdf.get(base + offset), block.weight.get(base + offset)) else {
+                    return None;
+                };
+                if w <= 0.0 {
+                    return None;
+                }
+                *value = t;
             }
-            *value = t;
+        } else {
+            for (n, value) in c.iter_mut().enumerate() {
+                let (dx, dy, dz) = ((n & 1) as i32, ((n >> 1) & 1) as i32, ((n >> 2) & 1) as i32);
+                let (t, w) = self.voxel(i + dx, j + dy, k + dz)?;
+                if w <= 0.0 {
+                    return None;
+                }
+                *value = t;
+            }
         }
         let lerp = |a: f32, b: f32, f: f32| a + (b - a) * f;
         let x00 = lerp(c[0], c[1], fx);
@@ -278,15 +356,15 @@ impl TsdfVolume {
         let before = self.blocks.len();
         let mut touched: Vec<u32> = Vec::with_capacity(touched_slots.len());
         for slot_index in touched_slots {
-            let Some(slot) = self.slots.get_mut(slot_index) else { continue };
-            if *slot == NONE {
+            let Some(&slot) = self.slots.get(slot_index) else { continue };
+            if slot == NONE {
                 let n = self.blocks_per_edge;
                 let coords = [(slot_index % n) as u16, ((slot_index / n) % n) as u16, (slot_index / (n * n)) as u16];
-                *slot = self.blocks.len() as u32;
-                self.blocks.push(Block::empty());
-                self.coords.push(coords);
+                touched.push(self.blocks.len() as u32);
+                self.allocate(slot_index, coords, Block::empty());
+            } else {
+                touched.push(slot);
             }
-            touched.push(*slot);
         }
         let blocks_touched = touched.len();
         let mut is_touched = vec![false; self.blocks.len()];
@@ -336,7 +414,7 @@ impl TsdfVolume {
                         let z = d - mu + 2.0 * mu * s as f32 / (samples - 1).max(1) as f32;
                         let p = pose * Point3::from(ray * z);
                         let b = p.coords / block;
-                        if let Some(slot) = self.slot_index(b.x.floor() as i32, b.y.floor() as i32, b.z.floor() as i32) {
+                        if let Some(slot) = self.slot_index(floor_i(b.x), floor_i(b.y), floor_i(b.z)) {
                             if slot != last {
                                 row.push(slot);
                                 last = slot;
@@ -362,21 +440,19 @@ impl TsdfVolume {
         self.clear();
         for (c, block) in blocks {
             let Some(slot_index) = self.slot_index(c[0], c[1], c[2]) else { continue };
-            let Some(slot) = self.slots.get_mut(slot_index) else { continue };
-            if *slot != NONE {
+            if self.slots.get(slot_index) != Some(&NONE) {
                 continue;
             }
-            *slot = self.blocks.len() as u32;
-            self.blocks.push(block);
-            self.coords.push([c[0] as u16, c[1] as u16, c[2] as u16]);
+            self.allocate(slot_index, [c[0] as u16, c[1] as u16, c[2] as u16], block);
         }
     }
 
     /// Takes all blocks out (coordinates + data), leaving the volume empty.
     pub(crate) fn take_blocks(&mut self) -> Vec<([u16; 3], Box<Block>)> {
-        self.slots.fill(NONE);
         let coords = std::mem::take(&mut self.coords);
-        coords.into_iter().zip(std::mem::take(&mut self.blocks)).collect()
+        let taken = coords.into_iter().zip(std::mem::take(&mut self.blocks)).collect();
+        self.clear();
+        taken
     }
 
     /// Points (volume frame, m) of voxels with |tsdf| below `band` (in μ units), for tests and export.
@@ -398,6 +474,12 @@ impl TsdfVolume {
         }
         points
     }
+}
+
+/// Index of voxel `(i, j, k)` inside its block (x fastest).
+#[inline(always)]
+fn local_index(i: i32, j: i32, k: i32) -> usize {
+    ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize
 }
 
 /// Pinhole projection and the per-frame fusion constants.

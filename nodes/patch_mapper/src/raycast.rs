@@ -12,7 +12,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaterni
 use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fusion::TsdfVolume;
+use crate::fusion::{floor_i, TsdfVolume, BLOCK_EDGE, SUPERBLOCK_EDGE};
 
 /// Raycast parameters.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -108,6 +108,21 @@ pub fn raycast_birds_eye(
 
 /// Raycasts the volume from a pinhole camera at `volume_from_camera` (J 5.1).
 pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrinsics, volume_from_camera: &Isometry3<f64>) -> ModelRaycast {
+    raycast_guided(volume, config, intrinsics, volume_from_camera, None)
+}
+
+/// Raycast whose rays start 2μ in front of a depth hint of the same size (e.g. the frame just
+/// integrated at this pose): only the band around the expected surface is marched. Pixels without a
+/// hint are marched in full.
+pub fn raycast_guided(
+    volume: &TsdfVolume,
+    config: &RaycastConfig,
+    intrinsics: &Intrinsics,
+    volume_from_camera: &Isometry3<f64>,
+    hint: Option<&DepthImage>,
+) -> ModelRaycast {
+    let hint = hint.filter(|h| h.width == intrinsics.width && h.height == intrinsics.height);
+    let mu = volume.truncation();
     let (width, height) = (intrinsics.width, intrinsics.height);
     let pose = volume_from_camera.cast::<f32>();
     let rotation = pose.rotation.to_rotation_matrix();
@@ -123,7 +138,11 @@ pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrins
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
-                match cast_ray(volume, config, &origin, &direction) {
+                let start = hint
+                    .and_then(|h| h.depth_m.get(v * width + u))
+                    .filter(|d| d.is_finite())
+                    .map(|d| (d - 2.0 * mu) * ray_length);
+                match cast_ray(volume, config, &origin, &direction, start) {
                     Some((t, normal)) => {
                         points.push(Point3::from(origin + direction * t));
                         normals.push(normal);
@@ -151,19 +170,19 @@ pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrins
     ModelRaycast { intrinsics: *intrinsics, volume_from_camera: *volume_from_camera, points_in_volume, normals_in_volume, depth }
 }
 
-/// Entry and exit ray parameters of the cube [0, edge]³ (slab method).
-fn clip_to_cube(origin: &Vector3<f32>, direction: &Vector3<f32>, edge: f32) -> Option<(f32, f32)> {
+/// Entry and exit ray parameters of the box [lo, hi] (slab method).
+fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32>, hi: &Vector3<f32>) -> Option<(f32, f32)> {
     let mut t_near = f32::NEG_INFINITY;
     let mut t_far = f32::INFINITY;
     for axis in 0..3 {
         let (o, d) = (origin[axis], direction[axis]);
         if d.abs() < 1e-9 {
-            if o < 0.0 || o > edge {
+            if o < lo[axis] || o > hi[axis] {
                 return None;
             }
             continue;
         }
-        let (a, b) = ((0.0 - o) / d, (edge - o) / d);
+        let (a, b) = ((lo[axis] - o) / d, (hi[axis] - o) / d);
         t_near = t_near.max(a.min(b));
         t_far = t_far.min(a.max(b));
     }
@@ -171,28 +190,49 @@ fn clip_to_cube(origin: &Vector3<f32>, direction: &Vector3<f32>, edge: f32) -> O
 }
 
 /// Marches one ray; returns the range to the first front-facing zero crossing and the unit normal.
-fn cast_ray(volume: &TsdfVolume, config: &RaycastConfig, origin: &Vector3<f32>, direction: &Vector3<f32>) -> Option<(f32, Vector3<f32>)> {
+/// The ray is clipped to the bounds of the allocated blocks; empty superblocks and unallocated blocks
+/// are leapt over whole.
+fn cast_ray(
+    volume: &TsdfVolume,
+    config: &RaycastConfig,
+    origin: &Vector3<f32>,
+    direction: &Vector3<f32>,
+    start: Option<f32>,
+) -> Option<(f32, Vector3<f32>)> {
     let voxel = volume.voxel_size();
     let inv_voxel = 1.0 / voxel;
     let mu = volume.truncation();
-    let block = volume.block_size();
-    let (t_enter, t_exit) = clip_to_cube(origin, direction, volume.edge_m() - 1e-4)?;
-    let mut t = t_enter.max(config.min_range_m);
+    let (lo, hi) = volume.allocated_bounds()?;
+    let (t_enter, t_exit) = clip_to_box(origin, direction, &lo, &(hi - Vector3::repeat(1e-4)))?;
+    let mut t = t_enter.max(config.min_range_m).max(start.unwrap_or(0.0));
     let t_end = t_exit.min(config.max_range_m);
+    let origin_voxel = origin * inv_voxel;
+    let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
+    let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
+    let block_voxels = BLOCK_EDGE as f32;
     let mut previous: Option<(f32, f32)> = None;
     let mut guard = 0usize;
-    while t < t_end && guard < 1_000_000 {
+    while t < t_end && guard < 100_000 {
         guard += 1;
-        let point_voxel = (origin + direction * t) * inv_voxel;
-        if !volume.is_block_allocated_at_voxel(&point_voxel) {
-            // Empty-space leaping: jump to where the ray leaves this block.
+        let p = origin_voxel + direction * (t * inv_voxel);
+        let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
+        if !volume.superblock_occupied(i, j, k) {
             previous = None;
-            t = block_exit(origin, direction, t, block) + 0.01 * voxel;
+            t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
             continue;
         }
-        let Some(tsdf) = volume.nearest(&point_voxel) else {
+        let Some(block) = volume.block_of_voxel(i, j, k) else {
+            // Empty-space leaping: jump to where the ray leaves this block.
             previous = None;
-            t += voxel;
+            t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
+            continue;
+        };
+        let local = ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize;
+        let observed = block.weight.get(local).is_some_and(|w| *w > 0.0);
+        let Some(&tsdf) = block.tsdf.get(local).filter(|_| observed) else {
+            // Unobserved voxel (behind a surface): no crossing can be bracketed here.
+            previous = None;
+            t += (0.5 * mu).max(voxel);
             continue;
         };
         if let Some((t_previous, tsdf_previous)) = previous {
@@ -201,25 +241,26 @@ fn cast_ray(volume: &TsdfVolume, config: &RaycastConfig, origin: &Vector3<f32>, 
             }
         }
         previous = Some((t, tsdf));
-        t += (config.step_factor * tsdf * mu).max(voxel);
+        // The surface is at least |tsdf|·μ away (on either side of it).
+        t += (config.step_factor * tsdf.abs() * mu).max(voxel);
     }
     None
 }
 
-/// Ray parameter where the ray leaves the block containing `origin + t·direction`.
-fn block_exit(origin: &Vector3<f32>, direction: &Vector3<f32>, t: f32, block: f32) -> f32 {
-    let p = origin + direction * t;
+/// Distance (voxel units along the ray) from `p` (voxel units) to the exit of its cubic cell of edge `size`.
+#[inline]
+fn cell_exit(p: &Vector3<f32>, inverse_direction: &Vector3<f32>, size: f32) -> f32 {
     let mut exit = f32::INFINITY;
     for axis in 0..3 {
-        let d = direction[axis];
-        if d.abs() < 1e-9 {
+        let inv = inverse_direction[axis];
+        if !inv.is_finite() {
             continue;
         }
-        let cell = (p[axis] / block).floor();
-        let boundary = if d > 0.0 { (cell + 1.0) * block } else { cell * block };
-        exit = exit.min(t + (boundary - p[axis]) / d);
+        let cell = floor_i(p[axis] / size) as f32;
+        let boundary = if inv > 0.0 { (cell + 1.0) * size } else { cell * size };
+        exit = exit.min((boundary - p[axis]) * inv);
     }
-    exit.max(t)
+    exit.max(0.0)
 }
 
 /// Zero crossing between `t_a` (TSDF > 0) and `t_b` (≤ 0) by secant steps on trilinear values.
@@ -231,25 +272,31 @@ fn refine_crossing(
     mut t_b: f32,
     inv_voxel: f32,
 ) -> Option<(f32, Vector3<f32>)> {
-    let sample = |t: f32| volume.trilinear(&((origin + direction * t) * inv_voxel)).map(|s| s.tsdf);
+    let trilinear = |t: f32| volume.trilinear(&((origin + direction * t) * inv_voxel));
     // Both brackets must be fully observed, else the crossing is at the edge of the data: no hit.
-    let (mut f_a, mut f_b) = (sample(t_a)?, sample(t_b)?);
+    let (mut f_a, mut f_b) = (trilinear(t_a)?.tsdf, trilinear(t_b)?.tsdf);
     if !(f_a > 0.0 && f_b <= 0.0) {
         return None;
     }
-    let mut t = t_a;
-    for _ in 0..2 {
-        t = if f_a - f_b > 1e-6 { t_a + (t_b - t_a) * f_a / (f_a - f_b) } else { 0.5 * (t_a + t_b) };
-        let Some(f) = sample(t) else { break };
-        if f > 0.0 {
-            t_a = t;
-            f_a = f;
+    let secant = |t_a: f32, t_b: f32, f_a: f32, f_b: f32| {
+        if f_a - f_b > 1e-6 {
+            t_a + (t_b - t_a) * f_a / (f_a - f_b)
         } else {
-            t_b = t;
-            f_b = f;
+            0.5 * (t_a + t_b)
         }
+    };
+    let mut t = secant(t_a, t_b, f_a, f_b);
+    let mut at = trilinear(t)?;
+    if at.tsdf.abs() > 0.02 {
+        // One more secant step on the side that still brackets the crossing.
+        if at.tsdf > 0.0 {
+            (t_a, f_a) = (t, at.tsdf);
+        } else {
+            (t_b, f_b) = (t, at.tsdf);
+        }
+        t = secant(t_a, t_b, f_a, f_b);
+        at = trilinear(t)?;
     }
-    let at = volume.trilinear(&((origin + direction * t) * inv_voxel))?;
     let norm = at.gradient.norm();
     if !(norm > 1e-6) {
         return None;

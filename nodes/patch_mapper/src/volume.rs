@@ -9,7 +9,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
-use crate::fusion::{Block, TsdfVolume, BLOCK_EDGE, BLOCK_VOXELS};
+use crate::fusion::{floor_i, Block, TsdfVolume, BLOCK_EDGE, BLOCK_VOXELS};
 
 /// Moving-volume parameters (J 4 "moving policies", J 5.2).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -167,7 +167,7 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
                     (c[2] as usize * BLOCK_EDGE + z) as f32 + 0.5,
                 );
                 let voxel_old = (old_from_new * Point3::from(voxel_new * voxel)).coords / voxel;
-                let Some((_, weight)) = old.voxel(voxel_old.x.floor() as i32, voxel_old.y.floor() as i32, voxel_old.z.floor() as i32)
+                let Some((_, weight)) = old.voxel(floor_i(voxel_old.x), floor_i(voxel_old.y), floor_i(voxel_old.z))
                 else {
                     continue;
                 };

@@ -395,6 +395,49 @@ mod tests {
         assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["fresh"]);
     }
 
+    const WRITER_ENV: &str = "STEP_EXECUTOR_LIBRARY_WRITER";
+
+    /// SIGKILL a process that saves libraries in a loop, at varying moments: the file must always
+    /// load (old or new content, never partial). (A kill keeps the page cache, so this checks the
+    /// rename protocol; the fsyncs cover power loss.)
+    #[test]
+    fn killed_writer_leaves_old_or_new_file() {
+        if let Ok(path) = std::env::var(WRITER_ENV) {
+            // Child mode: save ever-changing libraries until killed.
+            let path = PathBuf::from(path);
+            for i in 0u64.. {
+                let mut library = MotionLibrary::new(&path, joints());
+                for n in 0..=(i % 25) {
+                    library.insert(motion(&format!("m{n}"))).unwrap();
+                }
+                library.save().unwrap();
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("initial")).unwrap();
+        library.save().unwrap();
+        let exe = std::env::current_exe().unwrap();
+        let mut rewritten = 0;
+        for round in 0..10u64 {
+            let mut child = std::process::Command::new(&exe)
+                .args(["--exact", "library::tests::killed_writer_leaves_old_or_new_file", "--nocapture"])
+                .env(WRITER_ENV, &path)
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .unwrap();
+            std::thread::sleep(std::time::Duration::from_millis(30 + 17 * round));
+            child.kill().unwrap();
+            child.wait().unwrap();
+            let loaded = MotionLibrary::load(&path, &joints()).unwrap();
+            assert!(!loaded.names().is_empty(), "round {round}");
+            rewritten += usize::from(loaded.names() != ["initial"]);
+        }
+        assert!(rewritten > 0, "the writer never replaced the file");
+    }
+
     #[test]
     fn wrong_schema_version_or_joint_order_rejected() {
         let dir = tempfile::tempdir().unwrap();

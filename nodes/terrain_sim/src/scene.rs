@@ -251,26 +251,35 @@ impl RockShape {
         }
     }
 
-    /// Foothold geometry in the rock frame: (top point, normal, principal direction x, curvatures,
-    /// type name, top radius).
-    fn local_foothold(&self) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>, [f64; 2], &'static str, f64) {
+    /// Foothold geometry in the rock frame (the `*_in_world` fields hold rock-frame values here).
+    fn local_foothold(&self) -> Foothold {
+        let foothold = |top: Vector3<f64>, normal: Vector3<f64>, direction_x: Vector3<f64>, k: [f64; 2], kind: &'static str, radius: f64| {
+            Foothold {
+                top_in_world: top,
+                normal_in_world: normal,
+                direction_x_in_world: direction_x,
+                curvatures_per_m: k,
+                surface_type: kind,
+                top_radius_m: radius,
+            }
+        };
         let up = Vector3::z();
         match *self {
             RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
                 let kind = if (a - b).abs() < 1e-12 { "circular_paraboloid" } else { "elliptic_paraboloid" };
-                (Vector3::new(0.0, 0.0, centre_z_m + c), up, Vector3::x(), [-c / (a * a), -c / (b * b)], kind, 0.5 * a.min(b))
+                foothold(Vector3::new(0.0, 0.0, centre_z_m + c), up, Vector3::x(), [-c / (a * a), -c / (b * b)], kind, 0.5 * a.min(b))
             }
             RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
                 let kind = if (kx - ky).abs() < 1e-12 { "circular_paraboloid" } else { "elliptic_paraboloid" };
                 let radius = 0.5 * (2.0 * height_m / kx.max(ky)).sqrt();
-                (Vector3::new(0.0, 0.0, height_m), up, Vector3::x(), [-kx, -ky], kind, radius)
+                foothold(Vector3::new(0.0, 0.0, height_m), up, Vector3::x(), [-kx, -ky], kind, radius)
             }
             RockShape::FlatBoulder { radius_m, height_m, top_slope: [sx, sy] } => {
                 let normal = Vector3::new(-sx, -sy, 1.0).normalize();
                 let direction_x = Vector3::new(1.0, 0.0, sx).normalize();
-                (Vector3::new(0.0, 0.0, height_m), normal, direction_x, [0.0, 0.0], "plane", radius_m)
+                foothold(Vector3::new(0.0, 0.0, height_m), normal, direction_x, [0.0, 0.0], "plane", radius_m)
             }
-            RockShape::LyingCylinder { radius_m, length_m } => (
+            RockShape::LyingCylinder { radius_m, length_m } => foothold(
                 Vector3::new(0.0, 0.0, 2.0 * radius_m),
                 up,
                 Vector3::x(),
@@ -300,14 +309,12 @@ impl Rock {
 
     /// Ground-truth foothold of the rock's top, in the world frame.
     pub fn foothold(&self) -> Foothold {
-        let (top, normal, direction_x, curvatures_per_m, surface_type, top_radius_m) = self.shape.local_foothold();
+        let local = self.shape.local_foothold();
         Foothold {
-            top_in_world: (self.world_from_rock * nalgebra::Point3::from(top)).coords,
-            normal_in_world: self.world_from_rock.rotation * normal,
-            direction_x_in_world: self.world_from_rock.rotation * direction_x,
-            curvatures_per_m,
-            surface_type,
-            top_radius_m,
+            top_in_world: (self.world_from_rock * nalgebra::Point3::from(local.top_in_world)).coords,
+            normal_in_world: self.world_from_rock.rotation * local.normal_in_world,
+            direction_x_in_world: self.world_from_rock.rotation * local.direction_x_in_world,
+            ..local
         }
     }
 
@@ -450,7 +457,7 @@ impl Scene {
             let yaw = if matches!(shape, RockShape::LyingCylinder { .. }) { std::f64::consts::FRAC_PI_2 } else { 0.0 };
             shapes.push((format!("rock {}", i + 1), *shape, true, yaw));
         }
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0x5eed_0f_7e44a1);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed ^ 0x5eed_0f7e_44a1);
         for i in 0..config.untrained_rocks {
             let shape = random_untrained_shape(&mut rng, &training);
             let yaw = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
@@ -551,8 +558,9 @@ fn random_untrained_shape(rng: &mut impl Rng, training: &[RockShape]) -> RockSha
 
 /// Whether two shapes have tops that the J 6.3 matcher could confuse (loose test, for generation).
 fn similar_tops(a: &RockShape, b: &RockShape) -> bool {
-    let (_, na, _, ka, type_a, ra) = a.local_foothold();
-    let (_, nb, _, kb, type_b, rb) = b.local_foothold();
+    let (fa, fb) = (a.local_foothold(), b.local_foothold());
+    let (na, ka, type_a, ra) = (fa.normal_in_world, fa.curvatures_per_m, fa.surface_type, fa.top_radius_m);
+    let (nb, kb, type_b, rb) = (fb.normal_in_world, fb.curvatures_per_m, fb.surface_type, fb.top_radius_m);
     let sorted = |k: [f64; 2]| if k[0] <= k[1] { k } else { [k[1], k[0]] };
     let (ka, kb) = (sorted(ka), sorted(kb));
     type_a == type_b
@@ -573,7 +581,8 @@ mod tests {
     #[test]
     fn vertical_rays_hit_the_tops_at_their_heights() {
         for shape in default_training_rocks() {
-            let (top, normal, ..) = shape.local_foothold();
+            let f = shape.local_foothold();
+            let (top, normal) = (f.top_in_world, f.normal_in_world);
             let hit = shape.intersect(&down_ray(top.x, top.y)).unwrap();
             assert!((1.0 - hit.t - top.z).abs() < 1e-9, "{shape:?}: {} vs {}", 1.0 - hit.t, top.z);
             assert!((hit.normal - normal).norm() < 1e-9, "{shape:?}");
@@ -584,7 +593,8 @@ mod tests {
     fn numeric_curvature_matches_the_foothold() {
         // Heights along the principal directions near the top fit z = ½κ s² (with the top normal up).
         for shape in default_training_rocks() {
-            let (top, normal, direction_x, k, ..) = shape.local_foothold();
+            let f = shape.local_foothold();
+            let (top, normal, direction_x, k) = (f.top_in_world, f.normal_in_world, f.direction_x_in_world, f.curvatures_per_m);
             if (normal - Vector3::z()).norm() > 1e-9 {
                 continue; // tilted plane: curvature 0 checked by the flat test below
             }
@@ -602,7 +612,8 @@ mod tests {
     #[test]
     fn tilted_flat_top_is_a_plane() {
         let shape = RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.05, top_slope: [0.14, -0.05] };
-        let (top, normal, ..) = shape.local_foothold();
+        let f = shape.local_foothold();
+        let (top, normal) = (f.top_in_world, f.normal_in_world);
         for (x, y) in [(0.03, 0.0), (-0.02, 0.04), (0.0, -0.05)] {
             let p = Vector3::new(x, y, 1.0 - shape.intersect(&down_ray(x, y)).unwrap().t);
             assert!((p - top).dot(&normal).abs() < 1e-9);

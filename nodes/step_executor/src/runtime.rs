@@ -2,7 +2,8 @@
 //! configuration, trains motions (torque off → pose → record keyframes → select the target patch →
 //! save), matches every incoming patch map against the library (J 6.3) after expressing it relative
 //! to the robot (`patch_in_base = base_from_camera · camera_from_map · patch_in_map`), and, when
-//! armed, plays the matched motion on the bus thread. The ROS layer only converts messages.
+//! armed, plays the matched motion on the bus thread (one-shot: arming allows one automatic step).
+//! The ROS layer only converts messages.
 
 use std::collections::HashMap;
 
@@ -216,6 +217,8 @@ impl Runtime {
                 self.last_match = motion.name.clone();
                 let idle = matches!(self.player_state, PlayerState::Idle | PlayerState::Stopped);
                 if self.armed && !self.estopped && idle && self.bus.is_some() {
+                    // One step per arming (J 6.3: one trained motion per match); re-arm for the next.
+                    self.armed = false;
                     let motion = motion.clone();
                     if let Err(e) = self.start(motion) {
                         self.last_fault = Some((0, format!("automatic play of {:?}: {e}", self.last_match)));
@@ -483,6 +486,7 @@ mod tests {
         let report = runtime.on_patch_map(&[camera_patch], &map_from_camera).unwrap();
         assert!(report.best.is_some());
         assert_eq!(runtime.status().last_match, "rock1");
+        assert!(!runtime.status().armed, "automatic execution is one-shot");
         wait(&mut runtime, "playback", |r| r.status().state == RunState::Playing);
         wait(&mut runtime, "finish", |r| r.status().state == RunState::Idle);
         assert!(bus.state().goal_writes.len() > writes + 40);

@@ -241,7 +241,7 @@ impl Drop for RosNode {
 
 /// Take up to `max` pending messages from `sub` and hand each to `handle`. Undecodable samples are
 /// logged (rate-limited through `log`) and skipped; returns how many messages were handled.
-pub fn drain<M: 'static>(
+pub fn drain<M>(
     sub: &Subscription<M>,
     topic: &str,
     max: usize,
@@ -249,7 +249,7 @@ pub fn drain<M: 'static>(
     mut handle: impl FnMut(M, MessageInfo),
 ) -> usize
 where
-    M: serde::de::DeserializeOwned,
+    M: serde::de::DeserializeOwned + 'static,
 {
     let mut handled = 0;
     for _ in 0..max {

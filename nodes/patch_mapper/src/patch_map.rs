@@ -132,11 +132,17 @@ impl PatchMap {
         self.patches.is_empty()
     }
 
-    /// Adds a patch (pose in `frame_id`) seen at `timestamp`; returns its id.
+    /// Adds a patch (pose in `frame_id`) seen at `timestamp`, in the cell of its centre; returns its id.
     pub fn insert(&mut self, patch: Patch, timestamp: f64) -> u64 {
+        let cell = self.grid.cell_of_map_point(&patch.center);
+        self.insert_in_cell(patch, cell, timestamp)
+    }
+
+    /// Adds a patch associated with `cell` (J 4.3: the cell of the seed it was fitted to; the
+    /// fitted centre can lie just across a cell border). Returns its id.
+    pub fn insert_in_cell(&mut self, patch: Patch, cell: Option<Cell>, timestamp: f64) -> u64 {
         let id = self.next_id;
         self.next_id += 1;
-        let cell = self.grid.cell_of_map_point(&patch.center);
         self.patches.push(MappedPatch { id, patch, cell, first_seen: timestamp, last_seen: timestamp });
         id
     }

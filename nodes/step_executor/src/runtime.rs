@@ -19,6 +19,9 @@ use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use crate::servo_bus::dynamixel::DynamixelBus;
 use crate::servo_bus::ServoBus;
 
+/// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
+const BUILT_IN_URDF: &str = include_str!("../../../urdf/rpbp.urdf");
+
 /// Coarse state for the status message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RunState {
@@ -104,7 +107,15 @@ impl Runtime {
         open_bus: impl FnOnce() -> Result<Box<dyn ServoBus>, String>,
     ) -> Result<(Self, Vec<String>), RuntimeError> {
         let mut warnings = Vec::new();
-        let model = RobotModel::from_file(&config.urdf_path)?;
+        let model = match RobotModel::from_file(&config.urdf_path) {
+            Ok(model) => model,
+            // Started outside the repository: fall back to the RPBP model compiled into the binary.
+            Err(e) if !config.urdf_path.exists() => {
+                warnings.push(format!("{e}; using the built-in urdf/rpbp.urdf"));
+                RobotModel::from_urdf_str(BUILT_IN_URDF)?
+            }
+            Err(e) => return Err(e.into()),
+        };
         let joint_names = config.joint_names();
         let mut joint_specs = Vec::with_capacity(config.servos.len());
         for servo in &config.servos {
@@ -417,6 +428,16 @@ mod tests {
             runtime.poll();
             std::thread::sleep(Duration::from_millis(5));
         }
+    }
+
+    #[test]
+    fn missing_urdf_file_falls_back_to_the_built_in_model() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = config(dir.path());
+        config.urdf_path = dir.path().join("nowhere.urdf");
+        let (runtime, warnings) = Runtime::with_bus(config, || Err("no bus".into())).unwrap();
+        assert!(warnings.iter().any(|w| w.contains("built-in")));
+        assert!(runtime.base_from_camera().is_ok());
     }
 
     #[test]

@@ -19,6 +19,9 @@ _LOG_DIR = Path(tempfile.mkdtemp(prefix="patchwalk_pytest_"))
 ENV = pw.ros_environment(_LOG_DIR)
 os.environ.update(ENV)  # before rclpy is imported anywhere
 
+# Binaries whose ROS node is started with `<binary> run ...`; others take their options directly.
+RUN_SUBCOMMAND = {"patch_mapper", "step_executor", "terrain_sim"}
+
 
 @pytest.fixture(scope="session")
 def _ros_session():
@@ -42,12 +45,13 @@ def log_dir(tmp_path) -> Path:
 @pytest.fixture
 def start_node(log_dir):
     """Factory: `start_node("patch_mapper", "--param", "ros.status_period_s=0.2")` starts
-    `<binary> run <args>`; at teardown every node still running is stopped with SIGINT and must exit
-    cleanly (exit code 0, no panic)."""
+    `<binary> run <args>` (`<binary> <args>` for binaries without a `run` subcommand); at teardown
+    every node still running is stopped with SIGINT and must exit cleanly (exit code 0, no panic)."""
     started: list[pw.NodeProcess] = []
 
     def start(name: str, *args: str, env: dict[str, str] | None = None) -> pw.NodeProcess:
-        node = pw.NodeProcess(name, ["run", *args], {**ENV, **(env or {})}, log_dir)
+        args = ("run", *args) if name in RUN_SUBCOMMAND else args
+        node = pw.NodeProcess(name, list(args), {**ENV, **(env or {})}, log_dir)
         started.append(node)
         return node
 

@@ -40,6 +40,9 @@ pub struct Faults {
     pub crc_errors: BTreeSet<u8>,
     /// Extra delay before every response.
     pub latency: Duration,
+    /// These servos answer with a malformed frame whose LEN field (2) is shorter than any status
+    /// packet, with a valid CRC (a corrupted/echoed frame; it panics dynamixel2 0.9.1's parser).
+    pub malformed: BTreeSet<u8>,
 }
 
 /// Chain configuration.
@@ -484,6 +487,16 @@ fn handle(packet: &Packet, shared: &Shared) -> Vec<Response> {
     out
 }
 
+/// `FF FF FD 00 | id | 02 00 | CRC` + one trailing byte: LEN = 2 leaves no room for the
+/// instruction and error bytes of a status packet; the CRC over the first 7 bytes is valid.
+fn malformed_frame(id: u8) -> Vec<u8> {
+    let mut frame = vec![0xFF, 0xFF, 0xFD, 0x00, id, 0x02, 0x00];
+    let crc = protocol::crc16(&frame);
+    frame.extend_from_slice(&crc.to_le_bytes());
+    frame.push(0x00);
+    frame
+}
+
 /// Send responses honouring faults, return delay and wire time.
 fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec<Response>) {
     let faults = lock(&shared.faults).clone();
@@ -497,7 +510,7 @@ fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec
         if faults.silent.contains(&id) {
             continue;
         }
-        let mut bytes = protocol::encode_status(id, error, &data);
+        let mut bytes = if faults.malformed.contains(&id) { malformed_frame(id) } else { protocol::encode_status(id, error, &data) };
         if faults.crc_errors.contains(&id) {
             let n = bytes.len();
             bytes[n - 1] ^= 0xA5;

@@ -105,6 +105,23 @@ fn latency_beyond_the_timeout_is_a_timeout() {
 }
 
 #[test]
+fn malformed_frame_panic_inside_dynamixel2_becomes_an_error_and_the_bus_survives() {
+    let (chain, mut bus) = setup(2);
+    chain.set_faults(|f| {
+        f.malformed.insert(2);
+    });
+    // Silence the default panic hook's message for this expected panic.
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let result = bus.ping(2);
+    std::panic::set_hook(hook);
+    assert!(matches!(result, Err(BusError::Panicked(_))), "{result:?}");
+    chain.set_faults(|f| f.malformed.clear());
+    assert_eq!(bus.ping(2).unwrap(), mx28::MODEL_NUMBER);
+    assert_eq!(bus.ping(1).unwrap(), mx28::MODEL_NUMBER);
+}
+
+#[test]
 fn hardware_error_alert_becomes_typed_error_with_bits() {
     let (chain, mut bus) = setup(12);
     chain.set_hardware_error(7, mx28::HW_OVERHEATING | mx28::HW_OVERLOAD);

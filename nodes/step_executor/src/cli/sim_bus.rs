@@ -3,7 +3,7 @@
 //! path (the node's `bus.port`, the ROBOTIS dynamixel-sdk, Dynamixel Wizard via socat...).
 //!
 //! Faults can be injected at run time with one command per stdin line:
-//! `silence <id>|all`, `crc <id>`, `hwerr <id> <bits>`, `latency <ms>`, `move <id> <ticks>`, `clear`.
+//! `silence <id>|all`, `crc <id>`, `malformed <id>`, `hwerr <id> <bits>`, `latency <ms>`, `move <id> <ticks>`, `clear`.
 
 use std::io::{BufRead, Write};
 use std::path::PathBuf;
@@ -110,6 +110,13 @@ fn apply_command(chain: &SimChain, line: &str) -> anyhow::Result<String> {
             });
             Ok(format!("servo {id} answers with bad CRCs"))
         }
+        ["malformed", _] => {
+            let id = id(1)?;
+            chain.set_faults(|f| {
+                f.malformed.insert(id);
+            });
+            Ok(format!("servo {id} answers with malformed frames"))
+        }
         ["hwerr", _, bits] => {
             let id = id(1)?;
             let bits = parse_u8(bits)?;
@@ -131,7 +138,7 @@ fn apply_command(chain: &SimChain, line: &str) -> anyhow::Result<String> {
             chain.set_faults(|f| *f = Default::default());
             Ok("faults cleared (hardware errors stay until reboot)".into())
         }
-        _ => anyhow::bail!("unknown command {line:?} (silence <id>|all, crc <id>, hwerr <id> <bits>, latency <ms>, move <id> <ticks>, clear)"),
+        _ => anyhow::bail!("unknown command {line:?} (silence <id>|all, crc <id>, malformed <id>, hwerr <id> <bits>, latency <ms>, move <id> <ticks>, clear)"),
     }
 }
 

@@ -212,10 +212,12 @@ fn camera_loop(
     let period = 1.0 / sim.config.camera.rate_hz;
     let mut log = RateLimitedLog::default();
     let (mut index, mut skipped) = (0u64, 0u64);
+    // While the robot stands still the ray casting of the last pose is reused.
+    let mut cache = None;
     while clock.sleep_until(index as f64 * period, shutdown) {
         let t = index as f64 * period;
         let world_from_camera = lock(pose).world_from_camera(sim, t);
-        let frame = sim.render_at(t, &world_from_camera, index);
+        let frame = sim.render_at_reusing(t, &world_from_camera, index, &mut cache);
         let stamp = clock.stamp(t);
         node::publish(info_pub, CAMERA_INFO_TOPIC, camera_info_msg(&sim.camera.intrinsics, stamp.clone(), frame_id), &mut log);
         node::publish(image_pub, IMAGE_TOPIC, depth_image_msg(&frame.depth, stamp, frame_id), &mut log);

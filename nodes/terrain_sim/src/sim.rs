@@ -5,7 +5,7 @@
 use nalgebra::Isometry3;
 use patch_mapper::camera::DepthImage;
 
-use crate::camera::{mix, DepthCamera, DepthCameraError};
+use crate::camera::{mix, DepthCamera, DepthCameraError, RenderCache};
 use crate::config::SimConfig;
 use crate::imu::{Imu, ImuError, ImuSample};
 use crate::motion::{base_from_camera_lookdown, HeadMotion};
@@ -79,6 +79,13 @@ impl Simulator {
     /// Renders at an explicit pose (e.g. one following the servos); `index` seeds the noise.
     pub fn render_at(&self, timestamp: f64, world_from_camera: &Isometry3<f64>, index: u64) -> DepthFrame {
         let depth = self.camera.render(&self.scene, world_from_camera, mix(self.config.seed, index));
+        DepthFrame { timestamp, depth, world_from_camera: *world_from_camera }
+    }
+
+    /// [`render_at`](Self::render_at) reusing the ray casting while the pose stays the same
+    /// (see `DepthCamera::render_reusing`).
+    pub fn render_at_reusing(&self, timestamp: f64, world_from_camera: &Isometry3<f64>, index: u64, cache: &mut Option<RenderCache>) -> DepthFrame {
+        let depth = self.camera.render_reusing(&self.scene, world_from_camera, mix(self.config.seed, index), cache);
         DepthFrame { timestamp, depth, world_from_camera: *world_from_camera }
     }
 

@@ -1,7 +1,7 @@
 //! Bench: depth rendering speed of the virtual Carmine (640×480, noise, missing data) in the
 //! lookdown pose in front of every rock. Prints per-frame median / p95 / p99 and frames/s.
 //!
-//! `cargo run --release -p terrain_sim --bin bench_render -- [frames per rock] [--sway] [--no-noise] [--no-shadow]`
+//! `cargo run --release -p terrain_sim --bin bench_render -- [frames per rock] [--sway] [--no-noise] [--no-shadow] [--reuse]`
 //! (threads: `RAYON_NUM_THREADS`, default = all cores).
 
 use std::time::Instant;
@@ -32,15 +32,24 @@ fn main() -> anyhow::Result<()> {
     );
     // Warm-up (thread pool, caches).
     let _ = sim.depth_frame(0);
+    // `--reuse`: the node's path, reusing the ray casting while the pose is unchanged.
+    let reuse = args.iter().any(|a| a == "--reuse");
+    println!("reuse static render: {reuse}");
     let mut times_ms = Vec::with_capacity(rocks * frames_per_rock);
     let mut valid = 0usize;
     let started = Instant::now();
     let cpu_start = process_cpu_seconds();
     for rock in 0..rocks {
         sim.place_at_rock(rock)?;
+        let mut cache = None;
         for i in 0..frames_per_rock {
             let t0 = Instant::now();
-            let frame = sim.depth_frame(i as u64);
+            let frame = if reuse {
+                let t = i as f64 / sim.config.camera.rate_hz;
+                sim.render_at_reusing(t, &sim.world_from_camera(t), i as u64, &mut cache)
+            } else {
+                sim.depth_frame(i as u64)
+            };
             times_ms.push(t0.elapsed().as_secs_f64() * 1e3);
             valid += frame.depth.valid_count();
         }

@@ -109,7 +109,7 @@ impl HeadMotion {
         }
         let phase = TAU * s.frequency_hz * t + self.sway_phase;
         let jitter = |axis: usize| -> f64 {
-            self.jitter[axis].iter().map(|(f, p)| (TAU * f * t + p).sin()).sum::<f64>() / 3.0
+            self.jitter.get(axis).map_or(0.0, |components| components.iter().map(|(f, p)| (TAU * f * t + p).sin()).sum::<f64>() / 3.0)
         };
         let jitter_rad = s.jitter_deg.to_radians();
         let translation = Vector3::new(

@@ -138,7 +138,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                         .and_then(Robot::feet_and_camera)
                         .map(|(left, right, _)| StanceTracker::new(&world_from_station, &left, &right));
                     placed = true;
-                    tracing::info!(rock = index, name = %sim.scene.rocks[index].name, "robot placed in front of rock");
+                    let name = sim.scene.rocks.get(index).map_or("?", |rock| rock.name.as_str());
+                    tracing::info!(rock = index, name, "robot placed in front of rock");
                 }
                 Err(e) => {
                     log.warn(PLACE_TOPIC, format_args!("{PLACE_TOPIC}: {e}"));

@@ -57,7 +57,8 @@ fn main() -> anyhow::Result<()> {
     let wall = started.elapsed().as_secs_f64();
     let cpu = process_cpu_seconds().zip(cpu_start).map(|(end, start)| end - start);
     times_ms.sort_by(f64::total_cmp);
-    let pct = |p: f64| times_ms[((times_ms.len() - 1) as f64 * p).round() as usize];
+    anyhow::ensure!(!times_ms.is_empty(), "no frames rendered (frames per rock must be ≥ 1)");
+    let pct = |p: f64| times_ms.get(((times_ms.len() - 1) as f64 * p).round() as usize).copied().unwrap_or(f64::NAN);
     println!(
         "render ms/frame: median {:.2}  p95 {:.2}  p99 {:.2}  max {:.2}",
         pct(0.5),

@@ -31,6 +31,8 @@ pub mod seeds;
 pub mod calibration;
 pub mod fusion;
 pub mod patch_tracking;
+// Per-frame perception pipeline of the node (issue 7).
+pub mod pipeline;
 pub mod raycast;
 pub mod tracking;
 pub mod volume;

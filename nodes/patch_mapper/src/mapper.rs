@@ -157,6 +157,8 @@ pub struct StageTimings {
     pub seeds_ms: f64,
     pub neighbourhood_cpu_ms: f64,
     pub fit_validate_cpu_ms: f64,
+    /// The validation part of `fit_validate_cpu_ms` (J 3.3 on the full neighbourhood).
+    pub validate_cpu_ms: f64,
     /// Wall time of stages iv–v together.
     pub fit_stage_ms: f64,
     pub total_ms: f64,
@@ -312,7 +314,7 @@ impl Mapper {
         let deadline = std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0)
             .ok()
             .and_then(|limit| start.checked_add(limit));
-        let (mut outcomes, stop, neighbourhood_cpu_ms, fit_validate_cpu_ms) =
+        let (mut outcomes, stop, [neighbourhood_cpu_ms, fit_validate_cpu_ms, validate_cpu_ms]) =
             fit_seeds(&seeds, &cloud, input.intrinsics, config, target_patches, deadline, self.frames);
         let t_fit = Instant::now();
         // Into the map, in seed order.
@@ -333,6 +335,7 @@ impl Mapper {
             seeds_ms: ms(t_sal, t_seeds),
             neighbourhood_cpu_ms,
             fit_validate_cpu_ms,
+            validate_cpu_ms,
             fit_stage_ms: ms(t_seeds, t_fit),
             total_ms: ms(start, Instant::now()),
         };
@@ -397,19 +400,19 @@ fn fit_seeds(
     target_patches: usize,
     deadline: Option<Instant>,
     frame: u64,
-) -> (Vec<SeedOutcome>, StopReason, f64, f64) {
+) -> (Vec<SeedOutcome>, StopReason, [f64; 3]) {
     let next = AtomicUsize::new(0);
     let valid = AtomicUsize::new(0);
     let timed_out = AtomicBool::new(false);
     let covered = AtomicBool::new(false);
-    let times = Mutex::new((0.0f64, 0.0f64));
+    let times = Mutex::new([0.0f64; 3]);
     let workers = rayon::current_num_threads().clamp(1, seeds.len().max(1));
     let mut done: Vec<(usize, SeedOutcome)> = (0..workers)
         .into_par_iter()
         .flat_map_iter(|_| {
             let mut local = Vec::new();
             let mut scratch = Vec::new();
-            let (mut t_nbh, mut t_fit) = (0.0, 0.0);
+            let mut cpu = [0.0f64; 3];
             loop {
                 let index = next.fetch_add(1, Ordering::Relaxed);
                 let Some(seed) = seeds.get(index) else { break };
@@ -421,15 +424,16 @@ fn fit_seeds(
                     covered.store(true, Ordering::Relaxed);
                     break;
                 }
-                let outcome = process_seed(seed, cloud, intrinsics, config, frame, index, &mut scratch, &mut t_nbh, &mut t_fit);
+                let outcome = process_seed(seed, cloud, intrinsics, config, frame, index, &mut scratch, &mut cpu);
                 if matches!(outcome.verdict, Verdict::Valid { .. }) {
                     valid.fetch_add(1, Ordering::Relaxed);
                 }
                 local.push((index, outcome));
             }
             if let Ok(mut total) = times.lock() {
-                total.0 += t_nbh;
-                total.1 += t_fit;
+                for (t, c) in total.iter_mut().zip(cpu) {
+                    *t += c;
+                }
             }
             local
         })
@@ -460,8 +464,8 @@ fn fit_seeds(
     } else {
         StopReason::SeedsExhausted
     };
-    let (t_nbh, t_fit) = times.lock().map(|t| *t).unwrap_or((0.0, 0.0));
-    (outcomes, stop, t_nbh, t_fit)
+    let cpu = times.lock().map(|t| *t).unwrap_or([0.0; 3]);
+    (outcomes, stop, cpu)
 }
 
 /// Steps 11–16 for one seed.
@@ -474,8 +478,7 @@ fn process_seed(
     frame: u64,
     index: usize,
     scratch: &mut Vec<u32>,
-    t_nbh: &mut f64,
-    t_fit: &mut f64,
+    cpu_ms: &mut [f64; 3],
 ) -> SeedOutcome {
     let t0 = Instant::now();
     // Step 11.
@@ -486,7 +489,7 @@ fn process_seed(
     let fit_points = gather(cloud, &uniform_subset(&mut rng, scratch, config.neighbourhood.fit_points));
     let validation_points = gather(cloud, &uniform_subset(&mut rng, scratch, config.neighbourhood.validation_points));
     let t1 = Instant::now();
-    *t_nbh += (t1 - t0).as_secs_f64() * 1e3;
+    cpu_ms[0] += (t1 - t0).as_secs_f64() * 1e3;
     let mut outcome = SeedOutcome { seed: *seed, neighbourhood_size, patch_in_camera: None, validation: None, verdict: Verdict::TooFewPoints };
     if neighbourhood_size < config.neighbourhood.min_points.max(1) {
         return outcome;
@@ -504,6 +507,7 @@ fn process_seed(
                 rescale_boundary(&mut patch, plane_boundary_factor(config.containment));
             }
             // Steps 14–16, reported in J's order.
+            let t2 = Instant::now();
             let validation = validate_patch(&patch, &validation_points, &config.validate);
             outcome.verdict = if !validation.residual.passed {
                 Verdict::Residual
@@ -516,10 +520,11 @@ fn process_seed(
             };
             outcome.patch_in_camera = Some(patch);
             outcome.validation = Some(validation);
+            cpu_ms[2] += t2.elapsed().as_secs_f64() * 1e3;
         }
         Err(message) => outcome.verdict = Verdict::FitFailed(message),
     }
-    *t_fit += t1.elapsed().as_secs_f64() * 1e3;
+    cpu_ms[1] += t1.elapsed().as_secs_f64() * 1e3;
     outcome
 }
 

@@ -3,10 +3,12 @@
 //! looking down along volume +y, `bo` above the real camera, `br × br` pixels) whose organized depth
 //! image feeds the patch mapper unchanged.
 //!
-//! Marching: rays are clipped to the cube; unallocated blocks are skipped whole (empty-space leaping);
-//! inside blocks the step shrinks with the nearest-voxel TSDF (step = max(voxel, 0.8·tsdf·μ)); at a
-//! + → − sign change the crossing is found by linear interpolation of trilinear TSDF values (two
-//! secant steps) and the normal is the normalized trilinear gradient.
+//! Marching: rays are clipped to the bounds of the allocated blocks; empty superblocks (4³ blocks) and
+//! unallocated blocks are skipped whole (empty-space leaping); inside blocks the step shrinks with the
+//! nearest-voxel TSDF (step = max(voxel, 0.8·|tsdf|·μ)); at a sign change from positive to negative
+//! the crossing is found by secant steps on trilinear TSDF values and the normal is the normalized
+//! trilinear gradient. The model raycast for ICP is guided by the frame just integrated (rays start
+//! 2μ before its depth), so only the band around the surface is marched.
 
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -128,7 +130,8 @@ pub fn raycast_guided(
     let rotation = pose.rotation.to_rotation_matrix();
     let origin = pose.translation.vector;
     let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
-    let rows: Vec<(Vec<Point3<f32>>, Vec<Vector3<f32>>, Vec<f32>)> = (0..height)
+    type Row = (Vec<Point3<f32>>, Vec<Vector3<f32>>, Vec<f32>);
+    let rows: Vec<Row> = (0..height)
         .into_par_iter()
         .map(|v| {
             let mut points = Vec::with_capacity(width);

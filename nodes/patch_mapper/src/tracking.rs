@@ -44,7 +44,7 @@ pub struct IcpConfig {
     pub convergence: f64,
     /// Neighbouring depths farther apart than this are not averaged when downsampling (m).
     pub pyramid_depth_jump_m: f32,
-    /// Loss: fewer inliers than this fraction of the valid source points.
+    /// Loss: fewer inliers than this fraction of the source points that met a model surface.
     pub min_inlier_ratio: f64,
     /// Loss: inlier point-to-plane RMS residual above this (m).
     pub max_rms_m: f64,
@@ -116,7 +116,7 @@ pub struct Frame<'a> {
 /// Why tracking was declared lost.
 #[derive(Debug, Clone, PartialEq)]
 pub enum LossReason {
-    TooFewInliers { inliers: usize, valid: usize },
+    TooFewInliers { inliers: usize, associated: usize },
     LargeResidual { rms_m: f64 },
     PoseJump { translation_m: f64, rotation_deg: f64 },
     Degenerate,
@@ -141,6 +141,8 @@ pub struct IcpSummary {
     pub iterations: usize,
     pub inliers: usize,
     pub valid_source_points: usize,
+    /// Source points that projected onto a model surface pixel (the inlier ratio's denominator).
+    pub associated: usize,
     pub rms_m: f64,
 }
 
@@ -249,12 +251,16 @@ impl Tracker {
         let mut timings = StageTimings::default();
         self.frames += 1;
         let started = Instant::now();
+        let jump = self.config.icp.pyramid_depth_jump_m;
+        let half = downsample(depth, jump);
+        let quarter = downsample(&half, jump);
+        let images = [&quarter, &half, depth];
         let (status, icp) = match self.model.take() {
             None => {
                 self.initialize(&frame);
                 (TrackingStatus::Initialized, None)
             }
-            Some(model) => self.track(&frame, &model),
+            Some(model) => self.track(&frame, &images, &model),
         };
         timings.icp_ms = elapsed_ms(started);
         if let TrackingStatus::Lost(_) = status {
@@ -280,9 +286,9 @@ impl Tracker {
         let started = Instant::now();
         let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
         // The frame just integrated at this pose tells where each model ray meets the surface.
-        let hint = depth_hint(depth, &model_intrinsics, self.config.icp.pyramid_depth_jump_m);
+        let hint = images.into_iter().find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height);
         self.model =
-            Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint.as_ref()));
+            Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
         timings.raycast_ms = elapsed_ms(started);
 
         Ok(FrameReport {
@@ -308,7 +314,7 @@ impl Tracker {
         };
     }
 
-    fn track(&mut self, frame: &Frame<'_>, model: &ModelRaycast) -> (TrackingStatus, Option<IcpSummary>) {
+    fn track(&mut self, frame: &Frame<'_>, images: &[&DepthImage; 3], model: &ModelRaycast) -> (TrackingStatus, Option<IcpSummary>) {
         let previous = self.volume_from_camera;
         let prior = frame.external_map_from_camera.map(|m| self.map_from_volume.inverse() * m);
         if let (Some(pose), false) = (prior, self.config.refine_external_pose) {
@@ -316,7 +322,7 @@ impl Tracker {
             return (TrackingStatus::External, None);
         }
         let initial = prior.unwrap_or(previous);
-        let pyramid = build_pyramid(frame.depth, &self.intrinsics, self.config.icp.pyramid_depth_jump_m);
+        let pyramid = source_pyramid(images, &self.intrinsics, &self.config.icp.iterations);
         let result = icp(&self.config.icp, &pyramid, model, &initial);
         match check_loss(&self.config.icp, &result, &previous) {
             Some(reason) => (TrackingStatus::Lost(reason), Some(result.summary)),
@@ -332,15 +338,6 @@ fn elapsed_ms(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
 
-/// The depth frame downsampled by 2×2 steps to the model raycast's size, if the sizes chain.
-fn depth_hint(depth: &DepthImage, model: &Intrinsics, depth_jump_m: f32) -> Option<DepthImage> {
-    let mut hint = depth.clone();
-    while hint.width > model.width && hint.width >= 2 {
-        hint = downsample(&hint, depth_jump_m);
-    }
-    (hint.width == model.width && hint.height == model.height).then_some(hint)
-}
-
 /// One pyramid level of the new frame: intrinsics and its valid points in the camera frame.
 pub struct SourceLevel {
     pub intrinsics: Intrinsics,
@@ -351,11 +348,25 @@ pub struct SourceLevel {
 pub fn build_pyramid(depth: &DepthImage, intrinsics: &Intrinsics, depth_jump_m: f32) -> Vec<SourceLevel> {
     let half = downsample(depth, depth_jump_m);
     let quarter = downsample(&half, depth_jump_m);
-    vec![
-        source_level(&quarter, &intrinsics.scaled(0.25)),
-        source_level(&half, &intrinsics.scaled(0.5)),
-        source_level(depth, intrinsics),
-    ]
+    source_pyramid(&[&quarter, &half, depth], intrinsics, &[1, 1, 1])
+}
+
+/// Source levels from depth images at 1/4, 1/2, 1 of the input resolution; levels without ICP
+/// iterations stay empty (not back-projected).
+fn source_pyramid(images: &[&DepthImage; 3], intrinsics: &Intrinsics, iterations: &[usize; 3]) -> Vec<SourceLevel> {
+    images
+        .iter()
+        .zip(iterations)
+        .zip([0.25, 0.5, 1.0])
+        .map(|((image, &n), scale)| {
+            let level_intrinsics = intrinsics.scaled(scale);
+            if n == 0 {
+                SourceLevel { intrinsics: level_intrinsics, points_in_camera: Vec::new() }
+            } else {
+                source_level(image, &level_intrinsics)
+            }
+        })
+        .collect()
 }
 
 /// 2×2 block average of depths that agree within `depth_jump_m` (NaN otherwise).
@@ -413,12 +424,14 @@ struct Normal {
     jtj: [f64; 21],
     jtr: [f64; 6],
     inliers: usize,
+    /// Source points that landed on a model pixel with a surface (before the distance gate).
+    associated: usize,
     squared_residuals: f64,
 }
 
 impl Normal {
     fn zero() -> Self {
-        Self { jtj: [0.0; 21], jtr: [0.0; 6], inliers: 0, squared_residuals: 0.0 }
+        Self { jtj: [0.0; 21], jtr: [0.0; 6], inliers: 0, associated: 0, squared_residuals: 0.0 }
     }
     fn add(mut self, other: Self) -> Self {
         for (a, b) in self.jtj.iter_mut().zip(other.jtj.iter()) {
@@ -428,6 +441,7 @@ impl Normal {
             *a += b;
         }
         self.inliers += other.inliers;
+        self.associated += other.associated;
         self.squared_residuals += other.squared_residuals;
         self
     }
@@ -460,6 +474,7 @@ pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, in
                 iterations: summary.iterations + 1,
                 inliers: normal.inliers,
                 valid_source_points: source.points_in_camera.len(),
+                associated: normal.associated,
                 rms_m: (normal.squared_residuals / normal.inliers.max(1) as f64).sqrt(),
             };
             if normal.inliers < 6 {
@@ -522,6 +537,7 @@ fn accumulate(
                 if !q.x.is_finite() {
                     continue;
                 }
+                acc.associated += 1;
                 let difference = p - q;
                 if difference.norm_squared() > gate * gate {
                     continue;
@@ -551,8 +567,8 @@ fn accumulate(
 /// Tracking-loss checks (J 5.2: loss → reset): inlier ratio, residual, degeneracy, pose jump.
 fn check_loss(config: &IcpConfig, result: &IcpResult, previous: &Isometry3<f64>) -> Option<LossReason> {
     let s = result.summary;
-    if s.inliers < config.min_inliers || (s.inliers as f64) < config.min_inlier_ratio * s.valid_source_points as f64 {
-        return Some(LossReason::TooFewInliers { inliers: s.inliers, valid: s.valid_source_points });
+    if s.inliers < config.min_inliers || (s.inliers as f64) < config.min_inlier_ratio * s.associated as f64 {
+        return Some(LossReason::TooFewInliers { inliers: s.inliers, associated: s.associated });
     }
     if s.rms_m > config.max_rms_m {
         return Some(LossReason::LargeResidual { rms_m: s.rms_m });

@@ -94,6 +94,11 @@ pub fn scene_json(sim: &Simulator) -> serde_json::Value {
         .iter()
         .map(|rock| {
             let foothold = rock.foothold();
+            // The foothold relative to the robot standing at this rock's station (J 6.3 stores
+            // patches relative to the robot): base_link at the lookdown height above the station.
+            let world_from_base = rock.world_from_station * nalgebra::Isometry3::translation(0.0, 0.0, sim.config.motion.base_height_m);
+            let top_in_base = world_from_base.inverse_transform_point(&foothold.top_in_world.into()).coords;
+            let normal_in_base = world_from_base.inverse_transform_vector(&foothold.normal_in_world);
             json!({
                 "name": rock.name,
                 "trained": rock.trained,
@@ -107,6 +112,8 @@ pub fn scene_json(sim: &Simulator) -> serde_json::Value {
                     "direction_x_in_world": vector(&foothold.direction_x_in_world),
                     "curvatures_per_m": foothold.curvatures_per_m,
                     "top_radius_m": foothold.top_radius_m,
+                    "top_in_base": vector(&top_in_base),
+                    "normal_in_base": vector(&normal_in_base),
                 },
             })
         })
@@ -168,6 +175,12 @@ mod tests {
         let scene: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("scene.json")).unwrap()).unwrap();
         assert_eq!(scene["rocks"].as_array().map(Vec::len), Some(sim.scene.rocks.len()));
         assert_eq!(scene["rocks"][0]["foothold"]["surface_type"], "elliptic_paraboloid");
+        // Rock 1's top: standoff ahead of base_link, its height minus the base height.
+        let top_in_base = &scene["rocks"][0]["foothold"]["top_in_base"];
+        let expected = [sim.config.scene.standoff_m, 0.0, 0.05 - sim.config.motion.base_height_m];
+        for (axis, value) in expected.iter().enumerate() {
+            assert!((top_in_base[axis].as_f64().unwrap() - value).abs() < 1e-9, "{top_in_base}");
+        }
         assert!(matches!(record(&sim, dir.path(), 0, |_| {}), Err(RecordError::NoFrames)));
     }
 }

@@ -191,17 +191,22 @@ pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &Valid
         for ci in 0..nx {
             let x0 = (i0 + ci as i64) as f64 * wc;
             let y0 = (j0 + cj as i64) as f64 * wc;
-            // A_i / w_c² by sub-sampling the cell.
-            let mut hits = 0;
-            for a in 0..s {
-                for b in 0..s {
-                    let u = Vector2::new(x0 + (a as f64 + 0.5) * wc / s as f64, y0 + (b as f64 + 0.5) * wc / s as f64);
-                    if patch.contains_uv(&u) {
-                        hits += 1;
+            // A_i / w_c²: 1 if all corners are inside (convex boundary), else by sub-sampling.
+            let corners_inside = [(0.0, 0.0), (wc, 0.0), (0.0, wc), (wc, wc)].iter().all(|(dx, dy)| patch.contains_uv(&Vector2::new(x0 + dx, y0 + dy)));
+            let frac = if corners_inside {
+                1.0
+            } else {
+                let mut hits = 0;
+                for a in 0..s {
+                    for b in 0..s {
+                        let u = Vector2::new(x0 + (a as f64 + 0.5) * wc / s as f64, y0 + (b as f64 + 0.5) * wc / s as f64);
+                        if patch.contains_uv(&u) {
+                            hits += 1;
+                        }
                     }
                 }
-            }
-            let frac = hits as f64 / (s * s) as f64;
+                hits as f64 / (s * s) as f64
+            };
             let idx = cj * nx + ci;
             let ic = inside.get(idx).copied().unwrap_or(0) as f64;
             let oc = outside.get(idx).copied().unwrap_or(0) as f64;

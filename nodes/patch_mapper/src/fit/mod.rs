@@ -74,8 +74,8 @@ pub struct FitConfig {
     pub max_iterations: usize,
     /// Initial Marquardt damping λ (Numerical Recipes: 1e-3).
     pub initial_damping: f64,
-    /// Convergence: stop when the undamped Gauss–Newton step would lower χ² by less than this
-    /// (χ² units; 1e-6 is statistically negligible).
+    /// Convergence: stop when the undamped Gauss–Newton step would lower χ² by less than this, or an
+    /// accepted step did (χ² units; χ² itself fluctuates by √(2N) ≫ 0.01 between data sets).
     pub chi2_tolerance: f64,
     /// Minimum variance of the implicit function per point (IROS footnote 10: clamp for semi-definite Σ_i).
     pub min_variance: f64,
@@ -84,6 +84,10 @@ pub struct FitConfig {
     pub significance: f64,
     /// Scale the output covariance by max(1, χ²/(N − p)) (model noise beyond the sensor model).
     pub inflate_by_residual: bool,
+    /// Differentiate the per-point weights σ_i(p) as in IROS eq 36 (true) or re-weight them at every
+    /// iterate without differentiating (false, default; eq 36's extra term biases the fit, see
+    /// `wlm`).
+    pub weight_derivative: bool,
 }
 
 impl Default for FitConfig {
@@ -91,10 +95,11 @@ impl Default for FitConfig {
         Self {
             max_iterations: 50,
             initial_damping: 1e-3,
-            chi2_tolerance: 1e-6,
+            chi2_tolerance: 1e-2,
             min_variance: 1e-14,
             significance: 0.01,
             inflate_by_residual: true,
+            weight_derivative: false,
         }
     }
 }
@@ -211,6 +216,7 @@ pub fn fit_patch(
         initial_damping: config.initial_damping,
         chi2_tolerance: config.chi2_tolerance,
         min_variance: if weighted { config.min_variance } else { 1e-12 },
+        weight_derivative: config.weight_derivative,
     };
     // Step 1: LLS plane, normal towards the viewpoint, centre at the centroid.
     let (centroid, normal) = lls_plane(points, &request.viewpoint)?;
@@ -229,7 +235,7 @@ pub fn chi_square(patch: &Patch, points: &[Vector3<f64>], point_covariances: Opt
         None => Covariances::Constant(Matrix3::identity()),
     };
     let state = SurfaceState { k3: patch.k3(), rot: patch.rotation_matrix(), c: patch.center };
-    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance).chi2
+    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance, false).chi2
 }
 
 /// Reject inputs that would make the fit meaningless (typed errors, never panics).
@@ -376,19 +382,21 @@ fn fit_surface(
         Target::Fixed(SurfaceType::Plane, b) => Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, points, covs, settings)?.state)),
         Target::Fixed(SurfaceType::Sphere, b) => Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, points, covs, settings)?.state)),
         _ => {
-            // Step 2: general paraboloid from the plane.
-            let par = wlm::run(Model::Paraboloid, start, points, covs, settings)?;
+            // Step 2: general paraboloid, started from the LLS quadric graph over the plane.
+            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), points, covs, settings)?;
             let (state, swapped) = order_axes(par.state);
             let surface = match target {
                 Target::Auto(_) => {
-                    let normal = wlm::accumulate(Model::Paraboloid, &state, points, covs, settings.min_variance);
+                    let normal = &par.normal;
                     let scale = residual_scale(normal.chi2, points.len(), Model::Paraboloid.num_free(), weighted, config);
-                    let _ = swapped;
-                    let ck = normal
+                    let mut ck = normal
                         .h
                         .cholesky()
                         .map(|c| c.inverse().fixed_view::<2, 2>(0, 0).into_owned() * scale)
                         .unwrap_or_else(|| Matrix2::identity() * f64::INFINITY);
+                    if swapped {
+                        ck = Matrix2::new(ck[(1, 1)], ck[(1, 0)], ck[(0, 1)], ck[(0, 0)]);
+                    }
                     match classify(&state.k3.xy(), &ck, config.significance) {
                         Curvature::Plane => SurfaceType::Plane,
                         Curvature::Circular => SurfaceType::CircularParaboloid,
@@ -434,6 +442,52 @@ fn fit_surface(
             };
             Ok((surface, boundary, state))
         }
+    }
+}
+
+/// Initial paraboloid for step 2 by linear least squares (cf. IROS [5]): in the step-1 plane frame fit
+/// the graph `z = ½ uᵀ A u + gᵀ u + h`; the principal axes of `A` give the local x/y axes and
+/// curvatures, and the stationary point `−A⁻¹ g` the apex (kept at the centroid along directions
+/// whose curvature does not determine it within the data extent). Falls back to the plane.
+fn quadric_start(plane: &SurfaceState, points: &[Vector3<f64>]) -> SurfaceState {
+    let rt = plane.rot.transpose();
+    let mut ata = SMatrix::<f64, 6, 6>::zeros();
+    let mut atb = SMatrix::<f64, 6, 1>::zeros();
+    let mut extent = 0.0f64;
+    for q in points {
+        let l = rt * (q - plane.c);
+        let row = SMatrix::<f64, 6, 1>::from_column_slice(&[0.5 * l.x * l.x, l.x * l.y, 0.5 * l.y * l.y, l.x, l.y, 1.0]);
+        ata.ger(1.0, &row, &row, 1.0);
+        atb.axpy(l.z, &row, 1.0);
+        extent = extent.max(l.x * l.x + l.y * l.y);
+    }
+    let Some(sol) = ata.cholesky().map(|c| c.solve(&atb)) else { return *plane };
+    let a = Matrix2::new(sol[0], sol[1], sol[1], sol[2]);
+    let g = Vector2::new(sol[3], sol[4]);
+    let eig = a.symmetric_eigen();
+    let radius = extent.sqrt();
+    let mut apex = Vector2::zeros();
+    for i in 0..2 {
+        let v = eig.eigenvectors.column(i).into_owned();
+        let lam = eig.eigenvalues[i];
+        if lam.abs() > 1e-9 {
+            let t = -g.dot(&v) / lam;
+            if t.abs() < radius {
+                apex += v * t;
+            }
+        }
+    }
+    let (Some(v0), Some(&k0), Some(&k1)) = (Some(eig.eigenvectors.column(0).into_owned()), eig.eigenvalues.get(0), eig.eigenvalues.get(1)) else {
+        return *plane;
+    };
+    let z = 0.5 * (apex.transpose() * a * apex)[(0, 0)] + g.dot(&apex) + sol[5];
+    let angle = v0.y.atan2(v0.x);
+    let rot = plane.rot * exp_map(&Vector3::new(0.0, 0.0, angle));
+    let state = SurfaceState { k3: Vector3::new(k0, k1, 0.0), rot, c: plane.c + plane.rot * Vector3::new(apex.x, apex.y, z) };
+    if state.k3.iter().chain(state.c.iter()).all(|v| v.is_finite()) {
+        state
+    } else {
+        *plane
     }
 }
 
@@ -537,7 +591,7 @@ fn finish(
     // Surface part of Σ: WLM information at the final frame (measurement noise).
     let model = model_for(surface);
     let mfree = model.num_free();
-    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance);
+    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
     let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();

@@ -2,7 +2,12 @@
 //!
 //! The objective is `χ² = Σ F_i²` with `F_i = f(q_i, p) / σ_i` (eq 35), `f` the world-frame implicit
 //! form `f_w(q) = q_lᵀ K q_l − 2 q_l·ẑ`, `q_l = Rᵀ(q − c)` (eq 37–38) and `σ_i² = ∇_q f Σ_i ∇_q fᵀ`
-//! (eq 34). Its gradient is eq 36 with the derivatives of eq 39–41.
+//! (eq 34). Its gradient is eq 36 with the derivatives of eq 39–41. By default the weights `σ_i` are
+//! re-evaluated at every iterate but not differentiated (iteratively re-weighted Gauss–Newton): the
+//! `∂σ/∂p` term of eq 36 makes the objective reward parameters that inflate `σ_i` (moving the apex
+//! away from the data makes `‖∇f‖` grow), which we measured as 18° median normal error at the
+//! apex and 67% type classification, against 3.5° and 92% without it (`bench_fit`). The full eq 36
+//! stays available (`FitConfig::weight_derivative`).
 //!
 //! The pose is updated on the manifold: `R ← R exp([δ]×)`, `c ← c + R δc`, so the derivatives are
 //! those of eq 39–41 evaluated at `r = 0` of the increment (`∂q_l/∂δ = [q_l]×`, `∂q_l/∂δc = −I`);
@@ -89,11 +94,16 @@ pub(crate) struct SurfaceState {
 }
 
 impl SurfaceState {
-    /// Apply a local increment (on-manifold update).
+    /// Apply a local increment (on-manifold update). The in-plane part of `δc` moves the centre
+    /// along the surface (second-order lift `½(κx δcx² + κy δcy²)` along the normal): sliding the
+    /// apex of a curved patch is then a straight line in the increments, so Gauss–Newton steps stay
+    /// in the (otherwise banana-shaped) valley of the weakly determined apex. The first-order
+    /// Jacobian is unchanged.
     pub(crate) fn apply(&self, local: &Local) -> Self {
         let k3 = self.k3 + Vector3::new(local[0], local[1], local[2]);
         let delta = Vector3::new(local[3], local[4], local[5]);
-        let dc = Vector3::new(local[6], local[7], local[8]);
+        let lift = 0.5 * (self.k3.x * local[6] * local[6] + self.k3.y * local[7] * local[7]);
+        let dc = Vector3::new(local[6], local[7], local[8] + lift);
         let rot = self.rot * crate::geometry::exp_map(&delta);
         Self { k3, rot, c: self.c + self.rot * dc }
     }
@@ -108,6 +118,7 @@ pub(crate) fn point_terms(
     cov_w: &Matrix3<f64>,
     min_variance: f64,
     with_gradient: bool,
+    weight_derivative: bool,
 ) -> (f64, Local, f64) {
     let k = &state.k3;
     let q = state.rot.transpose() * (q_w - state.c);
@@ -130,7 +141,7 @@ pub(crate) fn point_terms(
     // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
     let df_dd = g_l.cross(&q);
     let df = Local::from_column_slice(&[q.x * q.x, q.y * q.y, q.z * q.z, df_dd.x, df_dd.y, df_dd.z, -g_l.x, -g_l.y, -g_l.z]);
-    if clamped {
+    if clamped || !weight_derivative {
         return (big_f, df / sigma, sampson);
     }
     // ∂σ²/∂p = 2 s_lᵀ Rᵀ ∂g_w/∂p (eq 41): κ_j → 4 s_j q_j, δ → 4(a × s + (K s) × q), δc → −4 K s
@@ -149,7 +160,7 @@ pub(crate) fn point_terms(
         -4.0 * ks.z,
     ]);
     // eq 36: ∂F/∂p = ∂f/∂p / σ − f ∂σ²/∂p / (2σ³)
-    let grad = df / sigma - dv * (f / (2.0 * sigma * var));
+    let grad = if weight_derivative { df / sigma - dv * (f / (2.0 * sigma * var)) } else { df / sigma };
     (big_f, grad, sampson)
 }
 
@@ -168,42 +179,25 @@ pub(crate) fn accumulate(
     points: &[Vector3<f64>],
     covs: &Covariances<'_>,
     min_variance: f64,
+    weight_derivative: bool,
 ) -> Normal {
-    let slots = model.free_slots();
-    let m = slots.len();
-    let mut h = FreeMatrix::zeros();
-    let mut b = Free::zeros();
+    let m = model.num_free();
+    // Accumulate over all 9 local slots (fixed-size, vectorisable), project to the free set once.
+    let mut h9 = SMatrix::<f64, 9, 9>::zeros();
+    let mut b9 = Local::zeros();
     let mut chi2 = 0.0;
     let mut sampson_sq = 0.0;
     for (i, q) in points.iter().enumerate() {
         let cov = covs.get(i);
-        let (f, grad, d) = point_terms(state, q, &cov, min_variance, true);
-        let mut g = Free::zeros();
-        for (j, mask) in slots.iter().enumerate() {
-            let mut acc = 0.0;
-            for slot in 0..9 {
-                if mask & (1 << slot) != 0 {
-                    acc += grad[slot];
-                }
-            }
-            g[j] = acc;
-        }
-        // Symmetric rank-1 update of the upper triangle.
-        for r in 0..m {
-            let gr = g[r];
-            for c in r..m {
-                h[(r, c)] += gr * g[c];
-            }
-        }
-        b += g * f;
+        let (f, grad, d) = point_terms(state, q, &cov, min_variance, true, weight_derivative);
+        h9.ger(1.0, &grad, &grad, 1.0);
+        b9.axpy(f, &grad, 1.0);
         chi2 += f * f;
         sampson_sq += d * d;
     }
-    for r in 0..MAX_FREE {
-        for c in 0..r {
-            h[(r, c)] = h[(c, r)];
-        }
-    }
+    let e = model.embedding();
+    let mut h = e.transpose() * h9 * e;
+    let b = e.transpose() * b9;
     for r in m..MAX_FREE {
         h[(r, r)] = 1.0;
     }
@@ -229,6 +223,8 @@ impl Covariances<'_> {
 /// Result of a WLM run.
 pub(crate) struct WlmResult {
     pub state: SurfaceState,
+    /// Normal equations at `state` (undamped).
+    pub normal: Normal,
 }
 
 /// LM settings used by [`run`].
@@ -238,6 +234,7 @@ pub(crate) struct LmSettings {
     pub initial_damping: f64,
     pub chi2_tolerance: f64,
     pub min_variance: f64,
+    pub weight_derivative: bool,
 }
 
 /// Weighted Levenberg–Marquardt (IROS IV-A) from `start`.
@@ -251,13 +248,14 @@ pub(crate) fn run(
     let m = model.num_free();
     let embed = model.embedding();
     let mut state = start;
-    let mut normal = accumulate(model, &state, points, covs, settings.min_variance);
+    let mut normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative);
     if !normal.chi2.is_finite() {
         return Err(FitError::Diverged("non-finite residual at the start"));
     }
     let mut lambda = settings.initial_damping;
     for _ in 0..settings.max_iterations {
-        // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance.
+        // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance
+        // (or, below, when an accepted step lowered it by less).
         let predicted = normal.h.cholesky().map(|c| normal.b.dot(&c.solve(&normal.b))).unwrap_or(f64::INFINITY);
         if predicted < settings.chi2_tolerance {
             break;
@@ -281,11 +279,17 @@ pub(crate) fn run(
             return Err(FitError::Diverged("non-finite step"));
         }
         let trial = state.apply(&(embed * step));
-        let trial_normal = accumulate(model, &trial, points, covs, settings.min_variance);
+        let trial_normal = accumulate(model, &trial, points, covs, settings.min_variance, settings.weight_derivative);
         if trial_normal.chi2.is_finite() && trial_normal.chi2 <= normal.chi2 {
+            let decrease = normal.chi2 - trial_normal.chi2;
             state = trial;
             normal = trial_normal;
             lambda = (lambda * 0.1).max(1e-9);
+            // A full step that gains nothing measurable: converged (or crawling along a
+            // degenerate valley, e.g. the apex of nearly flat data, where the covariance is large).
+            if decrease < settings.chi2_tolerance {
+                break;
+            }
         } else {
             lambda *= 10.0;
             if lambda > 1e12 {
@@ -296,7 +300,7 @@ pub(crate) fn run(
     if !normal.chi2.is_finite() || !state.k3.iter().chain(state.c.iter()).all(|v| v.is_finite()) {
         return Err(FitError::Diverged("non-finite parameters"));
     }
-    Ok(WlmResult { state })
+    Ok(WlmResult { state, normal })
 }
 
 #[cfg(test)]
@@ -312,12 +316,12 @@ mod tests {
         };
         let q = Vector3::new(0.15, -0.17, 1.02);
         let cov = Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0) * 1e-6;
-        let (_, grad, _) = point_terms(&state, &q, &cov, 1e-20, true);
+        let (_, grad, _) = point_terms(&state, &q, &cov, 1e-20, true, true);
         for slot in 0..9 {
             let mut e = Local::zeros();
             e[slot] = 1e-7;
-            let (fp, _, _) = point_terms(&state.apply(&e), &q, &cov, 1e-20, false);
-            let (fm, _, _) = point_terms(&state.apply(&(-e)), &q, &cov, 1e-20, false);
+            let (fp, _, _) = point_terms(&state.apply(&e), &q, &cov, 1e-20, false, true);
+            let (fm, _, _) = point_terms(&state.apply(&(-e)), &q, &cov, 1e-20, false, true);
             let fd = (fp - fm) / 2e-7;
             assert!((fd - grad[slot]).abs() < 1e-4 * (1.0 + fd.abs()), "slot {slot}: fd {fd} analytic {}", grad[slot]);
         }

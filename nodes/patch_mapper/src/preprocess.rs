@@ -125,6 +125,7 @@ pub fn bilateral_filter(depth: &DepthImage, radius: usize, sigma_px: f64, sigma_
             *d = if z.is_finite() { z } else { 0.0 };
         }
     }
+    let valid: Vec<f32> = padded.iter().map(|&z| if z > 0.0 { 1.0 } else { 0.0 }).collect();
     let spatial: Vec<f32> = (0..=2 * radius)
         .flat_map(|dv| (0..=2 * radius).map(move |du| (dv, du)))
         .map(|(dv, du)| {
@@ -148,20 +149,22 @@ pub fn bilateral_filter(depth: &DepthImage, radius: usize, sigma_px: f64, sigma_
             for dv in 0..=2 * radius {
                 let Some(src_v) = (v + dv).checked_sub(radius).filter(|&r| r < height) else { continue };
                 let src_row = &padded[src_v * padded_width..(src_v + 1) * padded_width];
+                let mask_row = &valid[src_v * padded_width..(src_v + 1) * padded_width];
                 for du in 0..=2 * radius {
                     let ws = spatial[dv * (2 * radius + 1) + du];
                     let (Some(taps), Some(centre), Some(inv)) = (src_row.get(du..du + width), centre.get(..width), inv.get(..width)) else {
                         continue;
                     };
                     let (sum_w, sum_wz) = (&mut sum_w[..width], &mut sum_wz[..width]);
-                    // Equal-length slices, no division, a select for invalid taps (0): the loop
-                    // vectorises.
+                    // Equal-length slices, no division, no branch (`max` is a min/max
+                    // instruction, an invalid tap has mask 0): the loop vectorises.
+                    let Some(mask) = mask_row.get(du..du + width) else { continue };
                     for i in 0..width {
                         let zs = taps[i];
                         let d = zs - centre[i];
                         let t = d * d * inv[i];
                         let a = (1.0 - 0.25 * t).max(0.0);
-                        let w = if zs > 0.0 { ws * a * a } else { 0.0 };
+                        let w = ws * a * a * mask[i];
                         sum_w[i] += w;
                         sum_wz[i] += w * zs;
                     }

@@ -388,7 +388,8 @@ impl TsdfVolume {
         Ok(IntegrationStats { blocks_touched, blocks_allocated: self.blocks.len() - before })
     }
 
-    /// Slot indices of blocks crossed by the truncation band of the frame (deduplicated, sorted).
+    /// Slot indices of blocks crossed by the truncation band of the frame (deduplicated, sorted), from
+    /// a subsample of the pixels.
     fn touched_blocks(&self, depth: &DepthImage, intrinsics: &Intrinsics, volume_from_camera: &Isometry3<f64>) -> Vec<usize> {
         let pose = volume_from_camera.cast::<f32>();
         let mu = self.truncation();
@@ -397,7 +398,9 @@ impl TsdfVolume {
         let samples = ((2.0 * mu) / (0.5 * block)).ceil().max(1.0) as usize + 1;
         let (min_d, max_d) = (self.config.min_depth_m, self.config.max_depth_m);
         let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
-        let stride = 2;
+        // Every 4th pixel: at 3 m a 640-px-wide view puts 4 pixels ≈ 2.3 cm apart, under the 4 cm
+        // block at 5 mm voxels; the ±μ band then covers every block the surface passes through.
+        let stride = if self.block_size() >= 0.04 { 4 } else { 2 };
         let mut slots: Vec<usize> = (0..depth.height)
             .into_par_iter()
             .step_by(stride)

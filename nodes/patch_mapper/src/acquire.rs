@@ -12,6 +12,7 @@
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
 
@@ -88,17 +89,16 @@ pub fn organized_cloud(depth: &DepthImage, intrinsics: &Intrinsics) -> Result<Or
     check_size(depth, intrinsics)?;
     let (inv_fx, inv_fy) = ((1.0 / intrinsics.fx) as f32, (1.0 / intrinsics.fy) as f32);
     let (cx, cy) = (intrinsics.cx as f32, intrinsics.cy as f32);
-    let mut points_in_camera = Vec::with_capacity(depth.width * depth.height);
-    for (v, row) in depth.depth_m.chunks_exact(depth.width).enumerate() {
+    let mut points_in_camera = vec![Vector3::repeat(f32::NAN); depth.width * depth.height];
+    // Rows in parallel.
+    points_in_camera.par_chunks_mut(depth.width).zip(depth.depth_m.par_chunks(depth.width)).enumerate().for_each(|(v, (out, row))| {
         let y_per_z = (v as f32 - cy) * inv_fy;
-        for (u, &z) in row.iter().enumerate() {
-            points_in_camera.push(if z.is_finite() {
-                Vector3::new((u as f32 - cx) * inv_fx * z, y_per_z * z, z)
-            } else {
-                Vector3::repeat(f32::NAN)
-            });
+        for (u, (p, &z)) in out.iter_mut().zip(row).enumerate() {
+            if z.is_finite() {
+                *p = Vector3::new((u as f32 - cx) * inv_fx * z, y_per_z * z, z);
+            }
         }
-    }
+    });
     Ok(OrganizedCloud { width: depth.width, height: depth.height, points_in_camera })
 }
 

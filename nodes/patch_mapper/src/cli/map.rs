@@ -284,3 +284,22 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
         );
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_file_holds_the_defaults_and_rejects_unknown_keys() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/mapper.yaml");
+        assert_eq!(load_config(&path).unwrap(), MapperConfig::default());
+        let dir = tempfile::tempdir().unwrap();
+        let bad = dir.path().join("bad.yaml");
+        std::fs::write(&bad, "mapper:\n  seeds:\n    cells: 4\n").unwrap();
+        let message = format!("{:#}", load_config(&bad).unwrap_err());
+        assert!(message.contains("cells"), "{message}");
+        let bare = dir.path().join("bare.yaml");
+        std::fs::write(&bare, "foot_radius_m: 0.1\n").unwrap();
+        assert_eq!(load_config(&bare).unwrap().foot_radius_m, 0.1);
+    }
+}

@@ -13,6 +13,11 @@ import dynamixel_sdk as dxl
 
 import patchwalk_testing as pw
 
+# The SDK budgets 2 x LATENCY_TIMER (16 ms: an FTDI adapter's USB latency) + 2 ms for an answer. A pty is
+# served through kernel work queues, which on a loaded CI machine (pytest -n nproc, ROS nodes) can lag
+# by tens of ms: give it the SDK's own knob, 100 ms (a silenced servo still times out, just later).
+dxl.port_handler.LATENCY_TIMER = 100
+
 PROTOCOL = 2.0
 BAUD = 1_000_000
 MODEL_MX28_P2 = 30

@@ -55,6 +55,9 @@ pub struct BusConfig {
     pub return_delay_us: u32,
     /// Model number every servo must report on ping (MX-28 with Protocol 2.0 firmware = 30).
     pub expected_model: u16,
+    /// Time allowed for a status packet beyond its transfer time, ms (ROBOTIS SDK and dynamixel2:
+    /// 34 = 2 × 16 ms USB latency timer + 2 ms). Raise it for a pty on a loaded host.
+    pub response_timeout_ms: f64,
 }
 
 /// One servo: which joint it drives and how its ticks map to the joint angle.
@@ -100,6 +103,7 @@ impl Default for BusConfig {
             baud: 1_000_000,
             return_delay_us: 0,
             expected_model: crate::mx28::MODEL_NUMBER,
+            response_timeout_ms: 34.0,
         }
     }
 }
@@ -191,6 +195,9 @@ impl StepExecutorConfig {
         }
         if crate::mx28::baud_register(self.bus.baud).is_none() {
             return Err(ConfigError::Invalid(format!("bus.baud: {} is not an MX-28 baud rate", self.bus.baud)));
+        }
+        if !(self.bus.response_timeout_ms.is_finite() && (1.0..=10_000.0).contains(&self.bus.response_timeout_ms)) {
+            return Err(ConfigError::Invalid("bus.response_timeout_ms: must be within 1..=10000".into()));
         }
         if self.bus.return_delay_us > 508 {
             return Err(ConfigError::Invalid("bus.return_delay_us: at most 508 (register 9 is 2 µs × 0..=254)".into()));

@@ -358,14 +358,16 @@ impl Player {
         }
         if let Err(error) = self.read_present(bus) {
             report.present = self.last_present.clone();
-            let already_faulted = matches!(self.state, PlayerState::Faulted(_));
-            if !already_faulted {
-                let fault = self.fault(error);
-                if matches!(self.state, PlayerState::Playing { .. }) {
-                    report.goal = self.hold(bus);
-                }
+            let fault = self.fault(error);
+            if matches!(self.state, PlayerState::Playing { .. }) {
+                // During a motion: stop, hold the measured pose, latch until cleared.
+                report.goal = self.hold(bus);
                 self.trajectory = None;
                 self.state = PlayerState::Faulted(fault.clone());
+                report.event = Some(PlayerEvent::Fault(fault));
+            } else if !matches!(self.state, PlayerState::Faulted(_)) {
+                // Idle: nothing to stop; report it (a persistent fault also refuses the next start
+                // at its first cycle).
                 report.event = Some(PlayerEvent::Fault(fault));
             }
             return report;
@@ -515,6 +517,16 @@ mod tests {
         assert!(matches!(player.start(&motion(vec![frame(0.0, 12, 0.1, 0.0)])), Err(PlayerError::Faulted(_))));
         player.reset();
         assert_eq!(player.state(), &PlayerState::Idle);
+    }
+
+    #[test]
+    fn idle_read_failure_is_reported_without_latching() {
+        let (mut player, mut bus) = ready(3);
+        bus.state().servos.get_mut(&2).unwrap().silent = true;
+        let report = player.cycle(&mut bus, false);
+        assert!(matches!(report.event, Some(PlayerEvent::Fault(Fault { servo_id: Some(2), .. }))), "{report:?}");
+        assert_eq!(player.state(), &PlayerState::Idle);
+        assert!(bus.state().goal_writes.is_empty());
     }
 
     #[test]

@@ -98,7 +98,12 @@ impl Runtime {
     pub fn new(config: StepExecutorConfig) -> Result<(Self, Vec<String>), RuntimeError> {
         let port = config.bus.port.clone();
         let baud = config.bus.baud;
-        Self::with_bus(config, move || DynamixelBus::open(&port, baud).map(|b| Box::new(b) as Box<dyn ServoBus>).map_err(|e| e.to_string()))
+        let timeout = std::time::Duration::from_secs_f64(config.bus.response_timeout_ms / 1000.0);
+        Self::with_bus(config, move || {
+            DynamixelBus::open(&port, baud)
+                .map(|bus| Box::new(bus.with_response_timeout(timeout)) as Box<dyn ServoBus>)
+                .map_err(|e| e.to_string())
+        })
     }
 
     /// Build with a given bus factory (tests: mock or simulated chain). Returns warnings to log.

@@ -24,9 +24,10 @@ pub struct SimBusArgs {
     /// Baud rate whose wire time is simulated.
     #[arg(long, default_value_t = 1_000_000)]
     pub baud: u32,
-    /// Do not simulate wire time (answer as fast as the pty allows).
+    /// Delay answers by their wire time at --baud (off by default: answers come as fast as the pty
+    /// allows, which keeps integration tests robust on loaded machines; the bench turns it on).
     #[arg(long)]
-    pub no_wire_time: bool,
+    pub wire_time: bool,
     /// Initial Return Delay Time in µs (factory: 500; the node writes its configured value at start-up).
     #[arg(long, default_value_t = 500)]
     pub return_delay_us: u32,
@@ -43,7 +44,7 @@ pub fn run(args: SimBusArgs) -> anyhow::Result<()> {
     let config = SimConfig {
         ids: (1..=args.servos).collect(),
         baud: args.baud,
-        simulate_wire_time: !args.no_wire_time,
+        simulate_wire_time: args.wire_time,
         return_delay_register,
     };
     let chain = Arc::new(SimChain::spawn(config).context("starting the simulated servo chain")?);

@@ -1,6 +1,10 @@
 //! The real Protocol 2.0 master: `dynamixel2` (=0.9.1) on a serial port (the RS-485 adapter, or the
 //! simulated chain's pty). Works around the crate's known defects:
-//! - plain `sync_read` drops per-servo errors → only `sync_read_cb` is used, with per-ID checks;
+//! - plain `sync_read` drops per-servo errors, and its `_cb` variants lose the rest of a burst after
+//!   one missing servo → sync read is built from the crate's `write_instruction` +
+//!   `read_status_response_deadline` with a per-ID check that re-aligns on the next servo's answer;
+//! - the crate's fixed answer budget (transfer time + 34 ms, as the ROBOTIS SDK) is configurable
+//!   (`bus.response_timeout_ms`) for slow hosts; the same lower-level calls serve ping/read/write;
 //! - `bulk_read` with ≥ 2 entries is broken → never used;
 //! - the default 128-byte write buffer cannot hold a 12-servo sync write → 1 KiB read/write buffers;
 //! - malformed/echoed frames can panic inside the crate → every call runs under `catch_unwind`, so a
@@ -8,9 +12,10 @@
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
+use std::time::{Duration, Instant};
 
-use dynamixel2::instructions::SyncWriteData;
-use dynamixel2::{Bus, InvalidMessage, ReadError, TransferError, WriteError};
+use dynamixel2::instructions::{instruction_id, packet_id, SyncWriteData};
+use dynamixel2::{Bus, InvalidMessage, ReadError, WriteError};
 
 use super::{BusError, ServoBus, SyncReadData, SyncReadResult};
 
@@ -21,7 +26,12 @@ pub const BUFFER_SIZE: usize = 1024;
 /// Protocol 2.0 master over `dynamixel2`.
 pub struct DynamixelBus {
     bus: Bus<Vec<u8>, Vec<u8>>,
+    /// Time allowed for an answer beyond its transfer time.
+    response_timeout: Duration,
 }
+
+/// Default answer budget beyond the transfer time (ROBOTIS SDK: 2 × 16 ms latency timer + 2 ms).
+pub const DEFAULT_RESPONSE_TIMEOUT: Duration = Duration::from_millis(34);
 
 impl std::fmt::Debug for DynamixelBus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -56,19 +66,41 @@ fn write_error(error: WriteError) -> BusError {
     }
 }
 
-fn transfer_error(id: u8, error: TransferError) -> BusError {
-    match error {
-        TransferError::WriteError(e) => write_error(e),
-        TransferError::ReadError(e) => read_error(id, e),
-    }
-}
-
 impl DynamixelBus {
     /// Open `port` at `baud` with 1 KiB buffers.
     pub fn open(port: &Path, baud: u32) -> Result<Self, BusError> {
         let bus = Bus::open_with_buffers(port, baud, vec![0u8; BUFFER_SIZE], vec![0u8; BUFFER_SIZE])
             .map_err(|e| BusError::Io(format!("{}: {e}", port.display())))?;
-        Ok(Self { bus })
+        Ok(Self { bus, response_timeout: DEFAULT_RESPONSE_TIMEOUT })
+    }
+
+    /// Change the answer budget beyond the transfer time.
+    pub fn with_response_timeout(mut self, timeout: Duration) -> Self {
+        self.response_timeout = timeout;
+        self
+    }
+
+    /// Deadline for a status packet with `params` parameter bytes.
+    fn deadline(&self, params: usize) -> Instant {
+        let bytes = 11 + params as u64; // header 7 + instruction + error + CRC 2
+        let baud = u64::from(self.bus.baud_rate().max(1));
+        Instant::now() + Duration::from_nanos(bytes * 10 * 1_000_000_000 / baud) + self.response_timeout
+    }
+
+    /// One instruction to one servo and its status packet: (parameters, alert bit).
+    fn transfer(&mut self, id: u8, instruction: u8, params: &[u8], expected: usize) -> Result<(Vec<u8>, bool), BusError> {
+        let budget = self.deadline(expected).saturating_duration_since(Instant::now());
+        self.guarded(|bus| {
+            bus.write_instruction(id, instruction, params.len(), |buffer| buffer.copy_from_slice(params)).map_err(write_error)?;
+            let response = bus.read_status_response_deadline(Instant::now() + budget).map_err(|e| read_error(id, e))?;
+            if response.packet_id() != id {
+                return Err(BusError::Protocol { id, detail: format!("answer from servo {}", response.packet_id()) });
+            }
+            if response.parameters().len() != expected {
+                return Err(BusError::Protocol { id, detail: format!("{} parameter bytes instead of {expected}", response.parameters().len()) });
+            }
+            Ok((response.parameters().to_vec(), response.alert()))
+        })
     }
 
     /// Run one transaction with panics turned into errors.
@@ -83,15 +115,20 @@ impl DynamixelBus {
 
 impl ServoBus for DynamixelBus {
     fn ping(&mut self, id: u8) -> Result<u16, BusError> {
-        self.guarded(|bus| bus.ping(id).map(|r| r.data.model).map_err(|e| transfer_error(id, e)))
+        let (params, _) = self.transfer(id, instruction_id::PING, &[], 3)?;
+        Ok(u16::from_le_bytes([params.first().copied().unwrap_or(0), params.get(1).copied().unwrap_or(0)]))
     }
 
     fn read(&mut self, id: u8, address: u16, count: u16) -> Result<Vec<u8>, BusError> {
-        self.guarded(|bus| bus.read(id, address, count).map(|r| r.data).map_err(|e| transfer_error(id, e)))
+        let [a0, a1] = address.to_le_bytes();
+        let [c0, c1] = count.to_le_bytes();
+        self.transfer(id, instruction_id::READ, &[a0, a1, c0, c1], usize::from(count)).map(|(data, _)| data)
     }
 
     fn write(&mut self, id: u8, address: u16, data: &[u8]) -> Result<(), BusError> {
-        self.guarded(|bus| bus.write(id, address, data).map(|_| ()).map_err(|e| transfer_error(id, e)))
+        let mut params = address.to_le_bytes().to_vec();
+        params.extend_from_slice(data);
+        self.transfer(id, instruction_id::WRITE, &params, 0).map(|_| ())
     }
 
     fn sync_write(&mut self, address: u16, count: u16, data: &[(u8, Vec<u8>)]) -> Result<(), BusError> {
@@ -104,23 +141,41 @@ impl ServoBus for DynamixelBus {
     }
 
     fn sync_read(&mut self, ids: &[u8], address: u16, count: u16) -> Result<Vec<SyncReadResult>, BusError> {
+        let mut params = Vec::with_capacity(4 + ids.len());
+        params.extend_from_slice(&address.to_le_bytes());
+        params.extend_from_slice(&count.to_le_bytes());
+        params.extend_from_slice(ids);
+        let per_answer = self.deadline(usize::from(count)).saturating_duration_since(Instant::now());
         self.guarded(|bus| {
+            bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, params.len(), |buffer| buffer.copy_from_slice(&params))
+                .map_err(write_error)?;
             let mut results: Vec<SyncReadResult> = Vec::with_capacity(ids.len());
-            let mut next = ids.iter();
-            bus.sync_read_cb(ids, address, count, |response| {
-                // sync_read_cb calls back once per requested ID, in order; it has already checked
-                // the packet ID and the parameter count of successful responses.
-                let id = next.next().copied().unwrap_or(0);
-                let result = match response {
-                    Ok(r) if r.motor_id != id => Err(BusError::Protocol { id, detail: format!("response from servo {}", r.motor_id) }),
-                    Ok(r) => Ok(SyncReadData { data: r.data.to_vec(), alert: r.alert }),
-                    // The next servo's answer arrived in this servo's slot: this one is missing.
-                    Err(ReadError::InvalidMessage(InvalidMessage::InvalidPacketId(_))) => Err(BusError::Timeout { id }),
-                    Err(e) => Err(read_error(id, e)),
+            while let Some(&id) = ids.get(results.len()) {
+                let rest = ids.get(results.len()..).unwrap_or(&[]);
+                let answer = bus.read_status_response_deadline(Instant::now() + per_answer);
+                let (from, result) = match answer {
+                    Err(ReadError::Io(e)) if e.kind() == std::io::ErrorKind::TimedOut => {
+                        // Nothing more will come: every remaining servo is missing.
+                        results.extend(rest.iter().map(|&id| (id, Err(BusError::Timeout { id }))));
+                        break;
+                    }
+                    Err(e) => (id, Err(read_error(id, e))),
+                    Ok(response) if response.parameters().len() != usize::from(count) => (
+                        response.packet_id(),
+                        Err(BusError::Protocol { id: response.packet_id(), detail: format!("{} bytes instead of {count}", response.parameters().len()) }),
+                    ),
+                    Ok(response) => (response.packet_id(), Ok(SyncReadData { data: response.parameters().to_vec(), alert: response.alert() })),
                 };
-                results.push((id, result));
-            })
-            .map_err(write_error)?;
+                // Servos answer in the requested order: an answer from a later servo means the ones
+                // in between are missing.
+                match rest.iter().position(|&expected| expected == from) {
+                    Some(skipped) => {
+                        results.extend(rest.iter().take(skipped).map(|&id| (id, Err(BusError::Timeout { id }))));
+                        results.push((from, result));
+                    }
+                    None => results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") })))),
+                }
+            }
             Ok(results)
         })
     }

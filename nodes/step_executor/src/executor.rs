@@ -67,6 +67,16 @@ pub struct Executor {
     thread: Option<JoinHandle<()>>,
 }
 
+/// Best effort: run the calling thread at nice -15 (control loops and the simulated servo chain are
+/// latency-critical). Without the privilege the thread keeps its priority; nothing else changes.
+pub fn raise_thread_priority() {
+    // SAFETY: two syscalls on the calling thread with plain integer arguments; no memory is shared.
+    unsafe {
+        let tid = nix::libc::gettid();
+        let _ = nix::libc::setpriority(nix::libc::PRIO_PROCESS, tid as nix::libc::id_t, -15);
+    }
+}
+
 /// Start-up sequence: ping every servo (model check), torque off, write the Return Delay Time.
 pub fn initialise_bus(bus: &mut dyn ServoBus, player: &Player, config: &BusConfig) -> Result<(), ExecutorError> {
     let delay_register = u8::try_from(config.return_delay_us / 2).unwrap_or(u8::MAX).min(254);
@@ -95,6 +105,7 @@ impl Executor {
         let thread = std::thread::Builder::new()
             .name("servo-bus".into())
             .spawn(move || {
+                raise_thread_priority();
                 let mut torque = false;
                 let mut next = Instant::now();
                 let mut cycle_index = 0u64;

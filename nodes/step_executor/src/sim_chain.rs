@@ -343,17 +343,6 @@ impl Drop for SimChain {
     }
 }
 
-/// Best effort: run the chain's thread at nice -15 (real servos answer from their own MCU, whatever
-/// the host's load; the master's 34 ms timeout must not trip because this thread waited for a CPU).
-/// Without the privilege the thread keeps the default priority.
-fn raise_priority() {
-    // SAFETY: two syscalls on the calling thread with plain integer arguments; no memory is shared.
-    unsafe {
-        let tid = nix::libc::gettid();
-        let _ = nix::libc::setpriority(nix::libc::PRIO_PROCESS, tid as nix::libc::id_t, -15);
-    }
-}
-
 /// Sleep for simulated bus time (skipped below the scheduler's resolution).
 fn bus_sleep(duration: Duration) {
     if duration >= Duration::from_micros(20) {
@@ -374,7 +363,9 @@ fn write_all(master: &OwnedFd, mut bytes: &[u8]) {
 
 /// The chain's thread: read instructions, advance the servos, answer.
 fn serve(master: OwnedFd, shared: Arc<Shared>, config: SimConfig) {
-    raise_priority();
+    // Real servos answer from their own MCU whatever the host's load: the master's answer budget must
+    // not trip because this thread waited for a CPU.
+    crate::executor::raise_thread_priority();
     let mut parser = PacketParser::new();
     let mut buffer = [0u8; 1024];
     let mut last = Instant::now();

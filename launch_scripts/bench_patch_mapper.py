@@ -1,0 +1,156 @@
+#!/usr/bin/env python3
+"""Latency and CPU bench of patch_mapper on terrain_sim's 30 Hz Carmine-like stream (issue 7).
+
+Starts terrain_sim and patch_mapper (release binaries, DDS on loopback, a private ROS domain), waits
+until the patch map holds at least --min-patches patches, then for --seconds measures:
+  - end to end: PatchArray arrival (wall clock) minus its header stamp (= the depth frame's stamp,
+    which terrain_sim sets when it renders the frame): render hand-off + DDS in + pipeline + DDS out;
+  - in node: MapperStatus `depth_in_to_patches_out` (depth message taken from DDS -> PatchArray
+    published) and the per-stage timings, sampled from every status message;
+  - CPU per node from /proc/<pid>/stat (utime + stime over the window, % of one core).
+Prints p50/p99; asserts nothing.
+
+Usage: .venv/bin/python launch_scripts/bench_patch_mapper.py [--seconds 20] [--min-patches 100]
+(build first: cargo build --release -p patch_mapper -p terrain_sim).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "tests"))
+import patchwalk_testing as pw  # noqa: E402
+
+LOG_DIR = Path(tempfile.mkdtemp(prefix="bench_patch_mapper_"))
+ENV = pw.ros_environment(LOG_DIR)
+os.environ.update(ENV)  # before rclpy is imported
+
+# terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw).
+CAMERA_FROM_IMU_XYZW = (0.5, -0.5, 0.5, 0.5)
+
+
+def rotation_matrix(x, y, z, w):
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    # utime, stime are fields 14, 15 (1-based) of the whole line; after ")" they are 12, 13 (1-based).
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def percentiles(values: list[float]) -> str:
+    if not values:
+        return "no samples"
+    ordered = sorted(values)
+    pick = lambda p: ordered[min(len(ordered) - 1, round((len(ordered) - 1) * p))]  # noqa: E731
+    return f"p50 {pick(0.5):7.2f} ms  p99 {pick(0.99):7.2f} ms  max {ordered[-1]:7.2f} ms  (n = {len(ordered)})"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--min-patches", type=int, default=100)
+    parser.add_argument("--param", action="append", default=[], help="extra patch_mapper --param")
+    args = parser.parse_args()
+
+    from patchwalk_msgs.msg import MapperStatus, PatchArray
+
+    mapper_params = {
+        "ros.status_period_s": "0.05",
+        "mapper.acquire.camera_from_imu": str(rotation_matrix(*CAMERA_FROM_IMU_XYZW)),
+        # More cells than J's Vg = 8 (8 cm instead of 16 cm) so the map holds >= 100 foot-size patches.
+        "mapper.seeds.cells_per_side": "16",
+        "mapper.seeds.per_cell": "2",
+        "mapper.seeds.max_seeds": "128",
+    }
+    mapper_args = [a for k, v in mapper_params.items() for a in ("--param", f"{k}={v}")]
+    mapper_args += [a for p in args.param for a in ("--param", p)]
+    harness = pw.RosHarness("bench_patch_mapper")
+    sim = pw.NodeProcess("terrain_sim", ["run"], ENV, LOG_DIR)
+    mapper = pw.NodeProcess("patch_mapper", ["run", *mapper_args], ENV, LOG_DIR)
+    lock = threading.Lock()
+    arrivals: list[tuple[float, float, int]] = []  # (arrival wall s, stamp s, patches)
+    statuses: list = []
+
+    def on_patches(msg):
+        now = time.time()
+        with lock:
+            arrivals.append((now, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, len(msg.patches)))
+
+    def on_status(msg):
+        with lock:
+            statuses.append(msg)
+
+    try:
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        qos = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10,
+                         durability=DurabilityPolicy.VOLATILE)
+        with harness._lock:
+            harness.node.create_subscription(PatchArray, "/patch_mapper/patches", on_patches, qos)
+            harness.node.create_subscription(MapperStatus, "/patch_mapper/status", on_status, qos)
+        harness.wait_for_nodes("/patch_mapper", "/terrain_sim")
+        deadline = time.monotonic() + 120.0
+        print(f"waiting for >= {args.min_patches} patches in the map ...", flush=True)
+        while True:
+            with lock:
+                patches = arrivals[-1][2] if arrivals else 0
+            if patches >= args.min_patches:
+                break
+            if time.monotonic() > deadline or not (sim.alive() and mapper.alive()):
+                print(f"only {patches} patches after 120 s (sim alive {sim.alive()}, mapper alive {mapper.alive()})")
+                break
+            time.sleep(0.2)
+        with lock:
+            arrivals.clear()
+            statuses.clear()
+        cpu0 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
+        t0 = time.monotonic()
+        time.sleep(args.seconds)
+        wall = time.monotonic() - t0
+        cpu1 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
+        with lock:
+            window, status_window = list(arrivals), list(statuses)
+    finally:
+        for node in (mapper, sim):
+            try:
+                node.stop()
+            except AssertionError as e:
+                print(f"{node.name}: {e}".splitlines()[0])
+        harness.shutdown()
+
+    print(f"\npatch_mapper on terrain_sim (640x480 @ 30 Hz), {wall:.1f} s window, {os.cpu_count()} cores")
+    print(f"PatchArray messages: {len(window)} ({len(window) / wall:.1f} Hz); patches per message "
+          f"min {min((a[2] for a in window), default=0)} max {max((a[2] for a in window), default=0)}")
+    print("end to end (arrival - depth stamp):   " + percentiles([(a - s) * 1e3 for a, s, _ in window]))
+    if status_window:
+        last = status_window[-1]
+        print(f"frames received {last.frames_received}, processed {last.frames_processed}, "
+              f"skipped {last.frames_skipped} (busy drops + bad input), rejected {last.frames_rejected}")
+        names = list(last.timing_names)
+        for name in names:
+            samples = {}
+            for s in status_window:  # one sample per processed frame seen in a status message
+                if name in s.timing_names:
+                    samples[s.frames_processed] = s.timing_ms[list(s.timing_names).index(name)]
+            print(f"  in node {name:<24} " + percentiles(list(samples.values())))
+    for name in cpu0:
+        print(f"CPU {name:<13} {100.0 * (cpu1[name] - cpu0[name]) / wall:6.1f} % of one core")
+    print(f"logs: {LOG_DIR}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -83,6 +83,10 @@ BASE_HEIGHT = 0.285
 RS_M = 0.01
 AS_DEG = 20.0
 
+# camera_from_imu of terrain_sim's IMU (imu.camera_from_imu_xyzw [0.5, -0.5, 0.5, 0.5]: imu x forward,
+# y left, z up) as patch_mapper's row-major `mapper.acquire.camera_from_imu` parameter.
+SIM_CAMERA_FROM_IMU = "[[0.0,-1.0,0.0],[0.0,0.0,-1.0],[1.0,0.0,0.0]]"
+
 SURFACE_NAMES = ["elliptic_paraboloid", "hyperbolic_paraboloid", "cylindric_paraboloid", "circular_paraboloid",
                  "plane", "sphere", "circular_cylinder"]
 

@@ -1,0 +1,134 @@
+"""The demo's experiment table as a test (issue 7): the J 6.3 four-rock experiment of
+launch_scripts/experiment.py against the real binaries (simulated servo bus, terrain_sim, patch_mapper,
+step_executor), with 2 trials per trained rock and 1 in front of an untrained rock instead of 20.
+
+Asserted: every trial in front of a trained rock executes that rock's trained motion, nothing is executed
+in front of the untrained rock, no wrong motion anywhere, and the pictures are written. No timing asserts:
+the timeouts only bound how long a trial waits for its match.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import patchwalk_testing as pw
+
+sys.path.insert(0, str(pw.REPO / "launch_scripts"))
+import experiment as ex  # noqa: E402
+
+TRIALS_PER_ROCK = 2
+UNTRAINED_TRIALS = 1
+
+
+def test_four_rock_experiment_matches_every_trained_rock_and_nothing_else(ros, start_node, log_dir):
+    bus_log = open(log_dir / "sim_bus.log", "w")
+    bus = subprocess.Popen([str(pw.binary("step_executor")), "sim-bus"], stdin=subprocess.PIPE,
+                           stdout=subprocess.PIPE, stderr=bus_log, text=True, cwd=pw.REPO)
+    experiment = None
+    executor = None
+    try:
+        pty = bus.stdout.readline().strip()
+        assert pty.startswith("/dev/"), f"sim-bus printed {pty!r}"
+        start_node("terrain_sim")
+        # terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw) as a row-major matrix.
+        start_node("patch_mapper", "--param", f"mapper.acquire.camera_from_imu={ex.SIM_CAMERA_FROM_IMU}")
+        executor = start_node("step_executor", "--param", f"bus.port={pty}",
+                              "--param", f"library_path={log_dir / 'motions.yaml'}",
+                              "--param", "ros.status_rate_hz=20")
+        ros.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor")
+        rocks = ex.load_scene([])
+        config = ex.ExperimentConfig(trials_per_rock=TRIALS_PER_ROCK, untrained_trials=UNTRAINED_TRIALS,
+                                     untrained_rocks=1, out_dir=log_dir / "experiment")
+        experiment = ex.Experiment(ros, ex.Hand(bus.stdin), rocks, config)
+        results = experiment.run()
+        pictures = experiment.write_pictures(config.out_dir)
+    finally:
+        if experiment is not None:
+            experiment.close()
+        # The executor goes first: it must not outlive its bus.
+        if executor is not None:
+            executor.stop()
+        bus.terminate()
+        bus.wait(timeout=30)
+        bus_log.close()
+
+    table = {row["rock"]: row for row in results["table"]}
+    report = ex.format_table(results["table"])
+    trained = [r.name for r in rocks if r.trained]
+    assert len(trained) == 4, trained
+    for name in trained:
+        row = table[name]
+        assert row["trials"] == TRIALS_PER_ROCK, report
+        assert row["correct motion"] == TRIALS_PER_ROCK, report
+    untrained = [row for row in results["table"] if not row["trained"]]
+    assert len(untrained) == 1, report
+    assert untrained[0]["trials"] == UNTRAINED_TRIALS and untrained[0]["no match"] == UNTRAINED_TRIALS, report
+    assert all(row["wrong motion"] == 0 for row in results["table"]), report
+    # Every trained target is the rock's foothold patch (within the select radius of the true top).
+    assert set(results["trained_targets"]) == set(trained)
+    for name, target in results["trained_targets"].items():
+        assert target["miss_from_true_top_m"] < 0.03, (name, target)
+    names = {p.name for p in pictures}
+    assert "servo_trajectories.png" in names
+    assert {f"patch_map_{n.replace(' ', '_')}.png" for n in trained} <= names
+    for path in pictures:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_pictures_show_the_cloud_and_highlight_the_matched_patch(tmp_path):
+    """The picture helpers without ROS: a synthetic map with a trained patch and one decoy; the PNG decodes
+    to the rendered pixels and the matched patch (not the decoy) is outlined in red."""
+    import struct
+    import zlib
+
+    import numpy as np
+    from patchwalk_msgs.msg import Patch, PatchArray
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    base_from_camera = ex.BASE_FROM_CAMERA_LOOKDOWN
+    map_from_base = ex.pose_matrix(np.eye(3), [0.0, 0.0, ex.BASE_HEIGHT])
+    map_from_camera = map_from_base @ base_from_camera
+    msg = PatchArray()
+    msg.header.frame_id = "map"
+    q = msg.camera_pose.orientation
+    rot = map_from_camera[:3, :3]
+    q.w = float(np.sqrt(1.0 + np.trace(rot)) / 2.0)
+    q.x, q.y, q.z = (float(v) for v in (np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / (4 * q.w)))
+    p = msg.camera_pose.position
+    p.x, p.y, p.z = (float(v) for v in map_from_camera[:3, 3])
+
+    def patch(pid, surface, center):
+        out = Patch(id=pid, surface=surface, boundary=Patch.CIRCLE)
+        out.curvatures = [-15.0] if surface == Patch.CIRCULAR_PARABOLOID else []
+        out.boundary_params = [0.03]
+        out.center = [float(v) for v in center]
+        return out
+
+    trained_in_base = patch(0, Patch.CIRCULAR_PARABOLOID, [0.28, 0.0, -0.235])
+    msg.patches = [patch(1, Patch.CIRCULAR_PARABOLOID, [0.282, 0.0, 0.05]), patch(2, Patch.PLANE, [0.28, 0.12, 0.0])]
+    xs, ys = np.meshgrid(np.linspace(0.05, 0.5, 80), np.linspace(-0.25, 0.25, 80))
+    points = np.stack([xs.ravel(), ys.ravel(), 0.01 * xs.ravel()], 1).astype("<f4")
+    cloud = PointCloud2(height=1, width=len(points), point_step=12, row_step=12 * len(points), is_dense=True)
+    cloud.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    cloud.data = points.tobytes()
+    assert ex.cloud_xyz(cloud).shape == (len(points), 3)
+
+    img = ex.render_patch_map(msg, cloud, trained_in_base, "test")
+    red = np.all(img == (255, 40, 40), axis=-1)
+    assert red.sum() > 50  # the matched patch's outline
+    ys_red, xs_red = np.nonzero(red)
+    # The decoy plane is 12 cm to the left (image left of centre): no red there.
+    assert xs_red.min() > img.shape[1] // 2 - 60
+    path = tmp_path / "map.png"
+    ex.write_png(path, img)
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", data[16:24])
+    assert (width, height) == (img.shape[1], img.shape[0])
+    idat = data[data.index(b"IDAT") + 4: data.index(b"IEND") - 8]
+    raw = np.frombuffer(zlib.decompress(idat), np.uint8).reshape(height, 1 + 3 * width)
+    assert np.array_equal(raw[:, 1:].reshape(img.shape), img)
+
+    traj = ex.render_trajectories([(0.0, [0.0] * 12), (1.0, [0.5] * 12), (2.0, [0.0] * 12)], [(0.5, 1.5, "rock 1")])
+    assert traj.shape == (760, 1400, 3) and (traj == (232, 240, 255)).all(axis=-1).any()

@@ -331,6 +331,7 @@ class Experiment:
         self.faults: list[str] = []  # bus faults seen (and cleared) while posing by hand
         self.trained_targets: dict[str, object] = {}  # motion name -> trained Patch (base_link)
         self.target_miss_m: dict[str, float] = {}      # motion name -> distance of its patch to the true top
+        self.training_snapshots: dict[str, tuple] = {}  # motion name -> (PatchArray, PointCloud2) at training
         self.match_snapshots: dict[str, tuple] = {}   # rock name -> (PatchArray, PointCloud2 or None, motion)
 
     def close(self) -> None:
@@ -457,6 +458,7 @@ class Experiment:
                        RecordKeyframe.Request(duration=move_s, pause=pause_s))
         self._call(SaveMotion, "/step_executor/save_motion", SaveMotion.Request(name=name))
         self.trained_targets[name] = target
+        self.training_snapshots[name] = (self.patches.msg, self.cloud.msg)
         self.target_miss_m[name] = miss
         return name
 
@@ -555,6 +557,12 @@ class Experiment:
             trained = self.trained_targets.get(motion)
             path = out_dir / f"patch_map_{rock_name.replace(' ', '_')}.png"
             write_png(path, render_patch_map(patch_array, cloud, trained, f"{rock_name}: matched {motion}"))
+            written.append(path)
+        for name, (patch_array, cloud) in self.training_snapshots.items():
+            if patch_array is None:
+                continue
+            path = out_dir / f"training_{name.replace(' ', '_')}.png"
+            write_png(path, render_patch_map(patch_array, cloud, self.trained_targets[name], f"training {name}: selected target"))
             written.append(path)
         if self.joint_history:
             path = out_dir / "servo_trajectories.png"
@@ -723,7 +731,13 @@ def render_patch_map(patch_array, cloud, trained, title: str, size: int = 520, m
             ok = (px[:, 0] >= 0) & (px[:, 0] < size) & (px[:, 1] >= 40) & (px[:, 1] < size + 40)
             z = xyz[ok, 2]
             lo, hi = np.percentile(z, 2), np.percentile(z, 98)
-            img[px[ok, 1], px[ok, 0]] = colormap((z - lo) / max(hi - lo, 1e-6))
+            colors = colormap((z - lo) / max(hi - lo, 1e-6))
+            # Birds-eye points are ~1 cm apart: 3x3 dots.
+            for du in (-1, 0, 1):
+                for dv in (-1, 0, 1):
+                    u = np.clip(px[ok, 0] + du, 0, size - 1)
+                    v = np.clip(px[ok, 1] + dv, 40, size + 39)
+                    img[v, u] = colors
     # The patch matching the trained one (J 6.3 tests: same type, near position and normal), in the map
     # frame: trained patch (base_link) -> map with the lookdown base_from_camera.
     matched_id = None
@@ -760,7 +774,7 @@ def render_patch_map(patch_array, cloud, trained, title: str, size: int = 520, m
     draw_polyline(img, np.array([[10, size + 30], [10 + bar, size + 30]]), (255, 255, 255), 2)
     draw_text(img, int(14 + bar), size + 26, "10 CM", (255, 255, 255))
     draw_text(img, 8, 8, title, (255, 255, 255))
-    draw_text(img, 8, 22, f"{len(patch_array.patches)} patches; red: matched; +: trained target", (200, 200, 200))
+    draw_text(img, 8, 22, f"{len(patch_array.patches)} patches; red: matching the trained target (+)", (200, 200, 200))
     return img
 
 

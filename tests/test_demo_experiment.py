@@ -30,13 +30,16 @@ def test_four_rock_experiment_matches_every_trained_rock_and_nothing_else(ros, s
     try:
         pty = bus.stdout.readline().strip()
         assert pty.startswith("/dev/"), f"sim-bus printed {pty!r}"
+        # One at a time, each on the graph before the next starts (discovery is unicast on loopback).
         start_node("terrain_sim")
+        ros.wait_for_nodes("/terrain_sim", timeout=60)
         # terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw) as a row-major matrix.
         start_node("patch_mapper", "--param", f"mapper.acquire.camera_from_imu={ex.SIM_CAMERA_FROM_IMU}")
+        ros.wait_for_nodes("/patch_mapper", timeout=60)
         executor = start_node("step_executor", "--param", f"bus.port={pty}",
                               "--param", f"library_path={log_dir / 'motions.yaml'}",
                               "--param", "ros.status_rate_hz=20")
-        ros.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor")
+        ros.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor", timeout=60)
         rocks = ex.load_scene([])
         config = ex.ExperimentConfig(trials_per_rock=TRIALS_PER_ROCK, untrained_trials=UNTRAINED_TRIALS,
                                      untrained_rocks=1, out_dir=log_dir / "experiment")

@@ -95,8 +95,12 @@ def ticks_from_rad(q: float) -> float:
     return CENTER_TICKS + q * TICKS_PER_REV / (2.0 * math.pi)
 
 
-def clamp_pose(pose: dict[str, float]) -> dict[str, float]:
-    return {j: min(max(pose.get(j, 0.0), LIMITS[j][0]), LIMITS[j][1]) for j in JOINTS}
+def clamp_pose(pose: dict[str, float], margin: float = 0.01) -> dict[str, float]:
+    """Joint values inside the limits by `margin` (a 0.088 deg servo tick must not round a value past a
+    limit: record_keyframe refuses it); exact zeros (e.g. a straight knee at its limit) stay zero."""
+    def clamp(j: str, q: float) -> float:
+        return q if q == 0.0 else min(max(q, LIMITS[j][0] + margin), LIMITS[j][1] - margin)
+    return {j: clamp(j, pose.get(j, 0.0)) for j in JOINTS}
 
 
 # ---- small geometry ------------------------------------------------------------------------------------

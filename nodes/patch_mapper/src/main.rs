@@ -1,5 +1,5 @@
 //! `patch_mapper` binary: the ROS 2 perception node (`patch_mapper run`, the default) and the offline
-//! tools users reach for first (`fit`, `map`, `track`, `calibrate-imu`).
+//! tools users reach for first (`fit`, `map`, `track`, `calibrate-imu`, `replay`).
 
 mod cli;
 mod ros;
@@ -25,6 +25,8 @@ enum Command {
     Track(cli::track::TrackArgs),
     /// Calibrate the IMU->camera rotation from a dataset with a dominant horizontal plane.
     CalibrateImu(cli::calibrate_imu::CalibrateImuArgs),
+    /// Run the node's whole pipeline (fusion, tracking, birds-eye mapping) offline over a dataset.
+    Replay(cli::replay::ReplayArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -36,6 +38,7 @@ fn main() -> std::process::ExitCode {
         Some(Command::Map(args)) => cli::map::run(args),
         Some(Command::Track(args)) => cli::track::run(args),
         Some(Command::CalibrateImu(args)) => cli::calibrate_imu::run(args),
+        Some(Command::Replay(args)) => cli::replay::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

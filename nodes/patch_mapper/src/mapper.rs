@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fit::{fit_patch, FitConfig, FitRequest};
+use crate::fit::{fit_patch_with_boundary_points, FitConfig, FitRequest};
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::patch_map::{transform_patch, PatchMap, VolumeGrid};
@@ -499,7 +499,8 @@ fn process_seed(
         .map_err(|e| e.to_string())
         .and_then(|covariances| {
             let request = FitRequest { containment: config.containment, ..FitRequest::default() };
-            fit_patch(&fit_points, Some(&covariances), &request, &config.fit).map_err(|e| e.to_string())
+            // Surface from the nf fit points (J step 12), boundary moments from the validation set.
+            fit_patch_with_boundary_points(&fit_points, Some(&covariances), &validation_points, &request, &config.fit).map_err(|e| e.to_string())
         });
     match fitted {
         Ok(mut patch) => {

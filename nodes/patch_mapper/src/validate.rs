@@ -26,6 +26,19 @@ pub struct ValidateConfig {
     /// Sub-samples per cell side for the cell ∩ boundary area A_i (approximation of the exact
     /// intersection area; 4 → 16 samples per cell).
     pub area_subsamples: usize,
+    /// Least expected points per full cell, N_e of J eq 17. J's w_c = 0.01 m presumes dense data
+    /// (a 640×480 frame puts tens of points in a 1 cm cell); on sparser data (a 5 mm birds-eye
+    /// raycast gives about 4) the integer counts of a regular pixel grid alias against the cell
+    /// grid and half the cells of a perfect fit come out "bad". The cell then grows to
+    /// `w = max(w_c, √(A·N_min/N))` so that N_e ≥ N_min. 0 keeps w_c as it is.
+    pub min_points_per_cell: f64,
+    /// Counting tolerance k of J eq 16 in standard deviations: a cell is bad when
+    /// `n_in < A_i/w² · T_i − k·√(A_i/w² · N_e)` or `n_out > (1 − A_i/w²) · T_o + k·√((1 − A_i/w²) · N_e)`.
+    /// J's thresholds compare counts with their expectation; the counts of a correct fit scatter
+    /// about it by ≈ √expected (Poisson; ±1 point per cell side on a regular pixel grid), which
+    /// J's dense data (N_e ≫ 10) makes negligible and a sparse birds-eye raycast (N_e ≈ 8) does not.
+    /// 0 is J's test as written.
+    pub count_tolerance_sigmas: f64,
 }
 
 impl Default for ValidateConfig {
@@ -39,6 +52,8 @@ impl Default for ValidateConfig {
             curvature_min: -13.6,
             curvature_max: 19.7,
             area_subsamples: 4,
+            min_points_per_cell: 8.0,
+            count_tolerance_sigmas: 1.0,
         }
     }
 }
@@ -138,11 +153,21 @@ pub fn principal_curvature_range(patch: &Patch) -> (f64, f64) {
     }
 }
 
+/// Cell pitch of the coverage grid: J's w_c, grown so that a full cell expects at least
+/// `min_points_per_cell` of the `n` points spread over `area` (see [`ValidateConfig`]).
+pub fn coverage_cell_size(area: f64, n: usize, config: &ValidateConfig) -> f64 {
+    let wc = config.cell_size;
+    if !(config.min_points_per_cell > 0.0) || n == 0 || !(area > 0.0) {
+        return wc;
+    }
+    wc.max((area * config.min_points_per_cell / n as f64).sqrt())
+}
+
 /// Coverage test of J eq 16–17: returns `(bad cells, T_p)`. The grid of pitch w_c covers the
 /// projected boundary and the projected points (limited to 3× the boundary box).
 pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &ValidateConfig) -> (usize, f64) {
-    let wc = config.cell_size;
     let area = patch.boundary_area();
+    let wc = coverage_cell_size(area, points.len(), config);
     let n_p = area / (wc * wc);
     let allowed = config.bad_cell_fraction * n_p;
     if points.is_empty() || !(n_p > 0.0) || !(wc > 0.0) {
@@ -210,8 +235,9 @@ pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &Valid
             let idx = cj * nx + ci;
             let ic = inside.get(idx).copied().unwrap_or(0) as f64;
             let oc = outside.get(idx).copied().unwrap_or(0) as f64;
-            // J eq 16
-            if ic < frac * t_i || oc > (1.0 - frac) * t_o {
+            // J eq 16, with the counting tolerance.
+            let k = config.count_tolerance_sigmas.max(0.0);
+            if ic < frac * t_i - k * (frac * n_e).sqrt() || oc > (1.0 - frac) * t_o + k * ((1.0 - frac) * n_e).sqrt() {
                 bad += 1;
             }
         }
@@ -279,6 +305,31 @@ mod tests {
         let v = validate_patch(&bump, &pts, &ValidateConfig::default());
         assert!(!v.curvature_min.passed && v.curvature_max.passed);
         assert!(v.failures().iter().any(|f| f.contains("curvature -25.00")));
+    }
+
+    /// A perfect fit on a regular 6.4 mm point grid at an angle (a birds-eye raycast): J's fixed
+    /// 1 cm cells see 1 to 4 points each and alias; the grown cells pass it, and still fail a
+    /// half-covered disc.
+    #[test]
+    fn sparse_regular_grid_passes_with_grown_cells() {
+        let r = 0.05;
+        let pitch = 0.0064;
+        let n = (r / pitch) as i64 + 2;
+        let (s, c) = 0.3f64.sin_cos();
+        let grid: Vec<_> = (-n..=n)
+            .flat_map(|i| (-n..=n).map(move |j| (i as f64 * pitch + 0.0013, j as f64 * pitch + 0.0031)))
+            .map(|(x, y)| Vector3::new(c * x - s * y, s * x + c * y, 0.0))
+            .filter(|p| p.xy().norm() <= r)
+            .collect();
+        let patch = disk(r * 0.98);
+        let fixed = ValidateConfig { min_points_per_cell: 0.0, count_tolerance_sigmas: 0.0, ..ValidateConfig::default() };
+        let grown = ValidateConfig { count_tolerance_sigmas: 0.0, ..ValidateConfig::default() };
+        assert!(coverage_cell_size(patch.boundary_area(), grid.len(), &grown) > 0.012);
+        let (bad_fixed, allowed) = coverage_bad_cells(&patch, &grid, &fixed);
+        assert!(bad_fixed as f64 > allowed, "{bad_fixed} bad of {allowed} allowed with 1 cm cells");
+        assert!(validate_patch(&patch, &grid, &grown).coverage.passed);
+        let half: Vec<_> = grid.iter().copied().filter(|p| p.x < 0.0).collect();
+        assert!(!validate_patch(&patch, &half, &grown).coverage.passed);
     }
 
     #[test]

@@ -66,9 +66,15 @@ pub enum RockShape {
     /// Upright cylinder of radius `r` with a flat top through `(0, 0, h)` tilted by
     /// `slope = (∂z/∂x, ∂z/∂y)`. Top: plane with a circular boundary.
     FlatBoulder { radius_m: f64, height_m: f64, top_slope: [f64; 2] },
-    /// Cylinder of radius `r` and length `l` lying on the table, axis along local x. Top:
-    /// cylindric paraboloid with κ = (0, −1/r).
-    LyingCylinder { radius_m: f64, length_m: f64 },
+    /// Cylinder of radius `r` and length `l` lying on the table, axis along local x, sunk
+    /// `sunk_m` (0 ≤ sunk < 2r) into it like a half-buried log. Top at z = 2r − sunk: cylindric
+    /// paraboloid with κ = (0, −1/r).
+    LyingCylinder {
+        radius_m: f64,
+        length_m: f64,
+        #[serde(default)]
+        sunk_m: f64,
+    },
 }
 
 /// Ground-truth foothold geometry of a rock's top, in the world frame.
@@ -137,9 +143,12 @@ impl RockShape {
                     return Err(format!("top slope ({sx}, {sy}) takes the top below the table"));
                 }
             }
-            RockShape::LyingCylinder { radius_m, length_m } => {
+            RockShape::LyingCylinder { radius_m, length_m, sunk_m } => {
                 positive("radius", radius_m)?;
                 positive("length", length_m)?;
+                if !(sunk_m.is_finite() && (0.0..2.0 * radius_m).contains(&sunk_m)) {
+                    return Err(format!("sunk {sunk_m} m must be in [0, 2 r) for r = {radius_m} m"));
+                }
             }
         }
         Ok(())
@@ -159,8 +168,8 @@ impl RockShape {
                 let top = height_m + radius_m * sx.hypot(sy);
                 [Vector3::new(-radius_m, -radius_m, 0.0), Vector3::new(radius_m, radius_m, top)]
             }
-            RockShape::LyingCylinder { radius_m, length_m } => {
-                [Vector3::new(-length_m / 2.0, -radius_m, 0.0), Vector3::new(length_m / 2.0, radius_m, 2.0 * radius_m)]
+            RockShape::LyingCylinder { radius_m, length_m, sunk_m } => {
+                [Vector3::new(-length_m / 2.0, -radius_m, 0.0), Vector3::new(length_m / 2.0, radius_m, 2.0 * radius_m - sunk_m)]
             }
         }
     }
@@ -219,12 +228,13 @@ impl RockShape {
                 }
                 best
             }
-            RockShape::LyingCylinder { radius_m, length_m } => {
+            RockShape::LyingCylinder { radius_m, length_m, sunk_m } => {
                 let (o, d) = (ray.origin, ray.direction);
                 let half = length_m / 2.0;
+                let axis_z = radius_m - sunk_m;
                 let mut best: Option<Hit> = None;
-                // Side y² + (z − r)² = r², |x| ≤ l/2.
-                let oz = o.z - radius_m;
+                // Side y² + (z − z_axis)² = r², |x| ≤ l/2.
+                let oz = o.z - axis_z;
                 let t_side = first_root(
                     d.y * d.y + d.z * d.z,
                     2.0 * (o.y * d.y + oz * d.z),
@@ -233,14 +243,14 @@ impl RockShape {
                 );
                 if let Some(t) = t_side {
                     let p = ray.at(t);
-                    best = Some(Hit { t, normal: Vector3::new(0.0, p.y, p.z - radius_m) / radius_m });
+                    best = Some(Hit { t, normal: Vector3::new(0.0, p.y, p.z - axis_z) / radius_m });
                 }
                 // End caps x = ±l/2 inside the disc.
                 if d.x.abs() > 1e-15 {
                     for sign in [-1.0, 1.0] {
                         let t = (sign * half - o.x) / d.x;
                         let p = ray.at(t);
-                        let inside = p.y * p.y + (p.z - radius_m).powi(2) <= radius_m * radius_m;
+                        let inside = p.y * p.y + (p.z - axis_z).powi(2) <= radius_m * radius_m;
                         if t > T_MIN && inside && best.is_none_or(|hit| t < hit.t) {
                             best = Some(Hit { t, normal: Vector3::new(sign, 0.0, 0.0) });
                         }
@@ -279,8 +289,8 @@ impl RockShape {
                 let direction_x = Vector3::new(1.0, 0.0, sx).normalize();
                 foothold(Vector3::new(0.0, 0.0, height_m), normal, direction_x, [0.0, 0.0], "plane", radius_m)
             }
-            RockShape::LyingCylinder { radius_m, length_m } => foothold(
-                Vector3::new(0.0, 0.0, 2.0 * radius_m),
+            RockShape::LyingCylinder { radius_m, length_m, sunk_m } => foothold(
+                Vector3::new(0.0, 0.0, 2.0 * radius_m - sunk_m),
                 up,
                 Vector3::x(),
                 [0.0, -1.0 / radius_m],
@@ -414,16 +424,19 @@ impl Default for SceneConfig {
 }
 
 /// The four built-in training rocks: one per patch family the RPBP trained on (J 6.3, Fig. 10).
+/// Each top is a valid foothold for J's validation: curvatures inside [κmin, κmax] =
+/// [−13.6, 19.7] m⁻¹ (J 3.3.3) with room for the fit's noise, and wide enough for a foot-size
+/// (r = 0.05 m) patch.
 pub fn default_training_rocks() -> Vec<RockShape> {
     vec![
-        // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−6.2, −13.9) m⁻¹.
-        RockShape::EllipsoidCap { semi_axes_m: [0.09, 0.06, 0.05], centre_z_m: 0.0 },
+        // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−4.1, −7.8) m⁻¹.
+        RockShape::EllipsoidCap { semi_axes_m: [0.11, 0.08, 0.05], centre_z_m: 0.0 },
         // rock 2: flat-topped boulder, top tilted ≈ 8° down towards the robot.
         RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.05, top_slope: [0.14, 0.0] },
-        // rock 3: log-like cylinder across the robot's path, κ = (0, −22) m⁻¹.
-        RockShape::LyingCylinder { radius_m: 0.045, length_m: 0.2 },
-        // rock 4: round bump, circular paraboloid top κ = (−15, −15) m⁻¹.
-        RockShape::ParaboloidBump { height_m: 0.05, curvatures_per_m: [15.0, 15.0] },
+        // rock 3: half-buried log across the robot's path, top 6 cm high, κ = (0, −11.1) m⁻¹.
+        RockShape::LyingCylinder { radius_m: 0.09, length_m: 0.22, sunk_m: 0.12 },
+        // rock 4: round bump, circular paraboloid top κ = (−10, −10) m⁻¹.
+        RockShape::ParaboloidBump { height_m: 0.05, curvatures_per_m: [10.0, 10.0] },
     ]
 }
 
@@ -543,7 +556,7 @@ fn random_untrained_shape(rng: &mut impl Rng, training: &[RockShape]) -> RockSha
                 height_m: rng.random_range(0.03..0.08),
                 top_slope: [rng.random_range(-0.35..0.35), rng.random_range(-0.35..0.35)],
             },
-            2 => RockShape::LyingCylinder { radius_m: rng.random_range(0.025..0.07), length_m: rng.random_range(0.12..0.25) },
+            2 => RockShape::LyingCylinder { radius_m: rng.random_range(0.025..0.07), length_m: rng.random_range(0.12..0.25), sunk_m: 0.0 },
             _ => RockShape::ParaboloidBump {
                 height_m: rng.random_range(0.03..0.07),
                 curvatures_per_m: [rng.random_range(5.0..40.0), rng.random_range(5.0..40.0)],
@@ -627,7 +640,7 @@ mod tests {
 
     #[test]
     fn lying_cylinder_caps_and_side() {
-        let shape = RockShape::LyingCylinder { radius_m: 0.05, length_m: 0.2 };
+        let shape = RockShape::LyingCylinder { radius_m: 0.05, length_m: 0.2, sunk_m: 0.0 };
         let hit = shape.intersect(&Ray { origin: Vector3::new(-1.0, 0.0, 0.05), direction: Vector3::x() }).unwrap();
         assert!((hit.t - 0.9).abs() < 1e-9 && (hit.normal + Vector3::x()).norm() < 1e-12);
         let hit = shape.intersect(&Ray { origin: Vector3::new(0.0, -1.0, 0.05), direction: Vector3::y() }).unwrap();

@@ -3,3 +3,4 @@ pub mod calibrate_imu;
 pub mod fit;
 pub mod map;
 pub mod track;
+pub mod replay;

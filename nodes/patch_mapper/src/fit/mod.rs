@@ -201,6 +201,24 @@ pub fn fit_patch(
     request: &FitRequest,
     config: &FitConfig,
 ) -> Result<Patch, FitError> {
+    fit_patch_with_boundary_points(points, point_covariances, points, request, config)
+}
+
+/// [`fit_patch`] with the surface (steps 1–3) fitted to `points` and the boundary moments
+/// (steps 4–9, eq 30–32) taken over `boundary_points`, e.g. J's nf = 50 fit points and the whole
+/// r-ball neighbourhood: second moments of 50 points scatter by ±20 % (±10 % in the extents), which
+/// is enough to fail the coverage test (J eq 16) of a perfect fit. Σ's boundary part is the
+/// sampling covariance of the moments over `boundary_points`.
+pub fn fit_patch_with_boundary_points(
+    points: &[Vector3<f64>],
+    point_covariances: Option<&[Matrix3<f64>]>,
+    boundary_points: &[Vector3<f64>],
+    request: &FitRequest,
+    config: &FitConfig,
+) -> Result<Patch, FitError> {
+    if let Some(index) = boundary_points.iter().position(|q| !q.iter().all(|v| v.is_finite())) {
+        return Err(FitError::NonFinitePoint { index });
+    }
     let target = Target::resolve(request)?;
     check_inputs(points, point_covariances, target.min_points())?;
     if !(request.containment > 0.0 && request.containment <= 1.0) {
@@ -224,7 +242,8 @@ pub fn fit_patch(
     // Steps 1-ii to 3: the unbounded surface.
     let (surface, boundary, state) = fit_surface(target, start, points, &covs, &settings, config, weighted)?;
     // Steps 4–9 and Σ.
-    finish(surface, boundary, state, points, &covs, &settings, config, request.containment, weighted)
+    let boundary_points = if boundary_points.len() >= points.len() { boundary_points } else { points };
+    finish(surface, boundary, state, points, boundary_points, &covs, &settings, config, request.containment, weighted)
 }
 
 /// The WLM objective `χ² = Σ F_i²` (eq 33, 35) of a patch's unbounded surface on the given points
@@ -555,6 +574,7 @@ fn finish(
     boundary: BoundaryType,
     state: SurfaceState,
     points: &[Vector3<f64>],
+    boundary_points: &[Vector3<f64>],
     covs: &Covariances<'_>,
     settings: &LmSettings,
     config: &FitConfig,
@@ -570,10 +590,10 @@ fn finish(
         _ => state.k3.x,
     };
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
-    let m0 = boundary::moments(points, &state.rot, &state.c).m;
+    let m0 = boundary::moments(boundary_points, &state.rot, &state.c).m;
     let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
     let state = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
-    let stats = boundary::moments(points, &state.rot, &state.c);
+    let stats = boundary::moments(boundary_points, &state.rot, &state.c);
     let m = stats.m;
     let from_m = boundary::from_moments(surface, boundary, &m, kappa, lambda, ln_term);
     let mut d: Vec<f64> = from_m.d.iter().take(from_m.nd).copied().collect();

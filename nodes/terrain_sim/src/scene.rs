@@ -426,17 +426,19 @@ impl Default for SceneConfig {
 /// The four built-in training rocks: one per patch family the RPBP trained on (J 6.3, Fig. 10).
 /// Each top is a valid foothold for J's validation: curvatures inside [κmin, κmax] =
 /// [−13.6, 19.7] m⁻¹ (J 3.3.3) with room for the fit's noise, and wide enough for a foot-size
-/// (r = 0.05 m) patch.
+/// (r = 0.05 m) patch. The tops stand 3.5, 5, 6.5 and 8 cm high: the robot meets each at the same
+/// spot, so the heights (1.5 cm apart, above J's rs = 0.01 m) keep a plane or a gentle cap on one
+/// rock from matching another rock's trained patch.
 pub fn default_training_rocks() -> Vec<RockShape> {
     vec![
         // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−4.1, −7.8) m⁻¹.
         RockShape::EllipsoidCap { semi_axes_m: [0.11, 0.08, 0.05], centre_z_m: 0.0 },
-        // rock 2: flat-topped boulder, top tilted ≈ 8° down towards the robot.
-        RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.05, top_slope: [0.14, 0.0] },
-        // rock 3: half-buried log across the robot's path, top 6 cm high, κ = (0, −11.1) m⁻¹.
-        RockShape::LyingCylinder { radius_m: 0.09, length_m: 0.22, sunk_m: 0.12 },
-        // rock 4: round bump, circular paraboloid top κ = (−10, −10) m⁻¹.
-        RockShape::ParaboloidBump { height_m: 0.05, curvatures_per_m: [10.0, 10.0] },
+        // rock 2: flat-topped boulder 8 cm high, top tilted ≈ 8° down towards the robot.
+        RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.08, top_slope: [0.14, 0.0] },
+        // rock 3: half-buried log across the robot's path, top 6.5 cm high, κ = (0, −11.1) m⁻¹.
+        RockShape::LyingCylinder { radius_m: 0.09, length_m: 0.22, sunk_m: 0.115 },
+        // rock 4: low round bump 3.5 cm high, circular paraboloid top κ = (−10, −10) m⁻¹.
+        RockShape::ParaboloidBump { height_m: 0.035, curvatures_per_m: [10.0, 10.0] },
     ]
 }
 

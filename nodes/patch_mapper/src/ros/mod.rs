@@ -262,16 +262,40 @@ struct Worker {
     outputs: Outputs,
     log: RateLimitedLog,
     dds_log: RateLimitedLog,
+    /// The last reset, to drop the frames that were on their way when it came.
+    last_reset: Option<ResetMark>,
+}
+
+/// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
+/// [`STALE_FRAME_WINDOW_S`] before it, shows the world before the reset (e.g. before the robot was
+/// carried to another rock) and is dropped. Older stamps are a camera clock offset and are kept.
+#[derive(Debug, Clone, Copy)]
+struct ResetMark {
+    at: Instant,
+    stamp_s: f64,
+}
+
+const STALE_FRAME_WINDOW_S: f64 = 0.5;
+
+impl ResetMark {
+    fn now() -> Self {
+        Self { at: Instant::now(), stamp_s: publish::seconds_from_time(&node::now_stamp()) }
+    }
+
+    fn is_stale(&self, received: Instant, stamp_s: f64) -> bool {
+        received < self.at || (self.stamp_s - STALE_FRAME_WINDOW_S..self.stamp_s).contains(&stamp_s)
+    }
 }
 
 impl Worker {
-    fn run(mut self, jobs: Receiver<DepthJob>, inputs: Receiver<WorkerInput>, reset: Arc<AtomicBool>, stop: Arc<AtomicBool>) {
+    fn run(mut self, jobs: Receiver<DepthJob>, inputs: Receiver<WorkerInput>, reset: Arc<Mutex<Option<ResetMark>>>, stop: Arc<AtomicBool>) {
         while !stop.load(Ordering::Relaxed) {
             let job = jobs.recv_timeout(Duration::from_millis(50));
-            if reset.swap(false, Ordering::Relaxed) {
+            if let Some(mark) = reset.lock().ok().and_then(|mut r| r.take()) {
                 if let Some(pipeline) = self.pipeline.as_mut() {
                     pipeline.reset();
                 }
+                self.last_reset = Some(mark);
                 with_status(&self.status, |s| s.patches_in_map = 0);
             }
             self.take_inputs(&inputs);
@@ -298,6 +322,11 @@ impl Worker {
     }
 
     fn process(&mut self, job: DepthJob) {
+        if self.last_reset.is_some_and(|mark| mark.is_stale(job.received, publish::seconds_from_time(&job.stamp))) {
+            with_status(&self.status, |s| s.frames_skipped += 1);
+            tracing::debug!("depth frame from before the last reset dropped");
+            return;
+        }
         if self.pipeline.as_ref().is_none_or(|p| *p.intrinsics() != job.intrinsics) {
             let c = &self.config;
             match Pipeline::new(c.pipeline.clone(), c.tracker.clone(), c.mapper.clone(), job.intrinsics) {
@@ -384,7 +413,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let status: SharedStatus = Arc::default();
     let (job_tx, job_rx) = crossbeam_channel::bounded::<DepthJob>(1);
     let (input_tx, input_rx) = crossbeam_channel::unbounded::<WorkerInput>();
-    let reset = Arc::new(AtomicBool::new(false));
+    let reset: Arc<Mutex<Option<ResetMark>>> = Arc::default();
     let stop = Arc::new(AtomicBool::new(false));
     let worker = Worker {
         config,
@@ -398,6 +427,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         },
         log: RateLimitedLog::new(log_period),
         dds_log: RateLimitedLog::new(log_period),
+        last_reset: None,
     };
     let worker_thread = {
         let (jobs, reset, stop) = (job_rx.clone(), reset.clone(), stop.clone());
@@ -418,7 +448,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log));
         node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log));
         node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
-            reset.store(true, Ordering::Relaxed);
+            if let Ok(mut mark) = reset.lock() {
+                *mark = Some(ResetMark::now());
+            }
             let frames = status.lock().map(|mut s| {
                 s.last_error.clear();
                 s.frames_processed

@@ -478,7 +478,8 @@ class Experiment:
         perturbation = {"l_hip_yaw": yaw, "r_hip_yaw": yaw, "l_ankle_pitch": lean, "r_ankle_pitch": lean}
         self.lookdown(perturbation)
         self.place_at(rock)
-        self.reset_mapper()
+        # A fresh map: maps already on their way when the mapper was reset show the previous rock.
+        self.fresh_map(min_maps=2, min_patches=0)
         armed_at = time.monotonic()
         self.arm(True)
         played, last_match, seen_at, fault = None, "", None, ""

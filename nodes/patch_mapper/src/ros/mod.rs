@@ -264,6 +264,8 @@ struct Worker {
     dds_log: RateLimitedLog,
     /// The last reset, to drop the frames that were on their way when it came.
     last_reset: Option<ResetMark>,
+    /// Set by the reset service, taken by the worker.
+    reset_request: Arc<Mutex<Option<ResetMark>>>,
 }
 
 /// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
@@ -288,10 +290,10 @@ impl ResetMark {
 }
 
 impl Worker {
-    fn run(mut self, jobs: Receiver<DepthJob>, inputs: Receiver<WorkerInput>, reset: Arc<Mutex<Option<ResetMark>>>, stop: Arc<AtomicBool>) {
+    fn run(mut self, jobs: Receiver<DepthJob>, inputs: Receiver<WorkerInput>, stop: Arc<AtomicBool>) {
         while !stop.load(Ordering::Relaxed) {
             let job = jobs.recv_timeout(Duration::from_millis(50));
-            if let Some(mark) = reset.lock().ok().and_then(|mut r| r.take()) {
+            if let Some(mark) = self.reset_request.lock().ok().and_then(|mut r| r.take()) {
                 if let Some(pipeline) = self.pipeline.as_mut() {
                     pipeline.reset();
                 }
@@ -354,6 +356,11 @@ impl Worker {
                 return;
             }
         };
+        if self.reset_request.lock().is_ok_and(|r| r.is_some()) {
+            // A reset came while this frame was processed: its map shows the world before it.
+            with_status(&self.status, |s| s.frames_skipped += 1);
+            return;
+        }
         let map = pipeline.map();
         let started = Instant::now();
         let array = publish::patch_array(map, &output.map_from_camera, &job.stamp);
@@ -428,10 +435,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         log: RateLimitedLog::new(log_period),
         dds_log: RateLimitedLog::new(log_period),
         last_reset: None,
+        reset_request: reset.clone(),
     };
     let worker_thread = {
-        let (jobs, reset, stop) = (job_rx.clone(), reset.clone(), stop.clone());
-        std::thread::Builder::new().name("pipeline".into()).spawn(move || worker.run(jobs, input_rx, reset, stop))?
+        let (jobs, stop) = (job_rx.clone(), stop.clone());
+        std::thread::Builder::new().name("pipeline".into()).spawn(move || worker.run(jobs, input_rx, stop))?
     };
 
     // Two logs so the middleware's and the messages' warnings are limited independently.

@@ -103,7 +103,8 @@ if available step_executor sim-bus; then
     if forget_if_dead sim_bus; then
         if [ -n "$PTY" ]; then
             echo "simulated MX-28 chain on $PTY"
-            EXECUTOR_ARGS+=(--param "bus.port=$PTY")
+            # The simulated chain is a user process behind a pty: allow 500 ms per answer (RS-485: 34).
+            EXECUTOR_ARGS+=(--param "bus.port=$PTY" --param "bus.response_timeout_ms=500")
         else
             echo "sim_bus printed no pty path (log: $RUN_DIR/sim_bus.log); step_executor runs without a bus"
         fi

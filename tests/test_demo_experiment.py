@@ -36,7 +36,8 @@ def test_four_rock_experiment_matches_every_trained_rock_and_nothing_else(ros, s
         # terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw) as a row-major matrix.
         start_node("patch_mapper", "--param", f"mapper.acquire.camera_from_imu={ex.SIM_CAMERA_FROM_IMU}")
         ros.wait_for_nodes("/patch_mapper", timeout=60)
-        executor = start_node("step_executor", "--param", f"bus.port={pty}",
+        # A pty served by a user process on a loaded host: 500 ms per answer (the RS-485 default is 34).
+        executor = start_node("step_executor", "--param", f"bus.port={pty}", "--param", "bus.response_timeout_ms=500",
                               "--param", f"library_path={log_dir / 'motions.yaml'}",
                               "--param", "ros.status_rate_hz=20")
         ros.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor", timeout=60)

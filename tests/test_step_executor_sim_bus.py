@@ -47,9 +47,10 @@ def sim_bus():
 
 @pytest.fixture
 def executor_on_sim_bus(ros, start_node, sim_bus, tmp_path):
-    # The pty is served through kernel work queues: on a loaded CI host allow 200 ms per answer.
+    # The pty is served through kernel work queues and the chain is a user process: on a loaded CI host
+    # (pytest -n, other nodes, compilers) allow 500 ms per answer.
     node = start_node("step_executor", "--param", f"bus.port={sim_bus.device}",
-                      "--param", "bus.response_timeout_ms=200",
+                      "--param", "bus.response_timeout_ms=500",
                       "--param", f"library_path={tmp_path / 'motions.yaml'}",
                       "--param", "ros.status_rate_hz=20")
     ros.wait_for_nodes("/step_executor")

@@ -350,6 +350,15 @@ pub fn plane_boundary_factor(containment: f64) -> f64 {
     lambda / (-2.0 * (1.0 - gamma).ln()).sqrt()
 }
 
+/// Sizes a plane's boundary like every other type's (J 3.2.1 step 5, see
+/// [`MapperConfig::plane_boundary_j_step5`]); other surfaces are left as they are. For anyone who fits
+/// a patch outside the mapper and compares it with mapped ones (e.g. the step executor's training).
+pub fn size_plane_boundary_j_step5(patch: &mut Patch, containment: f64) {
+    if patch.surface == SurfaceType::Plane {
+        rescale_boundary(patch, plane_boundary_factor(containment));
+    }
+}
+
 /// Scales the boundary extents `d` of a patch (not a quad's angle) and their covariance rows/columns.
 fn rescale_boundary(patch: &mut Patch, factor: f64) {
     let extents = match patch.boundary {
@@ -504,8 +513,8 @@ fn process_seed(
         });
     match fitted {
         Ok(mut patch) => {
-            if config.plane_boundary_j_step5 && patch.surface == SurfaceType::Plane {
-                rescale_boundary(&mut patch, plane_boundary_factor(config.containment));
+            if config.plane_boundary_j_step5 {
+                size_plane_boundary_j_step5(&mut patch, config.containment);
             }
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();

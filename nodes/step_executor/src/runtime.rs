@@ -7,14 +7,16 @@
 
 use std::collections::HashMap;
 
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Point3, Vector3};
+use patch_mapper::fit::{fit_patch, FitConfig, FitRequest};
+use patch_mapper::mapper::size_plane_boundary_j_step5;
 
 use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
 use crate::kinematics::{positions_by_name, RobotModel};
 use crate::library::{Keyframe, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
-use crate::patch::PatchGeometry;
+use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use crate::servo_bus::dynamixel::DynamixelBus;
 use crate::servo_bus::ServoBus;
@@ -80,8 +82,15 @@ pub struct Runtime {
     last_fault: Option<(u8, String)>,
     positions: Vec<Option<f64>>,
     latest_map_in_base: Vec<PatchGeometry>,
+    /// Camera pose of the latest patch map (places the mapper's cloud relative to the robot).
+    latest_map_from_camera: Option<Isometry3<f64>>,
+    /// The mapper's latest birds-eye cloud (map frame), for fitting a training target.
+    latest_cloud_in_map: Vec<Vector3<f64>>,
     last_report: Option<MatchReport>,
 }
+
+/// Least points for [`Runtime::select_fit`] (J's neighbourhoods hold nf = 50 fit points).
+pub const MIN_FIT_POINTS: usize = 20;
 
 /// Why the runtime could not start at all (bad URDF or config); bus and library problems are not
 /// fatal: the node starts and reports them.
@@ -168,6 +177,8 @@ impl Runtime {
             last_fault: None,
             positions: vec![None; n],
             latest_map_in_base: Vec::new(),
+            latest_map_from_camera: None,
+            latest_cloud_in_map: Vec::new(),
             last_report: None,
         };
         Ok((runtime, warnings))
@@ -226,6 +237,7 @@ impl Runtime {
     /// Returns the match report.
     pub fn on_patch_map(&mut self, patches_in_map: &[PatchGeometry], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
+        self.latest_map_from_camera = Some(*map_from_camera);
         self.latest_map_in_base = patches_in_map.iter().map(|p| p.transformed(&base_from_map)).collect();
         let report = self.matcher.report(&self.latest_map_in_base);
         if let Some(best) = &report.best {
@@ -295,6 +307,50 @@ impl Runtime {
             .ok_or_else(|| "no patch map received yet (or it was empty)".to_string())?;
         self.target = Some(nearest.clone());
         Ok(nearest)
+    }
+
+    /// The mapper's latest birds-eye cloud (points in the map frame; non-finite points are dropped).
+    pub fn on_cloud(&mut self, points_in_map: Vec<Vector3<f64>>) {
+        self.latest_cloud_in_map = points_in_map.into_iter().filter(|p| p.iter().all(|v| v.is_finite())).collect();
+    }
+
+    /// Training target by fitting (J 6.3: "we manually select a neighborhood where we would like the
+    /// robot to place its foot and we fit a patch"): the points of the latest birds-eye cloud within
+    /// `radius_m` of `point_in_base`, fitted with the patch core (IROS IV, type by discrimination),
+    /// boundaries sized as the mapper sizes them so the target compares with mapped patches.
+    pub fn select_fit(&mut self, point_in_base: [f64; 3], radius_m: f64) -> Result<PatchGeometry, String> {
+        if !(radius_m.is_finite() && radius_m > 0.0 && radius_m <= 0.5) {
+            return Err(format!("radius {radius_m} m must be in (0, 0.5]"));
+        }
+        if point_in_base.iter().any(|v| !v.is_finite()) {
+            return Err("point must be finite".into());
+        }
+        let map_from_camera = self.latest_map_from_camera.ok_or("no patch map received yet (its camera pose places the cloud)")?;
+        if self.latest_cloud_in_map.is_empty() {
+            return Err("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)".into());
+        }
+        let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
+        let point_in_map = (base_from_map.inverse() * Point3::from(point_in_base)).coords;
+        let points: Vec<Vector3<f64>> = self.latest_cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
+        if points.len() < MIN_FIT_POINTS {
+            return Err(format!("only {} cloud points within {radius_m} m of the point (need {MIN_FIT_POINTS})", points.len()));
+        }
+        // The birds-eye camera looks down: normals point up (map z, REP-103).
+        let request = FitRequest { viewpoint: point_in_map + Vector3::z(), ..FitRequest::default() };
+        let mut fitted = fit_patch(&points, None, &request, &FitConfig::default()).map_err(|e| format!("fit: {e}"))?;
+        size_plane_boundary_j_step5(&mut fitted, request.containment);
+        let patch = PatchGeometry {
+            surface: SurfaceType::from_u8(fitted.surface as u8).ok_or("fit: unknown surface type")?,
+            boundary: BoundaryType::from_u8(fitted.boundary as u8).ok_or("fit: unknown boundary type")?,
+            d: fitted.boundary_params.clone(),
+            k: fitted.curvature_params(),
+            r: fitted.rotation.into(),
+            c: fitted.center.into(),
+        }
+        .transformed(&base_from_map);
+        patch.validate().map_err(|e| format!("fit: {e}"))?;
+        self.target = Some(patch.clone());
+        Ok(patch)
     }
 
     /// Save the trained motion (target + recorded keyframes) atomically under `name`.
@@ -433,6 +489,42 @@ mod tests {
             runtime.poll();
             std::thread::sleep(Duration::from_millis(5));
         }
+    }
+
+    /// J 6.3 training by fitting: a round bump (κ = −10 m⁻¹) in the mapper's cloud, fitted at a
+    /// point given in base_link, comes back as a circular paraboloid at the bump's apex.
+    #[test]
+    fn select_fit_fits_the_cloud_around_a_point_in_base_link() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no bus".into())).unwrap();
+        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no patch map"));
+        // Any map frame: here the map is 1 m to the side and turned 30° about its up axis.
+        let map_from_camera = Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::z() * 0.5) * runtime.base_from_camera().unwrap().inverse();
+        runtime.on_patch_map(&[], &map_from_camera).unwrap();
+        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no birds-eye cloud"));
+        let base_from_map = runtime.base_from_camera().unwrap() * map_from_camera.inverse();
+        let apex_in_base = Vector3::new(0.28, 0.0, -0.25);
+        let kappa = 10.0;
+        let mut cloud_in_map = Vec::new();
+        for i in -16..=16 {
+            for j in -16..=16 {
+                let (x, y) = (f64::from(i) * 0.005, f64::from(j) * 0.005);
+                let point_in_base = apex_in_base + Vector3::new(x, y, -0.5 * kappa * (x * x + y * y));
+                cloud_in_map.push((base_from_map.inverse() * Point3::from(point_in_base)).coords);
+            }
+        }
+        cloud_in_map.push(Vector3::new(f64::NAN, 0.0, 0.0));
+        runtime.on_cloud(cloud_in_map);
+        let patch = runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap();
+        assert_eq!(patch.surface, SurfaceType::CircularParaboloid, "{patch:?}");
+        assert!((patch.k[0] + kappa).abs() < 0.5, "{patch:?}");
+        assert!((Vector3::from(patch.c) - apex_in_base).norm() < 0.003, "{patch:?}");
+        assert!(patch.normal().z > 0.99, "{patch:?}");
+        // Nothing there, or a nonsense radius: errors, and the target is kept.
+        assert!(runtime.select_fit([2.0, 0.0, -0.25], 0.05).unwrap_err().contains("only 0 cloud points"));
+        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.0).is_err());
+        assert!(runtime.select_fit([f64::NAN, 0.0, -0.25], 0.05).is_err());
+        assert_eq!(runtime.target.as_ref(), Some(&patch));
     }
 
     #[test]

@@ -16,7 +16,7 @@ use anyhow::Context as _;
 
 use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
 use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
-use patchwalk_msgs::sensor_msgs::msg::JointState;
+use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
 use step_executor::runtime::{RunState, Runtime};
@@ -34,6 +34,8 @@ pub type ExecutorFileView = step_executor::config::StepExecutorConfig;
 
 /// Topic and service names (names.md).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
+/// The mapper's birds-eye cloud (map frame): what `select_target` MODE_FIT_AT_POINT fits.
+pub const CLOUD_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
 pub const JOINT_STATES_TOPIC: &str = "/joint_states";
 pub const STATUS_TOPIC: &str = "/step_executor/status";
 pub const SET_TORQUE: &str = "/step_executor/set_torque";
@@ -55,11 +57,13 @@ struct Executor {
     runtime: Runtime,
     maps_received: u64,
     log: RateLimitedLog,
+    /// Latest birds-eye cloud, decoded only when a fit is asked for.
+    latest_cloud: Option<PointCloud2>,
 }
 
 impl Executor {
     fn new(runtime: Runtime) -> Self {
-        Self { runtime, maps_received: 0, log: RateLimitedLog::default() }
+        Self { runtime, maps_received: 0, log: RateLimitedLog::default(), latest_cloud: None }
     }
 
     /// A patch map: convert, express in base_link, match (J 6.3), auto-play when armed.
@@ -141,17 +145,21 @@ impl Executor {
     }
 
     fn select_target(&mut self, request: srv::SelectTargetRequest) -> srv::SelectTargetResponse {
-        if request.mode != srv::SelectTargetRequest::MODE_NEAREST_POINT {
-            return srv::SelectTargetResponse {
-                success: false,
-                message: "select_target: only MODE_NEAREST_POINT is supported by step_executor (fitting needs the \
-                          mapper's point cloud; fit with patch_mapper and pick the nearest patch)"
-                    .into(),
-                ..Default::default()
-            };
-        }
         let p = &request.point;
-        match self.runtime.select_nearest([p.x, p.y, p.z]) {
+        let point = [p.x, p.y, p.z];
+        let selected = match request.mode {
+            srv::SelectTargetRequest::MODE_NEAREST_POINT => self.runtime.select_nearest(point),
+            srv::SelectTargetRequest::MODE_FIT_AT_POINT => match self.latest_cloud.as_ref().map(convert::points_from_cloud) {
+                None => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
+                Some(Err(e)) => Err(format!("{CLOUD_TOPIC}: {e}")),
+                Some(Ok(points_in_map)) => {
+                    self.runtime.on_cloud(points_in_map);
+                    self.runtime.select_fit(point, request.radius)
+                }
+            },
+            mode => Err(format!("unknown mode {mode} (0 = nearest point, 1 = fit at point)")),
+        };
+        match selected {
             Ok(patch) => srv::SelectTargetResponse {
                 success: true,
                 message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.c),
@@ -236,6 +244,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     let mut ros = RosNode::new("step_executor", network)?;
     let patches_sub = ros.subscription::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
+    let cloud_sub = ros.subscription::<PointCloud2>(CLOUD_TOPIC, node::reliable_qos())?;
     // Joint states come from the servo bus thread; nothing is published without a bus.
     let joint_states_pub = ros.publisher::<JointState>(JOINT_STATES_TOPIC, node::reliable_qos())?;
     let status_pub = ros.publisher::<ExecutorStatus>(STATUS_TOPIC, node::reliable_qos())?;
@@ -258,6 +267,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     while !shutdown.requested() {
         node::drain(&patches_sub, PATCHES_TOPIC, 8, &mut log, |map, _| executor.on_patches(map));
+        node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(cloud));
         // E-stop first: it must not wait behind other requests.
         node::serve(&stop_srv, STOP, &mut log, |_| executor.stop());
         node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r));

@@ -787,6 +787,7 @@ def render_trajectories(history: list[tuple[float, list[float]]], windows: list[
                         width: int = 1400, height: int = 760) -> np.ndarray:
     """The 12 joint positions over time, trial executions shaded, one colour per joint with a legend."""
     img = np.full((height, width, 3), 255, np.uint8)
+    history = list(history)  # a snapshot: /joint_states keeps appending from the executor thread
     t = np.array([h[0] for h in history])
     q = np.array([h[1] for h in history])
     left, right, top, bottom = 60, width - 170, 40, height - 40

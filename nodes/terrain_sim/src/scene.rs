@@ -431,8 +431,10 @@ impl Default for SceneConfig {
 /// rock from matching another rock's trained patch.
 pub fn default_training_rocks() -> Vec<RockShape> {
     vec![
-        // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−4.1, −7.8) m⁻¹.
-        RockShape::EllipsoidCap { semi_axes_m: [0.11, 0.08, 0.05], centre_z_m: 0.0 },
+        // rock 1: half ellipsoid, elliptic paraboloid top κ ≈ (−5.5, −9.6) m⁻¹: both curvatures
+        // and their difference clearly non-zero for a foot-size patch (a flatter cap comes out
+        // cylindric or elliptic from frame to frame, and J 6.3 matches on the type).
+        RockShape::EllipsoidCap { semi_axes_m: [0.095, 0.072, 0.05], centre_z_m: 0.0 },
         // rock 2: flat-topped boulder 8 cm high, top tilted ≈ 8° down towards the robot.
         RockShape::FlatBoulder { radius_m: 0.07, height_m: 0.08, top_slope: [0.14, 0.0] },
         // rock 3: half-buried log across the robot's path, top 6.5 cm high, κ = (0, −11.1) m⁻¹.

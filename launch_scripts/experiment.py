@@ -77,7 +77,10 @@ HIP_Z = -0.060
 THIGH = SHIN = 0.100
 SOLE = 0.035
 # base_link above the table with straight legs (terrain_sim motion.base_height_m).
-BASE_HEIGHT = 0.285
+BASE_HEIGHT = 0.295  # = HIP_Z + THIGH + SHIN + SOLE below base_link
+# Height of the stepping motion's standing sole below base_link: 1 cm short of full extension, a
+# slightly bent knee keeps the leg IK away from its singularity.
+STANCE_HEIGHT = 0.285
 
 # Matcher thresholds of J 6.3 (step_executor defaults), used only to pick the patch to highlight.
 RS_M = 0.01
@@ -205,7 +208,7 @@ def stepping_motion(target_in_base: np.ndarray, normal_in_base: np.ndarray, clea
     patch normal. `tempo` scales the move times. Every pose is clamped to the joint limits."""
     zero = {j: 0.0 for j in JOINTS}
     shift = dict(zero, l_hip_roll=0.08, r_hip_roll=0.08, l_ankle_roll=-0.08, r_ankle_roll=-0.08)
-    standing_sole = np.array([0.0, HIP_Y["r"], -BASE_HEIGHT])
+    standing_sole = np.array([0.0, HIP_Y["r"], -STANCE_HEIGHT])
     lift = dict(shift, **leg_ik("r", standing_sole + [0.02, 0.0, 0.06]))
     above = np.array([0.75 * target_in_base[0], 0.5 * (HIP_Y["r"] + target_in_base[1]), target_in_base[2] + clearance_m])
     swing = dict(shift, **leg_ik("r", above))
@@ -296,6 +299,12 @@ class ExperimentConfig:
     yaw_perturbation_rad: float = 0.01
     lean_perturbation_rad: float = 0.008
     seed: int = 1
+    # Training target (J 6.3: "we manually select a neighborhood where we would like the robot to place
+    # its foot and we fit a patch"): "nearest" takes the mapped patch nearest the rock top, as the
+    # trainer picking one of the patches the robot itself sees; "fit" fits the mapper's cloud within
+    # foot_radius_m of the top (select_target MODE_FIT_AT_POINT).
+    target_mode: str = "nearest"
+    foot_radius_m: float = 0.05
     out_dir: Path = REPO / "build" / "demo" / "experiment"
     pictures: bool = True
     log: Callable[[str], None] = print
@@ -440,16 +449,28 @@ class Experiment:
         self.place_at(rock)
         self.fresh_map(min_maps=10)
         point = rock.top_in_base()
-        request = SelectTarget.Request(mode=SelectTarget.Request.MODE_NEAREST_POINT, radius=0.03)
+        fit = self.config.target_mode == "fit"
+        mode = SelectTarget.Request.MODE_FIT_AT_POINT if fit else SelectTarget.Request.MODE_NEAREST_POINT
+        request = SelectTarget.Request(mode=mode, radius=self.config.foot_radius_m)
         request.point.x, request.point.y, request.point.z = (float(v) for v in point)
-        # The map grows while tracking: retry until the nearest patch is on the rock top.
+        # Like a trainer who wants the foot on the top: retry (with a fresh map: full cells take no new
+        # seeds) until the target lies within 15 mm of the top; at map_timeout_s keep the last one (the
+        # executor keeps the last selection).
         deadline = time.monotonic() + self.config.map_timeout_s
         while True:
-            target = self._call(SelectTarget, "/step_executor/select_target", request).patch
-            miss = float(np.linalg.norm(np.array(target.center) - point))
-            if miss < 0.03 or time.monotonic() > deadline:
+            response = self.ros.call(SelectTarget, "/step_executor/select_target", request)
+            target = response.patch
+            miss = float(np.linalg.norm(np.array(target.center) - point)) if response.success else float("inf")
+            if miss < 0.015:
                 break
-            time.sleep(0.5)
+            if time.monotonic() > deadline:
+                if not response.success:
+                    raise RuntimeError(f"select_target on {name}: {response.message}")
+                break
+            if fit:
+                time.sleep(0.5)
+            else:
+                self.fresh_map(min_maps=10)
         self.log(f"  {name}: target {SURFACE_NAMES[target.surface] if target.surface < 7 else target.surface} "
                  f"at ({target.center[0]:+.3f}, {target.center[1]:+.3f}, {target.center[2]:+.3f}) m in base_link, "
                  f"{miss * 1000:.1f} mm from the true top ({rock.surface_type})")
@@ -845,6 +866,8 @@ def main() -> int:
     parser.add_argument("--untrained-rocks", type=int, default=None, help="untrained rocks to visit (default all)")
     parser.add_argument("--trial-timeout", type=float, default=10.0, help="s to wait for a match per trial")
     parser.add_argument("--seed", type=int, default=1, help="seed of the placement perturbations")
+    parser.add_argument("--target-mode", choices=("fit", "nearest"), default="fit",
+                        help="training target: fit the mapper's cloud at the rock top (J 6.3) or the nearest map patch")
     parser.add_argument("--out", type=Path, default=REPO / "build" / "demo" / "experiment")
     parser.add_argument("--terrain-sim-param", action="append", default=[], metavar="KEY=VALUE",
                         help="the -p overrides terrain_sim runs with (to read the same scene)")
@@ -853,7 +876,7 @@ def main() -> int:
     rocks = load_scene([a for p in args.terrain_sim_param for a in ("-p", p)])
     config = ExperimentConfig(trials_per_rock=args.trials, untrained_trials=args.untrained_trials,
                               untrained_rocks=args.untrained_rocks, trial_timeout_s=args.trial_timeout,
-                              seed=args.seed, out_dir=args.out)
+                              seed=args.seed, target_mode=args.target_mode, out_dir=args.out)
     harness = pw.RosHarness("experiment")
     started = time.monotonic()
     try:

@@ -350,6 +350,22 @@ pub fn plane_boundary_factor(containment: f64) -> f64 {
     lambda / (-2.0 * (1.0 - gamma).ln()).sqrt()
 }
 
+/// Step 13 as the mapper does it for every seed: the surface fitted to the nf points
+/// `fit_points_in_camera` with the configured sensor covariances (points in the camera frame, the
+/// sensor at its origin), the boundary moments over `boundary_points_in_camera` (the whole
+/// neighbourhood), plane boundaries sized by J 3.2.1 step 5. Public so that a patch fitted elsewhere
+/// (the step executor's training target) is fitted exactly as mapped patches are.
+pub fn fit_neighbourhood(fit_points_in_camera: &[Vector3<f64>], boundary_points_in_camera: &[Vector3<f64>], config: &MapperConfig) -> Result<Patch, String> {
+    let covariances = covariances_for(fit_points_in_camera, &Vector3::zeros(), &config.sensor).map_err(|e| e.to_string())?;
+    let request = FitRequest { containment: config.containment, ..FitRequest::default() };
+    let mut patch = fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)
+        .map_err(|e| e.to_string())?;
+    if config.plane_boundary_j_step5 {
+        size_plane_boundary_j_step5(&mut patch, config.containment);
+    }
+    Ok(patch)
+}
+
 /// Sizes a plane's boundary like every other type's (J 3.2.1 step 5, see
 /// [`MapperConfig::plane_boundary_j_step5`]); other surfaces are left as they are. For anyone who fits
 /// a patch outside the mapper and compares it with mapped ones (e.g. the step executor's training).
@@ -504,18 +520,8 @@ fn process_seed(
         return outcome;
     }
     // Step 13.
-    let fitted = covariances_for(&fit_points, &Vector3::zeros(), &config.sensor)
-        .map_err(|e| e.to_string())
-        .and_then(|covariances| {
-            let request = FitRequest { containment: config.containment, ..FitRequest::default() };
-            // Surface from the nf fit points (J step 12), boundary moments from the validation set.
-            fit_patch_with_boundary_points(&fit_points, Some(&covariances), &validation_points, &request, &config.fit).map_err(|e| e.to_string())
-        });
-    match fitted {
-        Ok(mut patch) => {
-            if config.plane_boundary_j_step5 {
-                size_plane_boundary_j_step5(&mut patch, config.containment);
-            }
+    match fit_neighbourhood(&fit_points, &validation_points, config) {
+        Ok(patch) => {
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
             let validation = validate_patch(&patch, &validation_points, &config.validate);

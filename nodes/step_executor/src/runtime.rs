@@ -7,9 +7,10 @@
 
 use std::collections::HashMap;
 
-use nalgebra::{Isometry3, Point3, Vector3};
-use patch_mapper::fit::{fit_patch, FitConfig, FitRequest};
-use patch_mapper::mapper::size_plane_boundary_j_step5;
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use patch_mapper::mapper::fit_neighbourhood;
+use patch_mapper::patch_map::transform_patch;
+use patch_mapper::pipeline::default_mapper_config;
 
 use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
@@ -335,10 +336,19 @@ impl Runtime {
         if points.len() < MIN_FIT_POINTS {
             return Err(format!("only {} cloud points within {radius_m} m of the point (need {MIN_FIT_POINTS})", points.len()));
         }
-        // The birds-eye camera looks down: normals point up (map z, REP-103).
-        let request = FitRequest { viewpoint: point_in_map + Vector3::z(), ..FitRequest::default() };
-        let mut fitted = fit_patch(&points, None, &request, &FitConfig::default()).map_err(|e| format!("fit: {e}"))?;
-        size_plane_boundary_j_step5(&mut fitted, request.containment);
+        // Fitted exactly as the mapper fits its seeds (same config, nf points, sensor model, boundary
+        // sizing), in a virtual birds-eye camera 1 m above the point looking down (map z is up,
+        // REP-103), so the target compares with mapped patches under J 6.3's thresholds.
+        let config = default_mapper_config();
+        let map_from_camera = Isometry3::from_parts(
+            Translation3::from(point_in_map + Vector3::z()),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        );
+        let points_in_camera: Vec<Vector3<f64>> = points.iter().map(|p| (map_from_camera.inverse() * Point3::from(*p)).coords).collect();
+        let nf = config.neighbourhood.fit_points.clamp(1, points_in_camera.len());
+        let fit_points: Vec<Vector3<f64>> = (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
+        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config).map_err(|e| format!("fit: {e}"))?;
+        let fitted = transform_patch(&fitted_in_camera, &map_from_camera).ok_or("fit: the patch could not be moved to the map frame")?;
         let patch = PatchGeometry {
             surface: SurfaceType::from_u8(fitted.surface as u8).ok_or("fit: unknown surface type")?,
             boundary: BoundaryType::from_u8(fitted.boundary as u8).ok_or("fit: unknown boundary type")?,

@@ -522,7 +522,9 @@ mod tests {
     fn bad_input_is_rejected_and_the_pipeline_keeps_working() {
         let intrinsics = Intrinsics::primesense_default().scaled(0.5);
         let (depth, down) = robot_scene(&intrinsics);
-        let new = || Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), default_mapper_config(), intrinsics).unwrap();
+        // The node's defaults without the per-frame time limit (a loaded test host must not empty the map).
+        let mapper = || MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
+        let new = || Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper(), intrinsics).unwrap();
         let mut pipeline = new();
         let t0 = 100.0;
         // No IMU yet: allowed by default (camera y taken as down), refused when configured.

@@ -304,6 +304,7 @@ class ExperimentConfig:
     # trainer picking one of the patches the robot itself sees; "fit" fits the mapper's cloud within
     # foot_radius_m of the top (select_target MODE_FIT_AT_POINT).
     target_mode: str = "nearest"
+    target_timeout_s: float = 60.0
     foot_radius_m: float = 0.05
     out_dir: Path = REPO / "build" / "demo" / "experiment"
     pictures: bool = True
@@ -453,10 +454,10 @@ class Experiment:
         mode = SelectTarget.Request.MODE_FIT_AT_POINT if fit else SelectTarget.Request.MODE_NEAREST_POINT
         request = SelectTarget.Request(mode=mode, radius=self.config.foot_radius_m)
         request.point.x, request.point.y, request.point.z = (float(v) for v in point)
-        # Like a trainer who wants the foot on the top: retry (with a fresh map: full cells take no new
-        # seeds) until the target lies within 15 mm of the top; at map_timeout_s keep the last one (the
-        # executor keeps the last selection).
-        deadline = time.monotonic() + self.config.map_timeout_s
+        # Like a trainer who wants the foot on the top: wait while the map grows (cells whose seeds failed
+        # get new seeds every frame; mapped patches stay, so the nearest one only gets nearer) until the
+        # target lies within 15 mm of the top; at target_timeout_s keep the last selection.
+        deadline = time.monotonic() + self.config.target_timeout_s
         while True:
             response = self.ros.call(SelectTarget, "/step_executor/select_target", request)
             target = response.patch
@@ -470,7 +471,8 @@ class Experiment:
             if fit:
                 time.sleep(0.5)
             else:
-                self.fresh_map(min_maps=10)
+                start = self.patches.count
+                self.patches.wait(lambda m: self.patches.count >= start + 5, self.config.map_timeout_s, "patch maps")
         self.log(f"  {name}: target {SURFACE_NAMES[target.surface] if target.surface < 7 else target.surface} "
                  f"at ({target.center[0]:+.3f}, {target.center[1]:+.3f}, {target.center[2]:+.3f}) m in base_link, "
                  f"{miss * 1000:.1f} mm from the true top ({rock.surface_type})")

@@ -293,7 +293,7 @@ class ExperimentConfig:
     trials_per_rock: int = 20
     untrained_trials: int = 5          # per untrained rock
     untrained_rocks: Optional[int] = None  # how many untrained rocks to visit (None = all)
-    trial_timeout_s: float = 10.0
+    trial_timeout_s: float = 20.0  # the map of a fresh volume fills in ~1-3 s on a quiet machine, slower under load
     map_timeout_s: float = 30.0
     # Perturbation of the placement (uniform, rad): hip yaw and ankle pitch of both legs.
     yaw_perturbation_rad: float = 0.01
@@ -866,7 +866,7 @@ def main() -> int:
     parser.add_argument("--trials", type=int, default=20, help="trials per trained rock (J 6.3: 20)")
     parser.add_argument("--untrained-trials", type=int, default=5, help="trials per untrained rock")
     parser.add_argument("--untrained-rocks", type=int, default=None, help="untrained rocks to visit (default all)")
-    parser.add_argument("--trial-timeout", type=float, default=10.0, help="s to wait for a match per trial")
+    parser.add_argument("--trial-timeout", type=float, default=20.0, help="s to wait for a match per trial")
     parser.add_argument("--seed", type=int, default=1, help="seed of the placement perturbations")
     parser.add_argument("--target-mode", choices=("fit", "nearest"), default="fit",
                         help="training target: fit the mapper's cloud at the rock top (J 6.3) or the nearest map patch")

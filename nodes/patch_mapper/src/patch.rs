@@ -7,7 +7,7 @@
 //! (rotation matrix, normal, pose, sampled points) is derived.
 
 use crate::geometry::{exp_map, Pose};
-use nalgebra::{DMatrix, DVector, Isometry3, Matrix2, Matrix3, Translation3, UnitQuaternion, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Isometry3, Matrix3, Translation3, UnitQuaternion, Vector2, Vector3};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -403,14 +403,7 @@ impl Patch {
     /// Boundary function in the local xy plane: `≤ 0` inside (eq 17 for ellipse/circle, eq 19–20 for
     /// rectangle/quad).
     pub fn boundary_value(&self, u: &Vector2<f64>) -> f64 {
-        match (self.boundary, self.boundary_params.as_slice()) {
-            (BoundaryType::Ellipse, [dx, dy]) => (u.x / dx).powi(2) + (u.y / dy).powi(2) - 1.0,
-            (BoundaryType::Circle, [dc]) => u.norm_squared() / (dc * dc) - 1.0,
-            _ => match self.boundary_vertices() {
-                Some(v) => (0..4).map(|i| line_value(u, &v[i], &v[(i + 1) % 4])).fold(f64::NEG_INFINITY, f64::max),
-                None => f64::INFINITY,
-            },
-        }
+        self.shape().boundary_value(u)
     }
 
     /// Whether `u` lies inside the projected boundary.
@@ -480,36 +473,136 @@ impl Patch {
     /// Closest point on the bounded surface to a local-frame point (projected Gauss–Newton over the
     /// explicit parameter `u`, constrained to the boundary). Returns the local closest point.
     pub fn closest_point_local(&self, q_l: &Vector3<f64>) -> Vector3<f64> {
-        let mut u = self.project_to_boundary(&q_l.xy());
+        self.shape().closest_point_local(q_l)
+    }
+
+    /// Euclidean distance from a world point to the bounded patch surface (J eq 15's `‖q − p‖`).
+    /// For many points use [`PatchQuery`], which evaluates the rotation and the boundary once.
+    pub fn distance(&self, point_in_world: &Vector3<f64>) -> f64 {
+        PatchQuery::new(self).distance(point_in_world)
+    }
+
+    /// The local-frame surface and boundary in closed form (for repeated queries).
+    pub fn shape(&self) -> PatchShape {
+        PatchShape::new(self)
+    }
+}
+
+/// The boundary of the projected patch with its per-patch constants precomputed (eq 17–21).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum BoundaryShape {
+    /// eq 17 with radii `d_e`.
+    Ellipse { dx: f64, dy: f64 },
+    /// eq 17 with `d_e = [d_c d_c]`.
+    Circle { dc: f64 },
+    /// Rectangle (eq 18) or quadrilateral (eq 21): the counter-clockwise vertices, the edge normals
+    /// `[v_j − v_i]⊥` of eq 20 and their lengths, and the bounding half-extents.
+    Polygon { quad: bool, vertices: [Vector2<f64>; 4], perps: [Vector2<f64>; 4], lengths: [f64; 4], half: Vector2<f64> },
+    /// Boundary parameters of the wrong length: nothing is inside.
+    Invalid { quad: bool },
+}
+
+/// A patch's surface and boundary in its local frame, with everything that does not depend on the
+/// query point evaluated once (boundary vertices and edge normals, curvatures): the per-point work
+/// of [`PatchShape::closest_point_local`] has no trigonometry and no allocation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatchShape {
+    surface: SurfaceType,
+    curvatures: Vector2<f64>,
+    boundary: BoundaryShape,
+}
+
+impl PatchShape {
+    /// The shape of `patch`.
+    pub fn new(patch: &Patch) -> Self {
+        let boundary = match (patch.boundary, patch.boundary_params.as_slice()) {
+            (BoundaryType::Ellipse, [dx, dy]) => BoundaryShape::Ellipse { dx: *dx, dy: *dy },
+            (BoundaryType::Circle, [dc]) => BoundaryShape::Circle { dc: *dc },
+            (b, _) => {
+                let quad = b == BoundaryType::Quadrilateral;
+                match patch.boundary_vertices() {
+                    Some(vertices) => {
+                        let mut perps = [Vector2::zeros(); 4];
+                        let mut lengths = [0.0; 4];
+                        for i in 0..4 {
+                            let d = vertices[(i + 1) % 4] - vertices[i];
+                            perps[i] = Vector2::new(d.y, -d.x);
+                            lengths[i] = perps[i].norm();
+                        }
+                        let half = vertices.iter().fold(Vector2::<f64>::zeros(), |acc, p| Vector2::new(acc.x.max(p.x.abs()), acc.y.max(p.y.abs())));
+                        BoundaryShape::Polygon { quad, vertices, perps, lengths, half }
+                    }
+                    None => BoundaryShape::Invalid { quad },
+                }
+            }
+        };
+        Self { surface: patch.surface, curvatures: patch.curvatures, boundary }
+    }
+
+    /// [`Patch::height`].
+    #[inline]
+    pub fn height(&self, u: &Vector2<f64>) -> Option<(f64, Vector2<f64>)> {
+        let k = self.curvatures;
+        match self.surface {
+            SurfaceType::Sphere => sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz)),
+            SurfaceType::CircularCylinder => sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))),
+            _ => Some((0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))),
+        }
+    }
+
+    /// [`Patch::boundary_value`]: `≤ 0` inside (eq 17 for ellipse/circle, eq 19–20 for rectangle/quad).
+    #[inline]
+    pub fn boundary_value(&self, u: &Vector2<f64>) -> f64 {
+        match &self.boundary {
+            BoundaryShape::Ellipse { dx, dy } => (u.x / dx).powi(2) + (u.y / dy).powi(2) - 1.0,
+            BoundaryShape::Circle { dc } => u.norm_squared() / (dc * dc) - 1.0,
+            BoundaryShape::Polygon { vertices, perps, lengths, .. } => (0..4)
+                .map(|i| if lengths[i] == 0.0 { f64::NEG_INFINITY } else { (u - vertices[i]).dot(&perps[i]) / lengths[i] })
+                .fold(f64::NEG_INFINITY, f64::max),
+            BoundaryShape::Invalid { .. } => f64::INFINITY,
+        }
+    }
+
+    /// Whether `u` lies inside the projected boundary.
+    #[inline]
+    pub fn contains_uv(&self, u: &Vector2<f64>) -> bool {
+        self.boundary_value(u) <= 0.0
+    }
+
+    /// Closest point on the bounded surface to a local-frame point (projected Gauss–Newton over the
+    /// explicit parameter `u`, constrained to the boundary). Returns the local closest point.
+    pub fn closest_point_local(&self, q_l: &Vector3<f64>) -> Vector3<f64> {
+        let q_xy = q_l.xy();
+        let mut u = self.project_to_boundary(&q_xy);
+        let flat = !matches!(self.surface, SurfaceType::Sphere | SurfaceType::CircularCylinder) && self.curvatures.x == 0.0 && self.curvatures.y == 0.0;
+        if flat {
+            // z(u) = 0: the first Gauss–Newton step lands on the projection already.
+            return Vector3::new(u.x, u.y, 0.0);
+        }
         for _ in 0..12 {
             let Some((z, g)) = self.height(&u) else { break };
-            // residual e = (u − q_xy, z − q_z); J = [I; gᵀ]
-            let e_xy = u - q_l.xy();
+            // residual e = (u − q_xy, z − q_z); J = [I; gᵀ]; JᵀJ = I + g gᵀ has the inverse
+            // I − g gᵀ / (1 + gᵀg) (Sherman–Morrison).
+            let e_xy = u - q_xy;
             let e_z = z - q_l.z;
-            let jtj = Matrix2::identity() + g * g.transpose();
             let jte = e_xy + g * e_z;
-            let Some(step) = jtj.try_inverse().map(|inv| inv * jte) else { break };
+            let step = jte - g * (g.dot(&jte) / (1.0 + g.norm_squared()));
             let next = self.project_to_boundary(&(u - step));
-            let moved = (next - u).norm();
+            let moved_sq = (next - u).norm_squared();
             u = next;
-            if moved < 1e-10 {
+            if moved_sq < 1e-20 {
                 break;
             }
         }
-        match self.explicit_local(&u) {
-            Some(p) => p,
+        match self.height(&u) {
+            Some((z, _)) => Vector3::new(u.x, u.y, z),
             None => Vector3::new(u.x, u.y, 0.0),
         }
     }
 
-    /// Euclidean distance from a world point to the bounded patch surface (J eq 15's `‖q − p‖`).
-    pub fn distance(&self, point_in_world: &Vector3<f64>) -> f64 {
-        let q = self.to_local(point_in_world);
-        (self.closest_point_local(&q) - q).norm()
-    }
-
     /// Nearest point of the projected boundary region to `u` (identity inside; radial for ellipses,
     /// which is exact for circles and close for mildly eccentric ellipses).
+    #[inline]
     fn project_to_boundary(&self, u: &Vector2<f64>) -> Vector2<f64> {
         let mut u = *u;
         // Keep spheres/cylinders inside their domain κ² uᵀu < 1.
@@ -532,20 +625,55 @@ impl Patch {
         if value <= 0.0 {
             return u;
         }
-        match self.boundary {
-            BoundaryType::Ellipse | BoundaryType::Circle => u / (value + 1.0).sqrt(),
-            BoundaryType::Rectangle => {
-                let h = self.boundary_half_extents();
-                Vector2::new(u.x.clamp(-h.x, h.x), u.y.clamp(-h.y, h.y))
-            }
-            BoundaryType::Quadrilateral => match self.boundary_vertices() {
-                Some(v) => (0..4)
-                    .map(|i| closest_on_segment(&u, &v[i], &v[(i + 1) % 4]))
-                    .min_by(|a, b| (a - u).norm_squared().total_cmp(&(b - u).norm_squared()))
-                    .unwrap_or(u),
-                None => u,
-            },
+        match &self.boundary {
+            BoundaryShape::Ellipse { .. } | BoundaryShape::Circle { .. } => u / (value + 1.0).sqrt(),
+            BoundaryShape::Polygon { quad: false, half, .. } => Vector2::new(u.x.clamp(-half.x, half.x), u.y.clamp(-half.y, half.y)),
+            BoundaryShape::Polygon { quad: true, vertices, .. } => (0..4)
+                .map(|i| closest_on_segment(&u, &vertices[i], &vertices[(i + 1) % 4]))
+                .min_by(|a, b| (a - u).norm_squared().total_cmp(&(b - u).norm_squared()))
+                .unwrap_or(u),
+            BoundaryShape::Invalid { quad: true } => u,
+            BoundaryShape::Invalid { quad: false } => Vector2::zeros(),
         }
+    }
+}
+
+/// A patch prepared for many point queries (J eq 15 distances, eq 16 projections): the rotation of
+/// the local frame and the [`PatchShape`] are evaluated once.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatchQuery {
+    rot_t: Matrix3<f64>,
+    center: Vector3<f64>,
+    shape: PatchShape,
+}
+
+impl PatchQuery {
+    /// The query form of `patch`.
+    pub fn new(patch: &Patch) -> Self {
+        Self { rot_t: patch.rotation_matrix().transpose(), center: patch.center, shape: PatchShape::new(patch) }
+    }
+
+    /// The local surface and boundary.
+    pub fn shape(&self) -> &PatchShape {
+        &self.shape
+    }
+
+    /// `X_r`: a world point in the patch frame (eq 4), as [`Patch::to_local`].
+    #[inline]
+    pub fn to_local(&self, point_in_world: &Vector3<f64>) -> Vector3<f64> {
+        self.rot_t * (point_in_world - self.center)
+    }
+
+    /// Euclidean distance from a local-frame point to the bounded patch surface.
+    #[inline]
+    pub fn distance_local(&self, q_l: &Vector3<f64>) -> f64 {
+        (self.shape.closest_point_local(q_l) - q_l).norm()
+    }
+
+    /// [`Patch::distance`].
+    #[inline]
+    pub fn distance(&self, point_in_world: &Vector3<f64>) -> f64 {
+        self.distance_local(&self.to_local(point_in_world))
     }
 }
 
@@ -560,17 +688,6 @@ fn sphere_height(kappa: f64, s: f64) -> Option<(f64, f64)> {
     let z = kappa * s / (1.0 + root);
     let dz = if root > 1e-12 { kappa / root } else { kappa / 1e-12 };
     Some((z, dz))
-}
-
-/// 2D line implicit form `l(u, v_i, v_j) = (u − v_i)ᵀ [v_j − v_i]⊥` (eq 20), `[x y]⊥ = [y −x]`.
-fn line_value(u: &Vector2<f64>, vi: &Vector2<f64>, vj: &Vector2<f64>) -> f64 {
-    let d = vj - vi;
-    let perp = Vector2::new(d.y, -d.x);
-    let len = perp.norm();
-    if len == 0.0 {
-        return f64::NEG_INFINITY;
-    }
-    (u - vi).dot(&perp) / len
 }
 
 fn closest_on_segment(u: &Vector2<f64>, a: &Vector2<f64>, b: &Vector2<f64>) -> Vector2<f64> {

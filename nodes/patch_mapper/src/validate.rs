@@ -1,7 +1,7 @@
 //! Patch validation (J 3.3): Euclidean residual, coverage grid, curvature bounds; every rejection
 //! names the failed test and by how much.
 
-use crate::patch::Patch;
+use crate::patch::{Patch, PatchQuery, PatchShape};
 use nalgebra::{Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -114,9 +114,12 @@ impl Validation {
 
 /// Validate a fitted patch against its (full) neighbourhood points (J 3.3).
 pub fn validate_patch(patch: &Patch, neighbourhood: &[Vector3<f64>], config: &ValidateConfig) -> Validation {
-    let rho = residual(patch, neighbourhood);
+    // The points in the patch frame once (eq 4), for both the residual and the coverage grid.
+    let query = PatchQuery::new(patch);
+    let local: Vec<Vector3<f64>> = neighbourhood.iter().map(|q| query.to_local(q)).collect();
+    let rho = residual_local(&query, &local);
     let residual = TestResult { passed: rho <= config.residual_threshold, value: rho, threshold: config.residual_threshold };
-    let (bad, allowed) = coverage_bad_cells(patch, neighbourhood, config);
+    let (bad, allowed) = coverage_bad_cells_local(patch, query.shape(), &local, config);
     let coverage = TestResult { passed: bad as f64 <= allowed, value: bad as f64, threshold: allowed };
     let (kmin, kmax) = principal_curvature_range(patch);
     Validation {
@@ -130,11 +133,19 @@ pub fn validate_patch(patch: &Patch, neighbourhood: &[Vector3<f64>], config: &Va
 /// Residual `ρ = RMS ‖q_i − p_i‖` with `p_i` the closest point on the bounded patch (J eq 15).
 /// Infinite for an empty or non-finite neighbourhood.
 pub fn residual(patch: &Patch, points: &[Vector3<f64>]) -> f64 {
-    if points.is_empty() {
+    let query = PatchQuery::new(patch);
+    let local: Vec<Vector3<f64>> = points.iter().map(|q| query.to_local(q)).collect();
+    residual_local(&query, &local)
+}
+
+/// [`residual`] of points already in the patch frame.
+fn residual_local(query: &PatchQuery, local: &[Vector3<f64>]) -> f64 {
+    if local.is_empty() {
         return f64::INFINITY;
     }
-    let sum: f64 = points.iter().map(|q| patch.distance(q).powi(2)).sum();
-    let rho = (sum / points.len() as f64).sqrt();
+    let shape = query.shape();
+    let sum: f64 = local.iter().map(|q| (shape.closest_point_local(q) - q).norm_squared()).sum();
+    let rho = (sum / local.len() as f64).sqrt();
     if rho.is_finite() {
         rho
     } else {
@@ -166,23 +177,30 @@ pub fn coverage_cell_size(area: f64, n: usize, config: &ValidateConfig) -> f64 {
 /// Coverage test of J eq 16–17: returns `(bad cells, T_p)`. The grid of pitch w_c covers the
 /// projected boundary and the projected points (limited to 3× the boundary box).
 pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &ValidateConfig) -> (usize, f64) {
+    let query = PatchQuery::new(patch);
+    let local: Vec<Vector3<f64>> = points.iter().map(|q| query.to_local(q)).collect();
+    coverage_bad_cells_local(patch, query.shape(), &local, config)
+}
+
+/// [`coverage_bad_cells`] of points already in the patch frame.
+fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<f64>], config: &ValidateConfig) -> (usize, f64) {
     let area = patch.boundary_area();
-    let wc = coverage_cell_size(area, points.len(), config);
+    let wc = coverage_cell_size(area, local.len(), config);
     let n_p = area / (wc * wc);
     let allowed = config.bad_cell_fraction * n_p;
-    if points.is_empty() || !(n_p > 0.0) || !(wc > 0.0) {
+    if local.is_empty() || !(n_p > 0.0) || !(wc > 0.0) {
         return (usize::MAX, allowed);
     }
     let h = patch.boundary_half_extents();
     let limit = h * 3.0;
-    let rot_t = patch.rotation_matrix().transpose();
-    let uvs: Vec<Vector2<f64>> = points.iter().map(|q| (rot_t * (q - patch.center)).xy()).collect();
+    // u = Π_xy X_r(q) (eq 16)
     let mut lo = -h;
     let mut hi = h;
-    for u in &uvs {
+    for q in local {
+        let u = q.xy();
         if u.x.abs() <= limit.x && u.y.abs() <= limit.y {
-            lo = lo.inf(u);
-            hi = hi.sup(u);
+            lo = lo.inf(&u);
+            hi = hi.sup(&u);
         }
     }
     // Grid anchored at the patch centre so cells are symmetric about it.
@@ -193,31 +211,33 @@ pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &Valid
     if nx.saturating_mul(ny) > 4_000_000 {
         return (usize::MAX, allowed);
     }
-    let mut inside = vec![0u32; nx * ny];
-    let mut outside = vec![0u32; nx * ny];
-    for u in &uvs {
+    // Per cell: [points inside the boundary, points outside].
+    let mut counts = vec![[0u32; 2]; nx * ny];
+    for q in local {
+        let u = q.xy();
         let ci = (u.x / wc).floor() as i64 - i0;
         let cj = (u.y / wc).floor() as i64 - j0;
         if ci < 0 || cj < 0 || ci >= nx as i64 || cj >= ny as i64 {
             continue;
         }
         let idx = cj as usize * nx + ci as usize;
-        let counts = if patch.contains_uv(u) { &mut inside } else { &mut outside };
+        let side = if shape.contains_uv(&u) { 0 } else { 1 };
         if let Some(c) = counts.get_mut(idx) {
-            *c += 1;
+            c[side] += 1;
         }
     }
-    let n_e = points.len() as f64 / n_p;
+    let n_e = local.len() as f64 / n_p;
     let t_i = config.zeta_inside * n_e;
     let t_o = config.zeta_outside * n_e;
     let s = config.area_subsamples.max(1);
+    let k = config.count_tolerance_sigmas.max(0.0);
     let mut bad = 0;
     for cj in 0..ny {
         for ci in 0..nx {
             let x0 = (i0 + ci as i64) as f64 * wc;
             let y0 = (j0 + cj as i64) as f64 * wc;
             // A_i / w_c²: 1 if all corners are inside (convex boundary), else by sub-sampling.
-            let corners_inside = [(0.0, 0.0), (wc, 0.0), (0.0, wc), (wc, wc)].iter().all(|(dx, dy)| patch.contains_uv(&Vector2::new(x0 + dx, y0 + dy)));
+            let corners_inside = [(0.0, 0.0), (wc, 0.0), (0.0, wc), (wc, wc)].iter().all(|(dx, dy)| shape.contains_uv(&Vector2::new(x0 + dx, y0 + dy)));
             let frac = if corners_inside {
                 1.0
             } else {
@@ -225,18 +245,16 @@ pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &Valid
                 for a in 0..s {
                     for b in 0..s {
                         let u = Vector2::new(x0 + (a as f64 + 0.5) * wc / s as f64, y0 + (b as f64 + 0.5) * wc / s as f64);
-                        if patch.contains_uv(&u) {
+                        if shape.contains_uv(&u) {
                             hits += 1;
                         }
                     }
                 }
                 hits as f64 / (s * s) as f64
             };
-            let idx = cj * nx + ci;
-            let ic = inside.get(idx).copied().unwrap_or(0) as f64;
-            let oc = outside.get(idx).copied().unwrap_or(0) as f64;
+            let [ic, oc] = counts.get(cj * nx + ci).copied().unwrap_or([0, 0]);
+            let (ic, oc) = (ic as f64, oc as f64);
             // J eq 16, with the counting tolerance.
-            let k = config.count_tolerance_sigmas.max(0.0);
             if ic < frac * t_i - k * (frac * n_e).sqrt() || oc > (1.0 - frac) * t_o + k * ((1.0 - frac) * n_e).sqrt() {
                 bad += 1;
             }

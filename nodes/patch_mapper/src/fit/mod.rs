@@ -254,7 +254,7 @@ pub fn chi_square(patch: &Patch, points: &[Vector3<f64>], point_covariances: Opt
         None => Covariances::Constant(Matrix3::identity()),
     };
     let state = SurfaceState { k3: patch.k3(), rot: patch.rotation_matrix(), c: patch.center };
-    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance, false).chi2
+    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance, false, false).chi2
 }
 
 /// Reject inputs that would make the fit meaningless (typed errors, never panics).
@@ -611,7 +611,7 @@ fn finish(
     // Surface part of Σ: WLM information at the final frame (measurement noise).
     let model = model_for(surface);
     let mfree = model.num_free();
-    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative);
+    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, true);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
     let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();

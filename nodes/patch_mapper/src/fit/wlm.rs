@@ -119,6 +119,7 @@ pub(crate) fn point_terms(
     min_variance: f64,
     with_gradient: bool,
     weight_derivative: bool,
+    with_sampson: bool,
 ) -> (f64, Local, f64) {
     let k = &state.k3;
     let q = state.rot.transpose() * (q_w - state.c);
@@ -132,9 +133,19 @@ pub(crate) fn point_terms(
     let clamped = var_raw < min_variance;
     let var = if clamped { min_variance } else { var_raw };
     let sigma = var.sqrt();
-    let big_f = f / sigma;
-    let grad_norm = g_l.norm();
-    let sampson = if grad_norm > 0.0 { f.abs() / grad_norm } else { f.abs() };
+    // One division per point; the LM loop only needs the Sampson distance at the end (`finish`).
+    let inv_sigma = 1.0 / sigma;
+    let big_f = f * inv_sigma;
+    let sampson = if with_sampson {
+        let grad_norm = g_l.norm();
+        if grad_norm > 0.0 {
+            f.abs() / grad_norm
+        } else {
+            f.abs()
+        }
+    } else {
+        0.0
+    };
     if !with_gradient {
         return (big_f, Local::zeros(), sampson);
     }
@@ -142,7 +153,7 @@ pub(crate) fn point_terms(
     let df_dd = g_l.cross(&q);
     let df = Local::from_column_slice(&[q.x * q.x, q.y * q.y, q.z * q.z, df_dd.x, df_dd.y, df_dd.z, -g_l.x, -g_l.y, -g_l.z]);
     if clamped || !weight_derivative {
-        return (big_f, df / sigma, sampson);
+        return (big_f, df * inv_sigma, sampson);
     }
     // ∂σ²/∂p = 2 s_lᵀ Rᵀ ∂g_w/∂p (eq 41): κ_j → 4 s_j q_j, δ → 4(a × s + (K s) × q), δc → −4 K s
     let s = state.rot.transpose() * s_w;
@@ -172,7 +183,8 @@ pub(crate) struct Normal {
     pub sampson_sq: f64,
 }
 
-/// One pass over the points: χ², `H = Σ ∇F ∇Fᵀ`, `b = Σ ∇F F` over the free parameters.
+/// One pass over the points: χ², `H = Σ ∇F ∇Fᵀ`, `b = Σ ∇F F` over the free parameters (eq 36;
+/// the Gauss–Newton part of the Hessian). The Sampson sum is only formed if `with_sampson`.
 pub(crate) fn accumulate(
     model: Model,
     state: &SurfaceState,
@@ -180,28 +192,68 @@ pub(crate) fn accumulate(
     covs: &Covariances<'_>,
     min_variance: f64,
     weight_derivative: bool,
+    with_sampson: bool,
 ) -> Normal {
-    let m = model.num_free();
-    // Accumulate over all 9 local slots (fixed-size, vectorisable), project to the free set once.
-    let mut h9 = SMatrix::<f64, 9, 9>::zeros();
-    let mut b9 = Local::zeros();
-    let mut chi2 = 0.0;
-    let mut sampson_sq = 0.0;
-    for (i, q) in points.iter().enumerate() {
-        let cov = covs.get(i);
-        let (f, grad, d) = point_terms(state, q, &cov, min_variance, true, weight_derivative);
-        h9.ger(1.0, &grad, &grad, 1.0);
-        b9.axpy(f, &grad, 1.0);
-        chi2 += f * f;
-        sampson_sq += d * d;
+    let run = Pass { state, points, covs, min_variance, weight_derivative, with_sampson };
+    // Each model's free parameters as sums of the local slots (the columns of `Model::embedding`),
+    // so the per-point update is a rank-1 update of the (small) free matrix only.
+    match model {
+        Model::Plane => run.free::<3>(|g| SVector::from([g[3], g[4], g[8]])),
+        Model::Paraboloid => run.free::<8>(|g| SVector::from([g[0], g[1], g[3], g[4], g[5], g[6], g[7], g[8]])),
+        Model::CircularParaboloid => run.free::<6>(|g| SVector::from([g[0] + g[1], g[3], g[4], g[6], g[7], g[8]])),
+        Model::CylindricParaboloid => run.free::<6>(|g| SVector::from([g[1], g[3], g[4], g[5], g[7], g[8]])),
+        Model::Sphere => run.free::<4>(|g| SVector::from([g[0] + g[1] + g[2], g[3], g[4], g[8]])),
+        Model::Cylinder => run.free::<5>(|g| SVector::from([g[1] + g[2], g[3], g[4], g[5], g[8]])),
     }
-    let e = model.embedding();
-    let mut h = e.transpose() * h9 * e;
-    let b = e.transpose() * b9;
-    for r in m..MAX_FREE {
-        h[(r, r)] = 1.0;
+}
+
+/// Inputs of one [`accumulate`] pass.
+struct Pass<'a, 'b> {
+    state: &'a SurfaceState,
+    points: &'a [Vector3<f64>],
+    covs: &'a Covariances<'b>,
+    min_variance: f64,
+    weight_derivative: bool,
+    with_sampson: bool,
+}
+
+impl Pass<'_, '_> {
+    /// The pass with `M` free parameters; `project` maps the 9 local slots to them.
+    #[inline(always)]
+    fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
+        let mut hm = SMatrix::<f64, M, M>::zeros();
+        let mut bm = SVector::<f64, M>::zeros();
+        let mut chi2 = 0.0;
+        let mut sampson_sq = 0.0;
+        for (i, q) in self.points.iter().enumerate() {
+            let cov = self.covs.get(i);
+            let (f, grad, d) = point_terms(self.state, q, &cov, self.min_variance, true, self.weight_derivative, self.with_sampson);
+            let g = project(&grad);
+            // Lower triangle only (H is symmetric); mirrored below.
+            for c in 0..M {
+                let gc = g[c];
+                for r in c..M {
+                    hm[(r, c)] += g[r] * gc;
+                }
+            }
+            bm.axpy(f, &g, 1.0);
+            chi2 += f * f;
+            sampson_sq += d * d;
+        }
+        let mut h = FreeMatrix::zeros();
+        let mut b = Free::zeros();
+        for c in 0..M {
+            for r in c..M {
+                h[(r, c)] = hm[(r, c)];
+                h[(c, r)] = hm[(r, c)];
+            }
+            b[c] = bm[c];
+        }
+        for r in M..MAX_FREE {
+            h[(r, r)] = 1.0;
+        }
+        Normal { chi2, h, b, sampson_sq }
     }
-    Normal { chi2, h, b, sampson_sq }
 }
 
 /// Point covariances: per point, or one constant matrix (no sensor model).
@@ -248,7 +300,7 @@ pub(crate) fn run(
     let m = model.num_free();
     let embed = model.embedding();
     let mut state = start;
-    let mut normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative);
+    let mut normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, false);
     if !normal.chi2.is_finite() {
         return Err(FitError::Diverged("non-finite residual at the start"));
     }
@@ -279,7 +331,7 @@ pub(crate) fn run(
             return Err(FitError::Diverged("non-finite step"));
         }
         let trial = state.apply(&(embed * step));
-        let trial_normal = accumulate(model, &trial, points, covs, settings.min_variance, settings.weight_derivative);
+        let trial_normal = accumulate(model, &trial, points, covs, settings.min_variance, settings.weight_derivative, false);
         if trial_normal.chi2.is_finite() && trial_normal.chi2 <= normal.chi2 {
             let decrease = normal.chi2 - trial_normal.chi2;
             state = trial;
@@ -316,14 +368,48 @@ mod tests {
         };
         let q = Vector3::new(0.15, -0.17, 1.02);
         let cov = Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0) * 1e-6;
-        let (_, grad, _) = point_terms(&state, &q, &cov, 1e-20, true, true);
+        let (_, grad, _) = point_terms(&state, &q, &cov, 1e-20, true, true, true);
         for slot in 0..9 {
             let mut e = Local::zeros();
             e[slot] = 1e-7;
-            let (fp, _, _) = point_terms(&state.apply(&e), &q, &cov, 1e-20, false, true);
-            let (fm, _, _) = point_terms(&state.apply(&(-e)), &q, &cov, 1e-20, false, true);
+            let (fp, _, _) = point_terms(&state.apply(&e), &q, &cov, 1e-20, false, true, false);
+            let (fm, _, _) = point_terms(&state.apply(&(-e)), &q, &cov, 1e-20, false, true, false);
             let fd = (fp - fm) / 2e-7;
             assert!((fd - grad[slot]).abs() < 1e-4 * (1.0 + fd.abs()), "slot {slot}: fd {fd} analytic {}", grad[slot]);
+        }
+    }
+
+    /// The free-parameter accumulation equals `Eᵀ (Σ ∇F ∇Fᵀ) E` over the 9 local slots.
+    #[test]
+    fn free_accumulation_matches_the_embedding() {
+        let state = SurfaceState {
+            k3: Vector3::new(3.0, -2.0, 1.5),
+            rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)),
+            c: Vector3::new(0.1, -0.2, 1.0),
+        };
+        let points: Vec<_> = (0..40).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
+        let covs: Vec<_> = (0..40).map(|i| Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0 + i as f64) * 1e-6).collect();
+        let covs = Covariances::PerPoint(&covs);
+        for model in [Model::Plane, Model::Paraboloid, Model::CircularParaboloid, Model::CylindricParaboloid, Model::Sphere, Model::Cylinder] {
+            let mut h9 = SMatrix::<f64, 9, 9>::zeros();
+            let mut b9 = Local::zeros();
+            let mut sampson_sq = 0.0;
+            for (i, q) in points.iter().enumerate() {
+                let (f, grad, d) = point_terms(&state, q, &covs.get(i), 1e-20, true, false, true);
+                h9.ger(1.0, &grad, &grad, 1.0);
+                b9.axpy(f, &grad, 1.0);
+                sampson_sq += d * d;
+            }
+            let e = model.embedding();
+            let mut h = e.transpose() * h9 * e;
+            for r in model.num_free()..MAX_FREE {
+                h[(r, r)] = 1.0;
+            }
+            let b = e.transpose() * b9;
+            let n = accumulate(model, &state, &points, &covs, 1e-20, false, true);
+            assert!((n.h - h).norm() <= 1e-12 * h.norm(), "{model:?}");
+            assert!((n.b - b).norm() <= 1e-12 * b.norm(), "{model:?}");
+            assert!((n.sampson_sq - sampson_sq).abs() <= 1e-12 * sampson_sq, "{model:?}");
         }
     }
 }

@@ -167,8 +167,18 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
             for dv in radius.saturating_sub(v)..=(height - 1 + radius - v).min(2 * radius) {
                 let src_v = v + dv - radius;
                 let src_row = &padded[src_v * padded_width..(src_v + 1) * padded_width];
-                for du in 0..diameter {
-                    let ws = spatial[dv * diameter + du];
+                let weights = &spatial[dv * diameter..(dv + 1) * diameter];
+                // The default 5×5 window: all taps of a window row in one pass (sums stay in
+                // registers; same per-pixel summation order as the generic loop below).
+                if let Ok(weights) = <&[f32; 5]>::try_from(weights) {
+                    if zero_tap_ignored {
+                        window_row::<5, false>(src_row, weights, centre, quarter_inv, sum_w, sum_wz);
+                    } else {
+                        window_row::<5, true>(src_row, weights, centre, quarter_inv, sum_w, sum_wz);
+                    }
+                    continue;
+                }
+                for (du, &ws) in weights.iter().enumerate() {
                     let (Some(taps), Some(centre), Some(quarter_inv)) = (src_row.get(du..du + width), centre.get(..width), quarter_inv.get(..width)) else {
                         continue;
                     };
@@ -199,6 +209,41 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
         },
     );
     DepthImage { width, height, depth_m: out }
+}
+
+/// Step 4 sums of one window row with `D` taps (`weights`, the spatial weights of the row) into
+/// `sum_w`, `sum_wz` for every pixel of an output row: each pixel adds its taps left to right
+/// with the same arithmetic as the generic loop of [`bilateral_filter_in_range`], but reads and
+/// writes its sums once per window row instead of once per tap. `MASK` multiplies each weight by
+/// the tap's validity.
+#[inline(always)]
+fn window_row<const D: usize, const MASK: bool>(
+    src_row: &[f32],
+    weights: &[f32; D],
+    centre: &[f32],
+    quarter_inv: &[f32],
+    sum_w: &mut [f32],
+    sum_wz: &mut [f32],
+) {
+    let n = centre.len().min(quarter_inv.len()).min(sum_w.len()).min(sum_wz.len()).min((src_row.len() + 1).saturating_sub(D));
+    let taps: [&[f32]; D] = std::array::from_fn(|du| &src_row[du..du + n]);
+    let (centre, quarter_inv, sum_w, sum_wz) = (&centre[..n], &quarter_inv[..n], &mut sum_w[..n], &mut sum_wz[..n]);
+    for i in 0..n {
+        let (zc, q) = (centre[i], quarter_inv[i]);
+        let (mut sw, mut swz) = (sum_w[i], sum_wz[i]);
+        for du in 0..D {
+            let zs = taps[du][i];
+            let a = biweight(zs - zc, q);
+            let mut w = weights[du] * a * a;
+            if MASK {
+                w *= if zs > 0.0 { 1.0 } else { 0.0 };
+            }
+            sw += w;
+            swz += w * zs;
+        }
+        sum_w[i] = sw;
+        sum_wz[i] = swz;
+    }
 }
 
 /// Step 4 range kernel `(1 − t/4)₊` of a tap at depth difference `dz` (its square is the weight),

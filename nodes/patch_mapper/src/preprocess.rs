@@ -83,13 +83,14 @@ impl PreprocessConfig {
     }
 }
 
-/// Steps 3–5 in order.
+/// Steps 3–5 in order. Step 3 is folded into step 4 (the background test is applied while the
+/// bilateral filter pads its input), so the full-resolution image is read once.
 pub fn preprocess(depth: &DepthImage, intrinsics: &Intrinsics, config: &PreprocessConfig) -> Result<Preprocessed, PreprocessError> {
     config.check()?;
     check_size(depth, intrinsics)?;
-    let foreground = remove_background(depth, config.z_min_m, config.z_max_m);
-    let filtered = bilateral_filter(
-        &foreground,
+    let filtered = bilateral_filter_in_range(
+        depth,
+        (config.z_min_m as f32, config.z_max_m as f32),
         config.bilateral_radius_px,
         config.bilateral_sigma_px,
         config.bilateral_sigma_depth_at_1m,
@@ -116,18 +117,31 @@ pub fn remove_background(depth: &DepthImage, z_min_m: f64, z_max_m: f64) -> Dept
 /// |Δz| = 2√2 σ_r), so neighbours across a depth discontinuity get no weight at all and the inner
 /// loop is branch- and division-free (vectorised). Rows run in parallel.
 pub fn bilateral_filter(depth: &DepthImage, radius: usize, sigma_px: f64, sigma_depth_at_1m: f64) -> DepthImage {
+    bilateral_filter_in_range(depth, (f32::NEG_INFINITY, f32::INFINITY), radius, sigma_px, sigma_depth_at_1m)
+}
+
+/// Steps 3 + 4: [`bilateral_filter`] of [`remove_background`]`(depth, z_min, z_max)`, bit for bit,
+/// without the intermediate image. Depths outside `[z_min, z_max]` (and non-finite or non-positive
+/// ones) are invalid: they get no weight and stay NaN.
+///
+/// Invalid taps are stored as 0. For a centre depth z the biweight of a 0 tap is
+/// `(1 − z²/(8σ_1m²z⁴))₊²`, exactly 0 whenever z < 1/(2√2 σ_1m) (35 m for the default σ_1m), so
+/// a row whose valid centres all satisfy that (checked in the same f32 arithmetic) needs no
+/// validity mask in its inner loop; other rows multiply each weight by the tap's validity.
+fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: usize, sigma_px: f64, sigma_depth_at_1m: f64) -> DepthImage {
     let (width, height) = (depth.width, depth.height);
     let padded_width = width + 2 * radius;
-    // Zero-padded copy, 0 = invalid, so the inner loop needs no bounds or NaN branches.
+    // Zero-padded copy, 0 = invalid (step 3 applied here), so the inner loop needs no bounds or
+    // NaN branches.
     let mut padded = vec![0.0f32; padded_width * height];
-    for (src, dst) in depth.depth_m.chunks_exact(width).zip(padded.chunks_exact_mut(padded_width)) {
+    padded.par_chunks_mut(padded_width).zip(depth.depth_m.par_chunks(width.max(1))).for_each(|(dst, src)| {
         for (d, &z) in dst[radius..radius + width].iter_mut().zip(src) {
-            *d = if z.is_finite() { z } else { 0.0 };
+            *d = if z >= lo && z <= hi && z > 0.0 { z } else { 0.0 };
         }
-    }
-    let valid: Vec<f32> = padded.iter().map(|&z| if z > 0.0 { 1.0 } else { 0.0 }).collect();
-    let spatial: Vec<f32> = (0..=2 * radius)
-        .flat_map(|dv| (0..=2 * radius).map(move |du| (dv, du)))
+    });
+    let diameter = 2 * radius + 1;
+    let spatial: Vec<f32> = (0..diameter)
+        .flat_map(|dv| (0..diameter).map(move |du| (dv, du)))
         .map(|(dv, du)| {
             let (dy, dx) = (dv as f64 - radius as f64, du as f64 - radius as f64);
             (-(dx * dx + dy * dy) / (2.0 * sigma_px * sigma_px)).exp() as f32
@@ -135,38 +149,57 @@ pub fn bilateral_filter(depth: &DepthImage, radius: usize, sigma_px: f64, sigma_
         .collect();
     let inv_two_sigma_sq_1m = (1.0 / (2.0 * sigma_depth_at_1m * sigma_depth_at_1m)) as f32;
     let mut out = vec![f32::NAN; width * height];
-    out.par_chunks_mut(width).enumerate().for_each_init(
+    out.par_chunks_mut(width.max(1)).enumerate().for_each_init(
         || (vec![0.0f32; width], vec![0.0f32; width], vec![0.0f32; width]),
-        |(sum_w, sum_wz, inv), (v, out_row)| {
+        |(sum_w, sum_wz, quarter_inv), (v, out_row)| {
             let centre = &padded[v * padded_width + radius..v * padded_width + radius + width];
-            for (i, &z) in inv.iter_mut().zip(centre) {
-                // 1 / (2 σ_r(z)²) with σ_r = σ_1m z² (0 for an invalid centre, whose output is NaN).
+            for (q, &z) in quarter_inv.iter_mut().zip(centre) {
+                // 1 / (8 σ_r(z)²) with σ_r = σ_1m z², i.e. t/4 = Δz²·q (0 for an invalid centre,
+                // whose output is NaN). Scaling by 1/4 is exact, so (Δz²·inv)/4 = Δz²·(inv/4).
                 let z2 = z * z;
-                *i = if z > 0.0 { inv_two_sigma_sq_1m / (z2 * z2) } else { 0.0 };
+                *q = if z > 0.0 { 0.25 * (inv_two_sigma_sq_1m / (z2 * z2)) } else { 0.0 };
             }
+            // Does a 0 (invalid) tap get weight exactly 0 from every valid centre of the row?
+            let zero_tap_ignored = centre.iter().zip(quarter_inv.iter()).all(|(&z, &q)| !(z > 0.0) || biweight(0.0 - z, q) == 0.0);
             sum_w.fill(0.0);
             sum_wz.fill(0.0);
-            for dv in 0..=2 * radius {
-                let Some(src_v) = (v + dv).checked_sub(radius).filter(|&r| r < height) else { continue };
+            // Window rows inside the image (rows outside it contribute nothing).
+            for dv in radius.saturating_sub(v)..=(height - 1 + radius - v).min(2 * radius) {
+                let src_v = v + dv - radius;
                 let src_row = &padded[src_v * padded_width..(src_v + 1) * padded_width];
-                let mask_row = &valid[src_v * padded_width..(src_v + 1) * padded_width];
-                for du in 0..=2 * radius {
-                    let ws = spatial[dv * (2 * radius + 1) + du];
-                    let (Some(taps), Some(centre), Some(inv)) = (src_row.get(du..du + width), centre.get(..width), inv.get(..width)) else {
+                let weights = &spatial[dv * diameter..(dv + 1) * diameter];
+                // The default 5×5 window: all taps of a window row in one pass (sums stay in
+                // registers; same per-pixel summation order as the generic loop below).
+                if let Ok(weights) = <&[f32; 5]>::try_from(weights) {
+                    if zero_tap_ignored {
+                        window_row::<5, false>(src_row, weights, centre, quarter_inv, sum_w, sum_wz);
+                    } else {
+                        window_row::<5, true>(src_row, weights, centre, quarter_inv, sum_w, sum_wz);
+                    }
+                    continue;
+                }
+                for (du, &ws) in weights.iter().enumerate() {
+                    let (Some(taps), Some(centre), Some(quarter_inv)) = (src_row.get(du..du + width), centre.get(..width), quarter_inv.get(..width)) else {
                         continue;
                     };
                     let (sum_w, sum_wz) = (&mut sum_w[..width], &mut sum_wz[..width]);
-                    // Equal-length slices, no division, no branch (`max` is a min/max
-                    // instruction, an invalid tap has mask 0): the loop vectorises.
-                    let Some(mask) = mask_row.get(du..du + width) else { continue };
-                    for i in 0..width {
-                        let zs = taps[i];
-                        let d = zs - centre[i];
-                        let t = d * d * inv[i];
-                        let a = (1.0 - 0.25 * t).max(0.0);
-                        let w = ws * a * a * mask[i];
-                        sum_w[i] += w;
-                        sum_wz[i] += w * zs;
+                    // Equal-length slices, no division, no branch: the loop vectorises.
+                    if zero_tap_ignored {
+                        for i in 0..width {
+                            let zs = taps[i];
+                            let a = biweight(zs - centre[i], quarter_inv[i]);
+                            let w = ws * a * a;
+                            sum_w[i] += w;
+                            sum_wz[i] += w * zs;
+                        }
+                    } else {
+                        for i in 0..width {
+                            let zs = taps[i];
+                            let a = biweight(zs - centre[i], quarter_inv[i]);
+                            let w = ws * a * a * if zs > 0.0 { 1.0 } else { 0.0 };
+                            sum_w[i] += w;
+                            sum_wz[i] += w * zs;
+                        }
                     }
                 }
             }
@@ -176,6 +209,66 @@ pub fn bilateral_filter(depth: &DepthImage, radius: usize, sigma_px: f64, sigma_
         },
     );
     DepthImage { width, height, depth_m: out }
+}
+
+/// Step 4 sums of one window row with `D` taps (`weights`, the spatial weights of the row) into
+/// `sum_w`, `sum_wz` for every pixel of an output row: each pixel adds its taps left to right
+/// with the same arithmetic as the generic loop of [`bilateral_filter_in_range`], but reads and
+/// writes its sums once per window row instead of once per tap. `MASK` multiplies each weight by
+/// the tap's validity.
+#[inline(always)]
+fn window_row<const D: usize, const MASK: bool>(
+    src_row: &[f32],
+    weights: &[f32; D],
+    centre: &[f32],
+    quarter_inv: &[f32],
+    sum_w: &mut [f32],
+    sum_wz: &mut [f32],
+) {
+    let n = centre.len().min(quarter_inv.len()).min(sum_w.len()).min(sum_wz.len()).min((src_row.len() + 1).saturating_sub(D));
+    let taps: [&[f32]; D] = std::array::from_fn(|du| &src_row[du..du + n]);
+    let (centre, quarter_inv, sum_w, sum_wz) = (&centre[..n], &quarter_inv[..n], &mut sum_w[..n], &mut sum_wz[..n]);
+    for i in 0..n {
+        let (zc, q) = (centre[i], quarter_inv[i]);
+        let (mut sw, mut swz) = (sum_w[i], sum_wz[i]);
+        for du in 0..D {
+            let zs = taps[du][i];
+            let a = biweight(zs - zc, q);
+            let mut w = weights[du] * a * a;
+            if MASK {
+                w *= if zs > 0.0 { 1.0 } else { 0.0 };
+            }
+            sw += w;
+            swz += w * zs;
+        }
+        sum_w[i] = sw;
+        sum_wz[i] = swz;
+    }
+}
+
+/// Step 4 range kernel `(1 − t/4)₊` of a tap at depth difference `dz` (its square is the weight),
+/// with `t/4 = dz²·quarter_inv`, `quarter_inv` = 1/(8σ_r²); a NaN gives 0.
+#[inline(always)]
+fn biweight(dz: f32, quarter_inv: f32) -> f32 {
+    (1.0 - dz * dz * quarter_inv).max(0.0)
+}
+
+/// Step 5 median of one 2×2 block: the lower middle of its valid depths (NaN if none). Invalid
+/// depths become +∞ so a 5-comparator network finds the two smallest values.
+#[inline(always)]
+fn median_of_4(block: [f32; 4]) -> f32 {
+    let valid = block.iter().filter(|z| z.is_finite()).count();
+    let [a, b, c, d] = block.map(|z| if z.is_finite() { z } else { f32::INFINITY });
+    let (lo1, hi1) = if a < b { (a, b) } else { (b, a) };
+    let (lo2, hi2) = if c < d { (c, d) } else { (d, c) };
+    let smallest = if lo1 < lo2 { lo1 } else { lo2 };
+    let (mid_lo, mid_hi) = (if lo1 < lo2 { lo2 } else { lo1 }, if hi1 < hi2 { hi1 } else { hi2 });
+    let second = if mid_lo < mid_hi { mid_lo } else { mid_hi };
+    match valid {
+        0 => f32::NAN,
+        1 | 2 => smallest,
+        _ => second,
+    }
 }
 
 /// Step 5: 2×2 median downsample. Each output pixel is the median of the valid depths of its
@@ -188,20 +281,8 @@ pub fn median_downsample_2x2(depth: &DepthImage) -> DepthImage {
     out.par_chunks_mut(width.max(1)).enumerate().for_each(|(v, out_row)| {
         let row0 = &depth.depth_m[2 * v * depth.width..(2 * v + 1) * depth.width];
         let row1 = &depth.depth_m[(2 * v + 1) * depth.width..(2 * v + 2) * depth.width];
-        for (u, o) in out_row.iter_mut().enumerate() {
-            let mut block = [row0[2 * u], row0[2 * u + 1], row1[2 * u], row1[2 * u + 1]];
-            // NaNs sort last under total_cmp for positive NaN; normalise sign first.
-            for b in &mut block {
-                if !b.is_finite() {
-                    *b = f32::NAN.abs();
-                }
-            }
-            block.sort_unstable_by(f32::total_cmp);
-            let valid = block.iter().take_while(|b| b.is_finite()).count();
-            *o = match valid {
-                0 => f32::NAN,
-                n => block[(n - 1) / 2],
-            };
+        for ((o, top), bottom) in out_row.iter_mut().zip(row0.chunks_exact(2)).zip(row1.chunks_exact(2)) {
+            *o = median_of_4([top[0], top[1], bottom[0], bottom[1]]);
         }
     });
     DepthImage { width, height, depth_m: out }

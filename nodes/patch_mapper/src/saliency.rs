@@ -114,15 +114,18 @@ pub struct IntegralCloud {
 }
 
 impl IntegralCloud {
-    /// Builds the sums from D and its intrinsics (points back-projected on the fly).
+    /// Builds the sums from D and its intrinsics (points back-projected on the fly). The
+    /// per-row prefix sums run in parallel; each table entry is then `above + row prefix`, the
+    /// same additions in the same order as a single sequential pass.
     pub fn new(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
         let (width, height) = (depth.width, depth.height);
         let stride = width + 1;
         let mut sums = vec![[0.0f64; 4]; stride * (height + 1)];
-        for v in 0..height {
+        // Row prefix sums into rows 1..=height.
+        sums.par_chunks_mut(stride).skip(1).zip(depth.depth_m.par_chunks(width.max(1))).enumerate().for_each(|(v, (out, src))| {
             let mut row = [0.0f64; 4];
-            for u in 0..width {
-                let z = f64::from(depth.depth_m[v * width + u]);
+            for (u, (o, &z)) in out.iter_mut().skip(1).zip(src).enumerate() {
+                let z = f64::from(z);
                 if z.is_finite() {
                     let p = intrinsics.back_project(u as f64, v as f64, z);
                     row[0] += p.x;
@@ -130,8 +133,15 @@ impl IntegralCloud {
                     row[2] += p.z;
                     row[3] += 1.0;
                 }
-                let above = sums[v * stride + u + 1];
-                sums[(v + 1) * stride + u + 1] = [above[0] + row[0], above[1] + row[1], above[2] + row[2], above[3] + row[3]];
+                *o = row;
+            }
+        });
+        // Column accumulation, row by row (vectorised adds).
+        for v in 1..height {
+            let (done, rest) = sums.split_at_mut((v + 1) * stride);
+            let (above, row) = (&done[v * stride..], &mut rest[..stride]);
+            for (r, a) in row.iter_mut().zip(above) {
+                *r = [a[0] + r[0], a[1] + r[1], a[2] + r[2], a[3] + r[3]];
             }
         }
         Self { width, height, sums }
@@ -152,24 +162,37 @@ impl IntegralCloud {
         [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1], a[2] - b[2] - c[2] + d[2], a[3] - b[3] - c[3] + d[3]]
     }
 
-    /// Mean point of a box if at least `min_count` valid points fall in it.
+    /// The four half-window box sums of [`IntegralCloud::normal`] at `(u, v)`: `[right, left,
+    /// below, above]`, each exactly [`IntegralCloud::box_sum`] of its box, from 12 table reads
+    /// (the boxes share corners) instead of 16.
     #[inline]
-    fn box_mean(&self, u0: isize, v0: isize, u1: isize, v1: isize, min_count: f64) -> Option<Vector3<f64>> {
-        let s = self.box_sum(u0, v0, u1, v1);
-        (s[3] >= min_count.max(1.0)).then(|| Vector3::new(s[0], s[1], s[2]) / s[3])
+    fn half_window_sums(&self, u: usize, v: usize, half: usize) -> [[f64; 4]; 4] {
+        let (u, v, h) = (u as isize, v as isize, half as isize);
+        let [c0, c1, c2, c3] = [u - h, u, u + 1, u + h + 1].map(|x| x.clamp(0, self.width as isize) as usize);
+        let [r0, r1, r2, r3] = [v - h, v, v + 1, v + h + 1].map(|x| x.clamp(0, self.height as isize) as usize);
+        let stride = self.width + 1;
+        let row = |r: usize| self.sums.get(r * stride..(r + 1) * stride).unwrap_or(&[]);
+        let at = |row: &[[f64; 4]], c: usize| row.get(c).copied().unwrap_or([0.0; 4]);
+        let (top, upper, lower, bottom) = (row(r0), row(r1), row(r2), row(r3));
+        let (t0, t1, t2, t3) = (at(top, c0), at(top, c1), at(top, c2), at(top, c3));
+        let (b0, b1, b2, b3) = (at(bottom, c0), at(bottom, c1), at(bottom, c2), at(bottom, c3));
+        let (m0, m3, l0, l3) = (at(upper, c0), at(upper, c3), at(lower, c0), at(lower, c3));
+        // a − b − c + d as in `box_sum`, a = (u1, v1), b = (u0, v1), c = (u1, v0), d = (u0, v0).
+        let sum = |a: [f64; 4], b: [f64; 4], c: [f64; 4], d: [f64; 4]| {
+            [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1], a[2] - b[2] - c[2] + d[2], a[3] - b[3] - c[3] + d[3]]
+        };
+        [sum(b3, b2, t3, t2), sum(b1, b0, t1, t0), sum(b3, b0, l3, l0), sum(m3, m0, t3, t0)]
     }
 
     /// Normal at pixel `(u, v)` from half window `half` (J [76], average 3D gradient): the
     /// horizontal gradient is mean(right box) − mean(left box), the vertical one mean(lower box) −
     /// mean(upper box), each box `half × (2·half + 1)` pixels; `n = ∂h × ∂v` turned towards the camera.
     pub fn normal(&self, u: usize, v: usize, half: usize, point: &Vector3<f64>, min_support: f64) -> Option<Vector3<f64>> {
-        let (u, v, h) = (u as isize, v as isize, half as isize);
-        let min_count = min_support * (h * (2 * h + 1)) as f64;
-        let right = self.box_mean(u + 1, v - h, u + h + 1, v + h + 1, min_count)?;
-        let left = self.box_mean(u - h, v - h, u, v + h + 1, min_count)?;
-        let below = self.box_mean(u - h, v + 1, u + h + 1, v + h + 1, min_count)?;
-        let above = self.box_mean(u - h, v - h, u + h + 1, v, min_count)?;
-        let normal = (right - left).cross(&(below - above));
+        let h = half as isize;
+        let min_count = (min_support * (h * (2 * h + 1)) as f64).max(1.0);
+        let [right, left, below, above] = self.half_window_sums(u, v, half);
+        let mean = |s: [f64; 4]| (s[3] >= min_count).then(|| Vector3::new(s[0], s[1], s[2]) / s[3]);
+        let normal = (mean(right)? - mean(left)?).cross(&(mean(below)? - mean(above)?));
         let norm = normal.norm();
         if !(norm > 1e-12) {
             return None;

@@ -14,7 +14,7 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaterni
 use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fusion::{floor_i, TsdfVolume, BLOCK_EDGE, SUPERBLOCK_EDGE};
+use crate::fusion::{floor_i, Block, TsdfVolume, BLOCK_EDGE, SUPERBLOCK_EDGE};
 
 /// Raycast parameters.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -218,25 +218,34 @@ fn cast_ray(
     let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
     let block_voxels = BLOCK_EDGE as f32;
     let mut previous: Option<(f32, f32)> = None;
+    // The allocated block the previous step was in: consecutive steps inside it skip both lookups.
+    let mut current: Option<([i32; 3], &Block)> = None;
     let mut guard = 0usize;
     while t < t_end && guard < 100_000 {
         guard += 1;
         let p = origin_voxel + direction * (t * inv_voxel);
         let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
-        if !volume.superblock_occupied(i, j, k) {
-            previous = None;
-            t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
-            continue;
-        }
-        let Some(block) = volume.block_of_voxel(i, j, k) else {
-            // Empty-space leaping: jump to where the ray leaves this block.
-            previous = None;
-            t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
-            continue;
+        let block_coords = [i >> 3, j >> 3, k >> 3];
+        let block = match current {
+            Some((coords, block)) if coords == block_coords => block,
+            _ => {
+                if !volume.superblock_occupied(i, j, k) {
+                    previous = None;
+                    t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
+                    continue;
+                }
+                let Some(block) = volume.block_of_voxel(i, j, k) else {
+                    // Empty-space leaping: jump to where the ray leaves this block.
+                    previous = None;
+                    t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
+                    continue;
+                };
+                current = Some((block_coords, block));
+                block
+            }
         };
         let local = ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize;
-        let observed = block.weight.get(local).is_some_and(|w| *w > 0.0);
-        let Some(&tsdf) = block.tsdf.get(local).filter(|_| observed) else {
+        let Some(tsdf) = block.voxels.get(local).filter(|v| v.weight > 0.0).map(|v| v.tsdf) else {
             // Unobserved voxel (behind a surface): no crossing can be bracketed here.
             previous = None;
             t += (0.5 * mu).max(voxel);

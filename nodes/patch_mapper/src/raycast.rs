@@ -7,14 +7,15 @@
 //! unallocated blocks are skipped whole (empty-space leaping); inside blocks the step shrinks with the
 //! nearest-voxel TSDF (step = max(voxel, 0.8·|tsdf|·μ)); at a sign change from positive to negative
 //! the crossing is found by secant steps on trilinear TSDF values and the normal is the normalized
-//! trilinear gradient. The model raycast for ICP is guided by the frame just integrated (rays start
-//! 2μ before its depth), so only the band around the surface is marched.
+//! trilinear gradient. The model raycast for ICP is guided by the frame just integrated: a ray with a
+//! depth d there marches only the band [d − 2μ, d + 2μ] around the surface that frame just fused
+//! (a model crossing farther behind it would be occluded by that surface).
 
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fusion::{floor_i, TsdfVolume, BLOCK_EDGE, SUPERBLOCK_EDGE};
+use crate::fusion::{floor_i, Block, TsdfVolume, BLOCK_EDGE, SUPERBLOCK_EDGE};
 
 /// Raycast parameters.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -117,9 +118,10 @@ pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrins
     raycast_guided(volume, config, intrinsics, volume_from_camera, None)
 }
 
-/// Raycast whose rays start 2μ in front of a depth hint of the same size (e.g. the frame just
-/// integrated at this pose): only the band around the expected surface is marched. Pixels without a
-/// hint are marched in full.
+/// Raycast guided by a depth hint of the same size (e.g. the frame just integrated at this pose): a
+/// ray with hint depth d marches only [d − 2μ, d + 2μ] (along the optical axis), the band around the
+/// expected surface; rays that do not find a crossing there stop at its end instead of marching the
+/// occluded volume behind it. Pixels without a hint are marched in full.
 pub fn raycast_guided(
     volume: &TsdfVolume,
     config: &RaycastConfig,
@@ -145,11 +147,11 @@ pub fn raycast_guided(
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
-                let start = hint
+                let band = hint
                     .and_then(|h| h.depth_m.get(v * width + u))
                     .filter(|d| d.is_finite())
-                    .map(|d| (d - 2.0 * mu) * ray_length);
-                match cast_ray(volume, config, &origin, &direction, start) {
+                    .map(|d| ((d - 2.0 * mu) * ray_length, (d + 2.0 * mu) * ray_length));
+                match cast_ray(volume, config, &origin, &direction, band) {
                     Some((t, normal)) => {
                         points.push(Point3::from(origin + direction * t));
                         normals.push(normal);
@@ -196,47 +198,56 @@ fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32
     (t_near <= t_far).then_some((t_near, t_far))
 }
 
-/// Marches one ray; returns the range to the first front-facing zero crossing and the unit normal.
-/// The ray is clipped to the bounds of the allocated blocks; empty superblocks and unallocated blocks
-/// are leapt over whole.
+/// Marches one ray, within `band` (ray parameters) if given; returns the range to the first
+/// front-facing zero crossing and the unit normal. The ray is clipped to the bounds of the allocated
+/// blocks; empty superblocks and unallocated blocks are leapt over whole.
 fn cast_ray(
     volume: &TsdfVolume,
     config: &RaycastConfig,
     origin: &Vector3<f32>,
     direction: &Vector3<f32>,
-    start: Option<f32>,
+    band: Option<(f32, f32)>,
 ) -> Option<(f32, Vector3<f32>)> {
     let voxel = volume.voxel_size();
     let inv_voxel = 1.0 / voxel;
     let mu = volume.truncation();
     let (lo, hi) = volume.allocated_bounds()?;
     let (t_enter, t_exit) = clip_to_box(origin, direction, &lo, &(hi - Vector3::repeat(1e-4)))?;
-    let mut t = t_enter.max(config.min_range_m).max(start.unwrap_or(0.0));
-    let t_end = t_exit.min(config.max_range_m);
+    let mut t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
+    let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
     let origin_voxel = origin * inv_voxel;
     let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
     let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
     let block_voxels = BLOCK_EDGE as f32;
     let mut previous: Option<(f32, f32)> = None;
+    // The allocated block the previous step was in: consecutive steps inside it skip both lookups.
+    let mut current: Option<([i32; 3], &Block)> = None;
     let mut guard = 0usize;
     while t < t_end && guard < 100_000 {
         guard += 1;
         let p = origin_voxel + direction * (t * inv_voxel);
         let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
-        if !volume.superblock_occupied(i, j, k) {
-            previous = None;
-            t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
-            continue;
-        }
-        let Some(block) = volume.block_of_voxel(i, j, k) else {
-            // Empty-space leaping: jump to where the ray leaves this block.
-            previous = None;
-            t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
-            continue;
+        let block_coords = [i >> 3, j >> 3, k >> 3];
+        let block = match current {
+            Some((coords, block)) if coords == block_coords => block,
+            _ => {
+                if !volume.superblock_occupied(i, j, k) {
+                    previous = None;
+                    t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
+                    continue;
+                }
+                let Some(block) = volume.block_of_voxel(i, j, k) else {
+                    // Empty-space leaping: jump to where the ray leaves this block.
+                    previous = None;
+                    t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
+                    continue;
+                };
+                current = Some((block_coords, block));
+                block
+            }
         };
         let local = ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize;
-        let observed = block.weight.get(local).is_some_and(|w| *w > 0.0);
-        let Some(&tsdf) = block.tsdf.get(local).filter(|_| observed) else {
+        let Some(tsdf) = block.voxels.get(local).filter(|v| v.weight > 0.0).map(|v| v.tsdf) else {
             // Unobserved voxel (behind a surface): no crossing can be bracketed here.
             previous = None;
             t += (0.5 * mu).max(voxel);

@@ -9,7 +9,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
-use crate::fusion::{floor_i, Block, TsdfVolume, BLOCK_EDGE, BLOCK_VOXELS};
+use crate::fusion::{floor_i, Block, TsdfVolume, Voxel, BLOCK_EDGE, BLOCK_VOXELS};
 
 /// Moving-volume parameters (J 4 "moving policies", J 5.2).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -157,7 +157,7 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
     let blocks: Vec<([i32; 3], Box<Block>)> = targets
         .par_iter()
         .filter_map(|c| {
-            let mut block = Box::new(Block { tsdf: [1.0; BLOCK_VOXELS], weight: [0.0; BLOCK_VOXELS] });
+            let mut block = Block::empty();
             let mut any = false;
             for index in 0..BLOCK_VOXELS {
                 let (x, y, z) = (index % BLOCK_EDGE, (index / BLOCK_EDGE) % BLOCK_EDGE, index / (BLOCK_EDGE * BLOCK_EDGE));
@@ -178,9 +178,8 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
                     Some(sample) => sample.tsdf,
                     None => old.nearest(&voxel_old).unwrap_or(1.0),
                 };
-                if let (Some(t), Some(w)) = (block.tsdf.get_mut(index), block.weight.get_mut(index)) {
-                    *t = tsdf;
-                    *w = weight;
+                if let Some(voxel) = block.voxels.get_mut(index) {
+                    *voxel = Voxel { tsdf, weight };
                     any = true;
                 }
             }

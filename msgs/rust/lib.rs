@@ -10,12 +10,14 @@
 //! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`).
 //! - [`node`]: participant on `ROS_DOMAIN_ID` (loopback by default), QoS presets, typed endpoints,
 //!   shutdown on SIGINT/SIGTERM, tracing. [`params`]: YAML parameters with `--param` overrides.
+//! - [`process`]: process CPU time for the benchmarks.
 
 pub mod interface;
 pub mod msg;
 pub mod node;
 pub mod params;
 pub mod srv;
+pub mod process;
 
 pub use ros2_interfaces_jazzy_serde::{
     builtin_interfaces, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs,

@@ -364,12 +364,7 @@ impl Patch {
     /// Height `z(u)` of the explicit form and its gradient `∂z/∂u` (eq 13, 23, 27). `None` outside
     /// the domain of spheres/cylinders (`κ² uᵀu > 1`).
     pub fn height(&self, u: &Vector2<f64>) -> Option<(f64, Vector2<f64>)> {
-        let k = self.curvatures;
-        match self.surface {
-            SurfaceType::Sphere => sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz)),
-            SurfaceType::CircularCylinder => sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))),
-            _ => Some((0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))),
-        }
+        explicit_height(self.surface, &self.curvatures, u)
     }
 
     /// Explicit form in the local frame: the surface point above `u` (eq 13, 23, 27).
@@ -542,12 +537,7 @@ impl PatchShape {
     /// [`Patch::height`].
     #[inline]
     pub fn height(&self, u: &Vector2<f64>) -> Option<(f64, Vector2<f64>)> {
-        let k = self.curvatures;
-        match self.surface {
-            SurfaceType::Sphere => sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz)),
-            SurfaceType::CircularCylinder => sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))),
-            _ => Some((0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))),
-        }
+        explicit_height(self.surface, &self.curvatures, u)
     }
 
     /// [`Patch::boundary_value`]: `≤ 0` inside (eq 17 for ellipse/circle, eq 19–20 for rectangle/quad).
@@ -674,6 +664,16 @@ impl PatchQuery {
     #[inline]
     pub fn distance(&self, point_in_world: &Vector3<f64>) -> f64 {
         self.distance_local(&self.to_local(point_in_world))
+    }
+}
+
+/// Height `z(u)` of the explicit form of `surface` with curvatures `k` and its gradient `∂z/∂u`
+/// (eq 13, 23, 27); `None` outside the domain of spheres/cylinders (`κ² uᵀu > 1`).
+fn explicit_height(surface: SurfaceType, k: &Vector2<f64>, u: &Vector2<f64>) -> Option<(f64, Vector2<f64>)> {
+    match surface {
+        SurfaceType::Sphere => sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz)),
+        SurfaceType::CircularCylinder => sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))),
+        _ => Some((0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))),
     }
 }
 

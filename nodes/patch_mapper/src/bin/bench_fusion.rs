@@ -9,6 +9,7 @@
 //! (`RAYON_NUM_THREADS=2` to pin the thread count; `BENCH_VOXELS_MM=5` for one voxel size;
 //! `BENCH_FULL_RAYCAST=0` to skip the 640×480 real-camera raycast, which is not part of the loop).
 
+use patchwalk_msgs::process::process_cpu_seconds;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -37,18 +38,6 @@ fn report(name: &str, values: &mut [f64]) {
     );
 }
 
-/// User + system CPU time of the whole process (s) from `/proc/self/stat` (Linux; `None` elsewhere):
-/// less sensitive than wall time to other processes sharing the cores.
-fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15 (1-based).
-    let rest = stat.rsplit_once(')')?.1;
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    // USER_HZ is 100 on Linux.
-    Some((utime + stime) / 100.0)
-}
 
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);

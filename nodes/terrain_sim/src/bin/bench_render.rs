@@ -4,6 +4,7 @@
 //! `cargo run --release -p terrain_sim --bin bench_render -- [frames per rock] [--sway] [--no-noise] [--no-shadow] [--reuse]`
 //! (threads: `RAYON_NUM_THREADS`, default = all cores).
 
+use patchwalk_msgs::process::process_cpu_seconds;
 use std::time::Instant;
 
 use terrain_sim::config::SimConfig;
@@ -90,13 +91,3 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// User + system CPU time of this process (s), from /proc/self/stat (Linux; clock ticks of 10 ms).
-fn process_cpu_seconds() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let rest = stat.rsplit_once(')')?.1;
-    let fields: Vec<&str> = rest.split_whitespace().collect();
-    let utime: f64 = fields.get(11)?.parse().ok()?;
-    let stime: f64 = fields.get(12)?.parse().ok()?;
-    Some((utime + stime) / 100.0)
-}

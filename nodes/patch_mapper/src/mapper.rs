@@ -126,6 +126,22 @@ pub enum Verdict {
     Skipped,
 }
 
+impl Verdict {
+    /// Short name for reports and JSON (`valid`, `residual`, `coverage`, `curvature`,
+    /// `too_few_points`, `fit_failed`, `skipped`).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Verdict::Valid { .. } => "valid",
+            Verdict::Residual => "residual",
+            Verdict::Coverage => "coverage",
+            Verdict::Curvature => "curvature",
+            Verdict::TooFewPoints => "too_few_points",
+            Verdict::FitFailed(_) => "fit_failed",
+            Verdict::Skipped => "skipped",
+        }
+    }
+}
+
 /// Result for one seed.
 #[derive(Debug, Clone)]
 pub struct SeedOutcome {

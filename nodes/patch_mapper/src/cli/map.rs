@@ -201,13 +201,12 @@ fn frame_gravity(
 fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &FrameResult) -> Result<()> {
     for outcome in &result.outcomes {
         let Some(patch) = &outcome.patch_in_camera else { continue };
-        let (verdict, id) = match &outcome.verdict {
-            Verdict::Valid { id } => ("valid", Some(*id)),
-            Verdict::Residual => ("residual", None),
-            Verdict::Coverage => ("coverage", None),
-            Verdict::Curvature => ("curvature", None),
+        let id = match &outcome.verdict {
+            Verdict::Valid { id } => Some(*id),
+            Verdict::Residual | Verdict::Coverage | Verdict::Curvature => None,
             _ => continue,
         };
+        let verdict = outcome.verdict.name();
         let line = PatchLine {
             frame,
             timestamp,

@@ -48,7 +48,7 @@ pub struct ReplayArgs {
 #[derive(Serialize)]
 struct SeedLine {
     frame: usize,
-    verdict: String,
+    verdict: &'static str,
     failures: Vec<String>,
     neighbourhood_points: usize,
     /// Seed point in the map frame.
@@ -69,18 +69,6 @@ struct MapLine {
     normal_in_world: Option<[f64; 3]>,
     #[serde(flatten)]
     patch: PatchJson,
-}
-
-fn verdict_name(verdict: &Verdict) -> String {
-    match verdict {
-        Verdict::Valid { .. } => "valid".into(),
-        Verdict::Residual => "residual".into(),
-        Verdict::Coverage => "coverage".into(),
-        Verdict::Curvature => "curvature".into(),
-        Verdict::TooFewPoints => "too_few_points".into(),
-        Verdict::FitFailed(why) => format!("fit_failed: {why}"),
-        Verdict::Skipped => "skipped".into(),
-    }
 }
 
 pub fn run(args: ReplayArgs) -> Result<()> {
@@ -129,8 +117,11 @@ pub fn run(args: ReplayArgs) -> Result<()> {
             let center_in_world = world_from_map.map(|w| (w * nalgebra::Point3::from(patch.center)).coords.into());
             let line = SeedLine {
                 frame: index,
-                verdict: verdict_name(&outcome.verdict),
-                failures: outcome.validation.map(|v| v.failures()).unwrap_or_default(),
+                verdict: outcome.verdict.name(),
+                failures: match &outcome.verdict {
+                    Verdict::FitFailed(why) => vec![why.clone()],
+                    _ => outcome.validation.map(|v| v.failures()).unwrap_or_default(),
+                },
                 neighbourhood_points: outcome.neighbourhood_size,
                 seed_in_map: (output.map_from_birds_eye * nalgebra::Point3::from(outcome.seed.point_in_camera)).coords.into(),
                 center_in_world,

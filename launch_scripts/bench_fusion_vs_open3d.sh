@@ -10,8 +10,13 @@ passes="${2:-2}"
 venv="$root/.venv-open3d"
 
 if ! ldconfig -p | grep -q "libusb-1.0.so.0"; then
-    echo "Open3D's import needs Debian's libusb-1.0-0: sudo apt-get install -y libusb-1.0-0" >&2
-    exit 1
+    # Open3D's import needs Debian's libusb-1.0-0.
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+        apt-get install -y -q libusb-1.0-0 >/dev/null || { apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null; }
+    else
+        echo "Open3D's import needs Debian's libusb-1.0-0: sudo apt-get install -y libusb-1.0-0" >&2
+        exit 1
+    fi
 fi
 if [ ! -x "$venv/bin/python" ]; then
     python3 -m venv "$venv"

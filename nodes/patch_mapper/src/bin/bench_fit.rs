@@ -2,7 +2,7 @@
 //! patches seen by a virtual Kinect (Murray–Little noise), and the speed of fit + validate.
 //!
 //! `cargo run --release -p patch_mapper --bin bench_fit -- [--trials 1000] [--points 150] [--seed 1]
-//! [--skip-accuracy] [--skip-speed] [--noise-scale 1]` (`--noise-scale` multiplies the Kinect's σp and σd,
+//! [--skip-accuracy] [--skip-speed] [--noise-scale 1] [--significance α]` (`--noise-scale` multiplies the Kinect's σp and σd,
 //! e.g. 0.01 to see the covariance at small noise).
 
 use anyhow::{bail, Context, Result};
@@ -44,10 +44,11 @@ struct Args {
     accuracy: bool,
     speed: bool,
     noise_scale: f64,
+    significance: Option<f64>,
 }
 
 fn parse_args() -> Result<Args> {
-    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0 };
+    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, significance: None };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -57,6 +58,7 @@ fn parse_args() -> Result<Args> {
             "--skip-accuracy" => args.accuracy = false,
             "--skip-speed" => args.speed = false,
             "--noise-scale" => args.noise_scale = it.next().context("--noise-scale X")?.parse()?,
+            "--significance" => args.significance = Some(it.next().context("--significance α")?.parse()?),
             other => bail!("unknown argument {other}"),
         }
     }
@@ -188,7 +190,8 @@ fn kinect_scaled(scale: f64) -> ErrorModel {
 fn accuracy(args: &Args) {
     let model = kinect_scaled(args.noise_scale);
     let scene = SceneConfig::default();
-    let cfg = FitConfig::default();
+    let defaults = FitConfig::default();
+    let cfg = FitConfig { significance: args.significance.unwrap_or(defaults.significance), ..defaults };
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     println!(
         "== accuracy: {} trials/type, {} points, range {:.1}-{:.1} m, Kinect Murray-Little noise x {} (requested type) ==",

@@ -254,7 +254,7 @@ pub fn chi_square(patch: &Patch, points: &[Vector3<f64>], point_covariances: Opt
         None => Covariances::Constant(Matrix3::identity()),
     };
     let state = SurfaceState { k3: patch.k3(), rot: patch.rotation_matrix(), c: patch.center };
-    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance, false, false).chi2
+    wlm::chi_square(&state, points, &covs, config.min_variance)
 }
 
 /// Reject inputs that would make the fit meaningless (typed errors, never panics).

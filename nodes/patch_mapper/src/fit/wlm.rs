@@ -207,6 +207,19 @@ pub(crate) fn accumulate(
     }
 }
 
+/// `χ² = Σ F_i²` (eq 33, 35) alone: the same per-point arithmetic and summation order as
+/// [`accumulate`] (so the value is bit-identical), without the gradient and the rank-1 updates of
+/// eq 36. LM uses it to accept or reject a trial step; most trials near convergence are rejected.
+pub(crate) fn chi_square(state: &SurfaceState, points: &[Vector3<f64>], covs: &Covariances<'_>, min_variance: f64) -> f64 {
+    let mut chi2 = 0.0;
+    for (i, q) in points.iter().enumerate() {
+        let cov = covs.get(i);
+        let (f, _, _) = point_terms(state, q, &cov, min_variance, false, false, false);
+        chi2 += f * f;
+    }
+    chi2
+}
+
 /// Inputs of one [`accumulate`] pass.
 struct Pass<'a, 'b> {
     state: &'a SurfaceState,
@@ -331,11 +344,12 @@ pub(crate) fn run(
             return Err(FitError::Diverged("non-finite step"));
         }
         let trial = state.apply(&(embed * step));
-        let trial_normal = accumulate(model, &trial, points, covs, settings.min_variance, settings.weight_derivative, false);
-        if trial_normal.chi2.is_finite() && trial_normal.chi2 <= normal.chi2 {
-            let decrease = normal.chi2 - trial_normal.chi2;
+        // χ² first; the normal equations (eq 36) only for an accepted step.
+        let trial_chi2 = chi_square(&trial, points, covs, settings.min_variance);
+        if trial_chi2.is_finite() && trial_chi2 <= normal.chi2 {
+            let decrease = normal.chi2 - trial_chi2;
             state = trial;
-            normal = trial_normal;
+            normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, false);
             lambda = (lambda * 0.1).max(1e-9);
             // A full step that gains nothing measurable: converged (or crawling along a
             // degenerate valley, e.g. the apex of nearly flat data, where the covariance is large).

@@ -302,6 +302,11 @@ pub(crate) struct LmSettings {
     pub weight_derivative: bool,
 }
 
+/// Steps smaller than this in every free parameter (1/m, rad, m) change nothing measurable: far
+/// below the parameters' standard deviations (≥ 1e-5 for nf = 50 Kinect points) and ~1e-9 relative
+/// to the patch pose.
+const NEGLIGIBLE_STEP: f64 = 1e-9;
+
 /// Weighted Levenberg–Marquardt (IROS IV-A) from `start`.
 pub(crate) fn run(
     model: Model,
@@ -357,6 +362,15 @@ pub(crate) fn run(
                 break;
             }
         } else {
+            // A rejected step below NEGLIGIBLE_STEP in every parameter: the larger damping of the
+            // following trials only shrinks the step further (‖step‖ decreases with λ), so at most a
+            // last step of that size could still be accepted (its χ² change is far below the
+            // tolerance, which would end the run). Near convergence the re-weighted objective rises
+            // along the Gauss–Newton direction (the σ_i(p) term of eq 36 that the steps ignore) and
+            // LM would otherwise reject its way up to λ = 1e12.
+            if step.amax() < NEGLIGIBLE_STEP {
+                break;
+            }
             lambda *= 10.0;
             if lambda > 1e12 {
                 break;

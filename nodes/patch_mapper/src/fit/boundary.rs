@@ -27,23 +27,13 @@ pub(crate) struct MomentStats {
 }
 
 pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> MomentStats {
-    let n = points.len().max(1) as f64;
-    let rt = rot.transpose();
-    let mut mean = Vector3::zeros();
-    for q in points {
-        mean += rt * (q - c);
-    }
-    mean /= n;
-    let mut c3 = Matrix3::zeros();
-    for q in points {
-        let d = rt * (q - c) - mean;
-        c3 += d * d.transpose();
-    }
-    c3 /= n;
+    let local = to_local(points, rot, c);
+    let (mean, c3) = mean_and_scatter(&local);
+    let n = local.len().max(1) as f64;
     let m = Moments::from_column_slice(&[mean.x, mean.y, c3[(0, 0)], c3[(1, 1)], c3[(0, 1)]]);
     let mut cov = SMatrix::<f64, 5, 5>::zeros();
-    for q in points {
-        let d = rt * (q - c) - mean;
+    for q in &local {
+        let d = q - mean;
         let psi = Moments::from_column_slice(&[d.x, d.y, d.x * d.x - c3[(0, 0)], d.y * d.y - c3[(1, 1)], d.x * d.y - c3[(0, 1)]]);
         cov += psi * psi.transpose();
     }
@@ -65,6 +55,35 @@ pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f
     a[(4, 4)] = -c3[(1, 2)];
     a[(4, 5)] = c3[(1, 1)] - c3[(0, 0)];
     MomentStats { m, cov, frame_jacobian: a }
+}
+
+/// The moments `m` of [`moments`] alone (no sampling covariance, no frame Jacobian).
+pub(crate) fn moment_values(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Moments {
+    let (mean, c3) = mean_and_scatter(&to_local(points, rot, c));
+    Moments::from_column_slice(&[mean.x, mean.y, c3[(0, 0)], c3[(1, 1)], c3[(0, 1)]])
+}
+
+/// `Rᵀ(q_i − c)` (eq 16 before the projection), once per point for all moment passes.
+fn to_local(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Vec<Vector3<f64>> {
+    let rt = rot.transpose();
+    points.iter().map(|q| rt * (q - c)).collect()
+}
+
+/// Mean and central second moments (divided by N) of local points (two-pass).
+fn mean_and_scatter(local: &[Vector3<f64>]) -> (Vector3<f64>, Matrix3<f64>) {
+    let n = local.len().max(1) as f64;
+    let mut mean = Vector3::zeros();
+    for q in local {
+        mean += q;
+    }
+    mean /= n;
+    let mut c3 = Matrix3::zeros();
+    for q in local {
+        let d = q - mean;
+        c3 += d * d.transpose();
+    }
+    c3 /= n;
+    (mean, c3)
 }
 
 /// Values taken from the moments: boundary params (up to 5) and the moment-fixed local increments

@@ -18,7 +18,7 @@ mod wlm;
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse, rotation_from_normal};
 use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, Vector2, Vector3};
-use wlm::{Covariances, LmSettings, Model, SurfaceState};
+use wlm::{Covariances, LmSettings, Model, PointSet, SurfaceState};
 use serde::{Deserialize, Serialize};
 
 /// Which surface to fit (IROS IV input `s`).
@@ -228,6 +228,7 @@ pub fn fit_patch_with_boundary_points(
         Some(c) => Covariances::PerPoint(c),
         None => Covariances::Constant(Matrix3::identity()),
     };
+    let covs = PointSet::new(points, &covs);
     let weighted = point_covariances.is_some();
     let settings = LmSettings {
         max_iterations: config.max_iterations,
@@ -254,7 +255,7 @@ pub fn chi_square(patch: &Patch, points: &[Vector3<f64>], point_covariances: Opt
         None => Covariances::Constant(Matrix3::identity()),
     };
     let state = SurfaceState { k3: patch.k3(), rot: patch.rotation_matrix(), c: patch.center };
-    wlm::chi_square(&state, points, &covs, config.min_variance)
+    wlm::chi_square(&state, &PointSet::new(points, &covs), config.min_variance)
 }
 
 /// Reject inputs that would make the fit meaningless (typed errors, never panics).
@@ -392,17 +393,17 @@ fn fit_surface(
     target: Target,
     start: SurfaceState,
     points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
+    covs: &PointSet,
     settings: &LmSettings,
     config: &FitConfig,
     weighted: bool,
 ) -> Result<(SurfaceType, BoundaryType, SurfaceState), FitError> {
     match target {
-        Target::Fixed(SurfaceType::Plane, b) => Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, points, covs, settings)?.state)),
-        Target::Fixed(SurfaceType::Sphere, b) => Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, points, covs, settings)?.state)),
+        Target::Fixed(SurfaceType::Plane, b) => Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, covs, settings)?.state)),
+        Target::Fixed(SurfaceType::Sphere, b) => Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, covs, settings)?.state)),
         _ => {
             // Step 2: general paraboloid, started from the LLS quadric graph over the plane.
-            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), points, covs, settings)?;
+            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), covs, settings)?;
             let (state, swapped) = order_axes(par.state);
             let surface = match target {
                 Target::Auto(_) => {
@@ -433,7 +434,7 @@ fn fit_surface(
             };
             let k = state.k3;
             let refit = |model: Model, k3: Vector3<f64>, st: SurfaceState| -> Result<SurfaceState, FitError> {
-                Ok(wlm::run(model, SurfaceState { k3, ..st }, points, covs, settings)?.state)
+                Ok(wlm::run(model, SurfaceState { k3, ..st }, covs, settings)?.state)
             };
             let state = match surface {
                 SurfaceType::Plane => refit(Model::Plane, Vector3::zeros(), state)?,
@@ -575,7 +576,7 @@ fn finish(
     state: SurfaceState,
     points: &[Vector3<f64>],
     boundary_points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
+    covs: &PointSet,
     settings: &LmSettings,
     config: &FitConfig,
     containment: f64,
@@ -590,7 +591,7 @@ fn finish(
         _ => state.k3.x,
     };
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
-    let m0 = boundary::moments(boundary_points, &state.rot, &state.c).m;
+    let m0 = boundary::moment_values(boundary_points, &state.rot, &state.c);
     let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
     let state = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
     let stats = boundary::moments(boundary_points, &state.rot, &state.c);
@@ -611,7 +612,7 @@ fn finish(
     // Surface part of Σ: WLM information at the final frame (measurement noise).
     let model = model_for(surface);
     let mfree = model.num_free();
-    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, true);
+    let normal = wlm::accumulate(model, &state, covs, settings.min_variance, settings.weight_derivative, true);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
     let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();

@@ -185,16 +185,8 @@ pub(crate) struct Normal {
 
 /// One pass over the points: χ², `H = Σ ∇F ∇Fᵀ`, `b = Σ ∇F F` over the free parameters (eq 36;
 /// the Gauss–Newton part of the Hessian). The Sampson sum is only formed if `with_sampson`.
-pub(crate) fn accumulate(
-    model: Model,
-    state: &SurfaceState,
-    points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
-    min_variance: f64,
-    weight_derivative: bool,
-    with_sampson: bool,
-) -> Normal {
-    let run = Pass { state, points, covs, min_variance, weight_derivative, with_sampson };
+pub(crate) fn accumulate(model: Model, state: &SurfaceState, set: &PointSet, min_variance: f64, weight_derivative: bool, with_sampson: bool) -> Normal {
+    let run = Pass { state, set, min_variance, weight_derivative, with_sampson };
     // Each model's free parameters as sums of the local slots (the columns of `Model::embedding`),
     // so the per-point update is a rank-1 update of the (small) free matrix only.
     match model {
@@ -210,27 +202,31 @@ pub(crate) fn accumulate(
 /// `χ² = Σ F_i²` (eq 33, 35) alone: the same per-point arithmetic and summation order as
 /// [`accumulate`] (so the value is bit-identical), without the gradient and the rank-1 updates of
 /// eq 36. LM uses it to accept or reject a trial step; most trials near convergence are rejected.
-pub(crate) fn chi_square(state: &SurfaceState, points: &[Vector3<f64>], covs: &Covariances<'_>, min_variance: f64) -> f64 {
+pub(crate) fn chi_square(state: &SurfaceState, set: &PointSet, min_variance: f64) -> f64 {
+    let frame = Frame::new(state);
+    let mut block = Block::new();
     let mut chi2 = 0.0;
-    for (i, q) in points.iter().enumerate() {
-        let cov = covs.get(i);
-        let (f, _, _) = point_terms(state, q, &cov, min_variance, false, false, false);
-        chi2 += f * f;
+    let mut start = 0;
+    while start < set.len() {
+        let len = block_terms::<false, false>(&frame, set, start, min_variance, &mut block);
+        for f in block.f.iter().take(len) {
+            chi2 += f * f;
+        }
+        start += BLOCK;
     }
     chi2
 }
 
 /// Inputs of one [`accumulate`] pass.
-struct Pass<'a, 'b> {
+struct Pass<'a> {
     state: &'a SurfaceState,
-    points: &'a [Vector3<f64>],
-    covs: &'a Covariances<'b>,
+    set: &'a PointSet,
     min_variance: f64,
     weight_derivative: bool,
     with_sampson: bool,
 }
 
-impl Pass<'_, '_> {
+impl Pass<'_> {
     /// The pass with `M` free parameters; `project` maps the 9 local slots to them.
     #[inline(always)]
     fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
@@ -238,10 +234,8 @@ impl Pass<'_, '_> {
         let mut bm = SVector::<f64, M>::zeros();
         let mut chi2 = 0.0;
         let mut sampson_sq = 0.0;
-        for (i, q) in self.points.iter().enumerate() {
-            let cov = self.covs.get(i);
-            let (f, grad, d) = point_terms(self.state, q, &cov, self.min_variance, true, self.weight_derivative, self.with_sampson);
-            let g = project(&grad);
+        let mut add = |f: f64, grad: &Local, d: f64| {
+            let g = project(grad);
             // Lower triangle only (H is symmetric); mirrored below.
             for c in 0..M {
                 let gc = g[c];
@@ -252,6 +246,31 @@ impl Pass<'_, '_> {
             bm.axpy(f, &g, 1.0);
             chi2 += f * f;
             sampson_sq += d * d;
+        };
+        if self.weight_derivative {
+            for i in 0..self.set.len() {
+                let (q, cov) = (self.set.point(i), self.set.cov(i));
+                let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
+                add(f, &grad, d);
+            }
+        } else {
+            // Per-point values block-wise in a vectorisable loop, then the sums point by point in
+            // the order of the branch above (bit-identical to `point_terms`).
+            let frame = Frame::new(self.state);
+            let mut block = Block::new();
+            let mut start = 0;
+            while start < self.set.len() {
+                let len = if self.with_sampson {
+                    block_terms::<true, true>(&frame, self.set, start, self.min_variance, &mut block)
+                } else {
+                    block_terms::<true, false>(&frame, self.set, start, self.min_variance, &mut block)
+                };
+                for j in 0..len {
+                    let grad = Local::from_fn(|slot, _| block.g[slot][j]);
+                    add(block.f[j], &grad, block.d[j]);
+                }
+                start += BLOCK;
+            }
         }
         let mut h = FreeMatrix::zeros();
         let mut b = Free::zeros();
@@ -266,6 +285,143 @@ impl Pass<'_, '_> {
             h[(r, r)] = 1.0;
         }
         Normal { chi2, h, b, sampson_sq }
+    }
+}
+
+/// Points per block of [`block_terms`].
+const BLOCK: usize = 32;
+
+/// Per-point values of one block: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
+struct Block {
+    f: [f64; BLOCK],
+    g: [[f64; BLOCK]; 9],
+    d: [f64; BLOCK],
+}
+
+impl Block {
+    fn new() -> Self {
+        Self { f: [0.0; BLOCK], g: [[0.0; BLOCK]; 9], d: [0.0; BLOCK] }
+    }
+}
+
+/// The surface state as plain numbers for [`block_terms`].
+struct Frame {
+    /// `R` row-major.
+    r: [[f64; 3]; 3],
+    c: [f64; 3],
+    k: [f64; 3],
+}
+
+impl Frame {
+    fn new(state: &SurfaceState) -> Self {
+        let m = &state.rot;
+        Self {
+            r: [[m[(0, 0)], m[(0, 1)], m[(0, 2)]], [m[(1, 0)], m[(1, 1)], m[(1, 2)]], [m[(2, 0)], m[(2, 1)], m[(2, 2)]]],
+            c: [state.c.x, state.c.y, state.c.z],
+            k: [state.k3.x, state.k3.y, state.k3.z],
+        }
+    }
+}
+
+/// [`point_terms`] without the weight derivative for the points `start..start + BLOCK` of `set`
+/// (fewer at the end), written to `out`; returns the number of points. The arithmetic is that of
+/// `point_terms` operation by operation (nalgebra's `M v` is `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row,
+/// dot products likewise), so the results are bit-identical; the loop body has no branches and
+/// vectorises.
+#[inline(always)]
+fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, set: &PointSet, start: usize, min_variance: f64, out: &mut Block) -> usize {
+    let len = set.len().saturating_sub(start).min(BLOCK);
+    let col = |k: usize| set.column(k).get(start..start + len).unwrap_or_default();
+    let (xs, ys, zs) = (col(0), col(1), col(2));
+    let cv: [&[f64]; 9] = std::array::from_fn(|k| col(3 + k));
+    let [r0, r1, r2] = fr.r;
+    let [kx, ky, kz] = fr.k;
+    let [cx, cy, cz] = fr.c;
+    let Block { f: fs, g: gs, d: ds } = out;
+    for j in 0..len.min(xs.len()).min(ys.len()).min(zs.len()) {
+        let (dx, dy, dz) = (xs[j] - cx, ys[j] - cy, zs[j] - cz);
+        // q_l = Rᵀ(q − c) (eq 38)
+        let qx = r0[0] * dx + r1[0] * dy + r2[0] * dz;
+        let qy = r0[1] * dx + r1[1] * dy + r2[1] * dz;
+        let qz = r0[2] * dx + r1[2] * dy + r2[2] * dz;
+        // f (eq 37) and ∂f/∂q_l = 2(K q_l − ẑ) (eq 39)
+        let (ax, ay, az) = (kx * qx, ky * qy, kz * qz - 1.0);
+        let f = kx * qx * qx + ky * qy * qy + kz * qz * qz - 2.0 * qz;
+        let (gx, gy, gz) = (ax * 2.0, ay * 2.0, az * 2.0);
+        let gwx = r0[0] * gx + r0[1] * gy + r0[2] * gz;
+        let gwy = r1[0] * gx + r1[1] * gy + r1[2] * gz;
+        let gwz = r2[0] * gx + r2[1] * gy + r2[2] * gz;
+        // σ² = ∇f Σ_i ∇fᵀ (eq 34), Σ_i column-major in `cv`
+        let swx = cv[0][j] * gwx + cv[3][j] * gwy + cv[6][j] * gwz;
+        let swy = cv[1][j] * gwx + cv[4][j] * gwy + cv[7][j] * gwz;
+        let swz = cv[2][j] * gwx + cv[5][j] * gwy + cv[8][j] * gwz;
+        let var_raw = gwx * swx + gwy * swy + gwz * swz;
+        let var = if var_raw < min_variance { min_variance } else { var_raw };
+        let inv_sigma = 1.0 / var.sqrt();
+        fs[j] = f * inv_sigma;
+        if SAMPSON {
+            let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
+            ds[j] = if grad_norm > 0.0 { f.abs() / grad_norm } else { f.abs() };
+        }
+        if GRAD {
+            // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
+            gs[0][j] = qx * qx * inv_sigma;
+            gs[1][j] = qy * qy * inv_sigma;
+            gs[2][j] = qz * qz * inv_sigma;
+            gs[3][j] = (gy * qz - gz * qy) * inv_sigma;
+            gs[4][j] = (gz * qx - gx * qz) * inv_sigma;
+            gs[5][j] = (gx * qy - gy * qx) * inv_sigma;
+            gs[6][j] = -gx * inv_sigma;
+            gs[7][j] = -gy * inv_sigma;
+            gs[8][j] = -gz * inv_sigma;
+        }
+    }
+    len
+}
+
+/// The fit points and their covariances as structure of arrays, built once per fit (every pass
+/// of [`accumulate`] and [`chi_square`] reads them).
+pub(crate) struct PointSet {
+    n: usize,
+    /// `[x | y | z | Σ (9 entries, column-major)]`, `n` values each.
+    data: Vec<f64>,
+}
+
+impl PointSet {
+    pub(crate) fn new(points: &[Vector3<f64>], covs: &Covariances<'_>) -> Self {
+        let n = points.len();
+        let mut data = vec![0.0; 12 * n];
+        for (i, q) in points.iter().enumerate() {
+            let cov = covs.get(i);
+            for (k, v) in q.iter().chain(cov.iter()).enumerate() {
+                if let Some(slot) = data.get_mut(k * n + i) {
+                    *slot = *v;
+                }
+            }
+        }
+        Self { n, data }
+    }
+
+    pub(crate) fn len(&self) -> usize {
+        self.n
+    }
+
+    /// Column `k` of the layout: 0–2 the coordinates, 3–11 the covariance entries.
+    #[inline(always)]
+    fn column(&self, k: usize) -> &[f64] {
+        self.data.get(k * self.n..(k + 1) * self.n).unwrap_or_default()
+    }
+
+    fn value(&self, k: usize, i: usize) -> f64 {
+        self.column(k).get(i).copied().unwrap_or(0.0)
+    }
+
+    fn point(&self, i: usize) -> Vector3<f64> {
+        Vector3::from_fn(|r, _| self.value(r, i))
+    }
+
+    fn cov(&self, i: usize) -> Matrix3<f64> {
+        Matrix3::from_fn(|r, c| self.value(3 + 3 * c + r, i))
     }
 }
 
@@ -311,14 +467,13 @@ const NEGLIGIBLE_STEP: f64 = 1e-9;
 pub(crate) fn run(
     model: Model,
     start: SurfaceState,
-    points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
+    set: &PointSet,
     settings: &LmSettings,
 ) -> Result<WlmResult, FitError> {
     let m = model.num_free();
     let embed = model.embedding();
     let mut state = start;
-    let mut normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, false);
+    let mut normal = accumulate(model, &state, set, settings.min_variance, settings.weight_derivative, false);
     if !normal.chi2.is_finite() {
         return Err(FitError::Diverged("non-finite residual at the start"));
     }
@@ -350,11 +505,11 @@ pub(crate) fn run(
         }
         let trial = state.apply(&(embed * step));
         // χ² first; the normal equations (eq 36) only for an accepted step.
-        let trial_chi2 = chi_square(&trial, points, covs, settings.min_variance);
+        let trial_chi2 = chi_square(&trial, set, settings.min_variance);
         if trial_chi2.is_finite() && trial_chi2 <= normal.chi2 {
             let decrease = normal.chi2 - trial_chi2;
             state = trial;
-            normal = accumulate(model, &state, points, covs, settings.min_variance, settings.weight_derivative, false);
+            normal = accumulate(model, &state, set, settings.min_variance, settings.weight_derivative, false);
             lambda = (lambda * 0.1).max(1e-9);
             // A full step that gains nothing measurable: converged (or crawling along a
             // degenerate valley, e.g. the apex of nearly flat data, where the covariance is large).
@@ -434,7 +589,7 @@ mod tests {
                 h[(r, r)] = 1.0;
             }
             let b = e.transpose() * b9;
-            let n = accumulate(model, &state, &points, &covs, 1e-20, false, true);
+            let n = accumulate(model, &state, &PointSet::new(&points, &covs), 1e-20, false, true);
             assert!((n.h - h).norm() <= 1e-12 * h.norm(), "{model:?}");
             assert!((n.b - b).norm() <= 1e-12 * b.norm(), "{model:?}");
             assert!((n.sampson_sq - sampson_sq).abs() <= 1e-12 * sampson_sq, "{model:?}");

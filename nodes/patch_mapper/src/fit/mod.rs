@@ -279,10 +279,10 @@ fn check_inputs(points: &[Vector3<f64>], covs: Option<&[Matrix3<f64>]>, needed: 
 
 /// Symmetric positive semi-definite test by principal minors (with a relative tolerance).
 pub fn is_psd(c: &Matrix3<f64>) -> bool {
-    if !c.iter().all(|v| v.is_finite()) {
+    if !c.as_slice().iter().all(|v| v.is_finite()) {
         return false;
     }
-    let scale = c.diagonal().iter().map(|v| v.abs()).sum::<f64>().max(f64::MIN_POSITIVE);
+    let scale = (c[(0, 0)].abs() + c[(1, 1)].abs() + c[(2, 2)].abs()).max(f64::MIN_POSITIVE);
     let tol = 1e-9 * scale;
     let sym = (c[(0, 1)] - c[(1, 0)]).abs() <= tol && (c[(0, 2)] - c[(2, 0)]).abs() <= tol && (c[(1, 2)] - c[(2, 1)]).abs() <= tol;
     if !sym || c[(0, 0)] < -tol || c[(1, 1)] < -tol || c[(2, 2)] < -tol {

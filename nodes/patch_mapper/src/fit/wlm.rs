@@ -206,13 +206,11 @@ pub(crate) fn chi_square(state: &SurfaceState, set: &PointSet, min_variance: f64
     let frame = Frame::new(state);
     let mut block = Block::new();
     let mut chi2 = 0.0;
-    let mut start = 0;
-    while start < set.len() {
-        let len = block_terms::<false, false>(&frame, set, start, min_variance, &mut block);
+    for (chunk, len) in set.chunks() {
+        block_terms::<false, false>(&frame, chunk, min_variance, &mut block);
         for f in block.f.iter().take(len) {
             chi2 += f * f;
         }
-        start += BLOCK;
     }
     chi2
 }
@@ -258,18 +256,16 @@ impl Pass<'_> {
             // the order of the branch above (bit-identical to `point_terms`).
             let frame = Frame::new(self.state);
             let mut block = Block::new();
-            let mut start = 0;
-            while start < self.set.len() {
-                let len = if self.with_sampson {
-                    block_terms::<true, true>(&frame, self.set, start, self.min_variance, &mut block)
+            for (chunk, len) in self.set.chunks() {
+                if self.with_sampson {
+                    block_terms::<true, true>(&frame, chunk, self.min_variance, &mut block);
                 } else {
-                    block_terms::<true, false>(&frame, self.set, start, self.min_variance, &mut block)
-                };
+                    block_terms::<true, false>(&frame, chunk, self.min_variance, &mut block);
+                }
                 for j in 0..len {
                     let grad = Local::from_fn(|slot, _| block.g[slot][j]);
                     add(block.f[j], &grad, block.d[j]);
                 }
-                start += BLOCK;
             }
         }
         let mut h = FreeMatrix::zeros();
@@ -288,10 +284,10 @@ impl Pass<'_> {
     }
 }
 
-/// Points per block of [`block_terms`].
+/// Points per chunk of [`PointSet`] and [`block_terms`].
 const BLOCK: usize = 32;
 
-/// Per-point values of one block: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
+/// Per-point values of one chunk: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
 struct Block {
     f: [f64; BLOCK],
     g: [[f64; BLOCK]; 9],
@@ -323,22 +319,19 @@ impl Frame {
     }
 }
 
-/// [`point_terms`] without the weight derivative for the points `start..start + BLOCK` of `set`
-/// (fewer at the end), written to `out`; returns the number of points. The arithmetic is that of
-/// `point_terms` operation by operation (nalgebra's `M v` is `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row,
-/// dot products likewise), so the results are bit-identical; the loop body has no branches and
-/// vectorises.
+/// [`point_terms`] without the weight derivative for all `BLOCK` slots of a chunk (the padding
+/// of the last chunk included; the caller ignores it), written to `out`. The arithmetic is that
+/// of `point_terms` operation by operation (nalgebra's `M v` is `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row,
+/// dot products likewise), so the results are bit-identical; the fixed-length loop has no
+/// branches and vectorises.
 #[inline(always)]
-fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, set: &PointSet, start: usize, min_variance: f64, out: &mut Block) -> usize {
-    let len = set.len().saturating_sub(start).min(BLOCK);
-    let col = |k: usize| set.column(k).get(start..start + len).unwrap_or_default();
-    let (xs, ys, zs) = (col(0), col(1), col(2));
-    let cv: [&[f64]; 9] = std::array::from_fn(|k| col(3 + k));
+fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, chunk: &Chunk, min_variance: f64, out: &mut Block) {
     let [r0, r1, r2] = fr.r;
     let [kx, ky, kz] = fr.k;
     let [cx, cy, cz] = fr.c;
+    let [xs, ys, zs, c0, c1, c2, c3, c4, c5, c6, c7, c8] = chunk;
     let Block { f: fs, g: gs, d: ds } = out;
-    for j in 0..len.min(xs.len()).min(ys.len()).min(zs.len()) {
+    for j in 0..BLOCK {
         let (dx, dy, dz) = (xs[j] - cx, ys[j] - cy, zs[j] - cz);
         // q_l = Rᵀ(q − c) (eq 38)
         let qx = r0[0] * dx + r1[0] * dy + r2[0] * dz;
@@ -351,10 +344,10 @@ fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, set: &PointSet
         let gwx = r0[0] * gx + r0[1] * gy + r0[2] * gz;
         let gwy = r1[0] * gx + r1[1] * gy + r1[2] * gz;
         let gwz = r2[0] * gx + r2[1] * gy + r2[2] * gz;
-        // σ² = ∇f Σ_i ∇fᵀ (eq 34), Σ_i column-major in `cv`
-        let swx = cv[0][j] * gwx + cv[3][j] * gwy + cv[6][j] * gwz;
-        let swy = cv[1][j] * gwx + cv[4][j] * gwy + cv[7][j] * gwz;
-        let swz = cv[2][j] * gwx + cv[5][j] * gwy + cv[8][j] * gwz;
+        // σ² = ∇f Σ_i ∇fᵀ (eq 34), Σ_i column-major in c0..c8
+        let swx = c0[j] * gwx + c3[j] * gwy + c6[j] * gwz;
+        let swy = c1[j] * gwx + c4[j] * gwy + c7[j] * gwz;
+        let swz = c2[j] * gwx + c5[j] * gwy + c8[j] * gwz;
         let var_raw = gwx * swx + gwy * swy + gwz * swz;
         let var = if var_raw < min_variance { min_variance } else { var_raw };
         let inv_sigma = 1.0 / var.sqrt();
@@ -376,44 +369,49 @@ fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, set: &PointSet
             gs[8][j] = -gz * inv_sigma;
         }
     }
-    len
 }
 
-/// The fit points and their covariances as structure of arrays, built once per fit (every pass
-/// of [`accumulate`] and [`chi_square`] reads them).
+/// `BLOCK` points: `[x, y, z, Σ (9 entries, column-major)]`, one array per value.
+type Chunk = [[f64; BLOCK]; 12];
+
+/// The fit points and their covariances as structure of arrays in chunks of `BLOCK` points,
+/// built once per fit (every pass of [`accumulate`] and [`chi_square`] reads them). The last
+/// chunk is padded with the origin and Σ = I.
 pub(crate) struct PointSet {
     n: usize,
-    /// `[x | y | z | Σ (9 entries, column-major)]`, `n` values each.
-    data: Vec<f64>,
+    chunks: Vec<Chunk>,
 }
 
 impl PointSet {
     pub(crate) fn new(points: &[Vector3<f64>], covs: &Covariances<'_>) -> Self {
-        let n = points.len();
-        let mut data = vec![0.0; 12 * n];
+        let mut pad = [[0.0; BLOCK]; 12];
+        for k in [3, 7, 11] {
+            pad[k] = [1.0; BLOCK];
+        }
+        let mut chunks = vec![pad; points.len().div_ceil(BLOCK)];
         for (i, q) in points.iter().enumerate() {
+            let (Some(chunk), j) = (chunks.get_mut(i / BLOCK), i % BLOCK) else { break };
             let cov = covs.get(i);
-            for (k, v) in q.iter().chain(cov.iter()).enumerate() {
-                if let Some(slot) = data.get_mut(k * n + i) {
-                    *slot = *v;
-                }
+            let [xs, ys, zs, cv @ ..] = chunk;
+            (xs[j], ys[j], zs[j]) = (q.x, q.y, q.z);
+            for (column, v) in cv.iter_mut().zip(cov.iter()) {
+                column[j] = *v;
             }
         }
-        Self { n, data }
+        Self { n: points.len(), chunks }
     }
 
     pub(crate) fn len(&self) -> usize {
         self.n
     }
 
-    /// Column `k` of the layout: 0–2 the coordinates, 3–11 the covariance entries.
-    #[inline(always)]
-    fn column(&self, k: usize) -> &[f64] {
-        self.data.get(k * self.n..(k + 1) * self.n).unwrap_or_default()
+    /// The chunks with the number of real points in each.
+    fn chunks(&self) -> impl Iterator<Item = (&Chunk, usize)> {
+        self.chunks.iter().enumerate().map(move |(b, c)| (c, self.n.saturating_sub(b * BLOCK).min(BLOCK)))
     }
 
     fn value(&self, k: usize, i: usize) -> f64 {
-        self.column(k).get(i).copied().unwrap_or(0.0)
+        self.chunks.get(i / BLOCK).and_then(|c| c.get(k)).and_then(|a| a.get(i % BLOCK)).copied().unwrap_or(0.0)
     }
 
     fn point(&self, i: usize) -> Vector3<f64> {

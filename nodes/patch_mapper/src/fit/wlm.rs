@@ -476,10 +476,11 @@ pub(crate) fn run(
         return Err(FitError::Diverged("non-finite residual at the start"));
     }
     let mut lambda = settings.initial_damping;
+    // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance
+    // (or, below, when an accepted step lowered it by less). Changes only with the normal equations.
+    let predicted_decrease = |normal: &Normal| normal.h.cholesky().map(|c| normal.b.dot(&c.solve(&normal.b))).unwrap_or(f64::INFINITY);
+    let mut predicted = predicted_decrease(&normal);
     for _ in 0..settings.max_iterations {
-        // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance
-        // (or, below, when an accepted step lowered it by less).
-        let predicted = normal.h.cholesky().map(|c| normal.b.dot(&c.solve(&normal.b))).unwrap_or(f64::INFINITY);
         if predicted < settings.chi2_tolerance {
             break;
         }
@@ -514,6 +515,7 @@ pub(crate) fn run(
             if decrease < settings.chi2_tolerance {
                 break;
             }
+            predicted = predicted_decrease(&normal);
         } else {
             // A rejected step below NEGLIGIBLE_STEP in every parameter: the larger damping of the
             // following trials only shrinks the step further (‖step‖ decreases with λ), so at most a

@@ -15,7 +15,7 @@ use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 pub type Moments = SVector<f64, 5>;
 
 /// Moments of `u_i = Π_xy Rᵀ(q_i − c)` (eq 16), their sampling covariance, and their first-order
-/// dependence on the surface frame.
+/// dependence on the surface frame; [`moments`] takes the points `Rᵀ(q_i − c)` ([`to_local`]).
 pub(crate) struct MomentStats {
     /// `[x̄, ȳ, α, φ, c_xy]`.
     pub m: Moments,
@@ -26,24 +26,18 @@ pub(crate) struct MomentStats {
     pub frame_jacobian: SMatrix<f64, 5, 9>,
 }
 
-pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> MomentStats {
-    let local = to_local(points, rot, c);
-    let (mean, c3) = mean_and_scatter(&local);
+pub(crate) fn moments(local: &[Vector3<f64>]) -> MomentStats {
+    let (mean, c3) = mean_and_scatter(local);
     let n = local.len().max(1) as f64;
     let m = Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy]);
-    // Σ ψ ψᵀ, upper triangle (row ≤ column) summed point by point, mirrored below.
+    // Σ ψ ψᵀ, upper triangle (row ≤ column, column by column) summed point by point.
     let mut upper = [0.0f64; 15];
-    for q in &local {
+    for q in local {
         let (dx, dy) = (q.x - mean.x, q.y - mean.y);
-        let psi = [dx, dy, dx * dx - c3.xx, dy * dy - c3.yy, dx * dy - c3.xy];
-        let mut k = 0;
-        for (j, pj) in psi.iter().enumerate() {
-            for pi in psi.iter().take(j + 1) {
-                if let Some(slot) = upper.get_mut(k) {
-                    *slot += pi * pj;
-                }
-                k += 1;
-            }
+        let [p0, p1, p2, p3, p4] = [dx, dy, dx * dx - c3.xx, dy * dy - c3.yy, dx * dy - c3.xy];
+        let terms = [p0 * p0, p0 * p1, p1 * p1, p0 * p2, p1 * p2, p2 * p2, p0 * p3, p1 * p3, p2 * p3, p3 * p3, p0 * p4, p1 * p4, p2 * p4, p3 * p4, p4 * p4];
+        for (sum, t) in upper.iter_mut().zip(terms) {
+            *sum += t;
         }
     }
     let mut cov = SMatrix::<f64, 5, 5>::zeros();
@@ -77,13 +71,13 @@ pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f
 }
 
 /// The moments `m` of [`moments`] alone (no sampling covariance, no frame Jacobian).
-pub(crate) fn moment_values(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Moments {
-    let (mean, c3) = mean_and_scatter(&to_local(points, rot, c));
+pub(crate) fn moment_values(local: &[Vector3<f64>]) -> Moments {
+    let (mean, c3) = mean_and_scatter(local);
     Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy])
 }
 
 /// `Rᵀ(q_i − c)` (eq 16 before the projection), once per point for all moment passes.
-fn to_local(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Vec<Vector3<f64>> {
+pub(crate) fn to_local(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Vec<Vector3<f64>> {
     let rt = rot.transpose();
     points.iter().map(|q| rt * (q - c)).collect()
 }

@@ -591,10 +591,14 @@ fn finish(
         _ => state.k3.x,
     };
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
-    let m0 = boundary::moment_values(boundary_points, &state.rot, &state.c);
+    let local = boundary::to_local(boundary_points, &state.rot, &state.c);
+    let m0 = boundary::moment_values(&local);
     let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
-    let state = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
-    let stats = boundary::moments(boundary_points, &state.rot, &state.c);
+    let gauged = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
+    // Paraboloids keep their frame (no gauge freedom): the points are in it already.
+    let local = if gauged == state { local } else { boundary::to_local(boundary_points, &gauged.rot, &gauged.c) };
+    let state = gauged;
+    let stats = boundary::moments(&local);
     let m = stats.m;
     let from_m = boundary::from_moments(surface, boundary, &m, kappa, lambda, ln_term);
     let mut d: Vec<f64> = from_m.d.iter().take(from_m.nd).copied().collect();

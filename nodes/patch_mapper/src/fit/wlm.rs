@@ -204,12 +204,12 @@ pub(crate) fn accumulate(model: Model, state: &SurfaceState, set: &PointSet, min
 /// eq 36. LM uses it to accept or reject a trial step; most trials near convergence are rejected.
 pub(crate) fn chi_square(state: &SurfaceState, set: &PointSet, min_variance: f64) -> f64 {
     let frame = Frame::new(state);
-    let mut block = Block::new();
+    let mut squares = [0.0; BLOCK];
     let mut chi2 = 0.0;
     for (chunk, len) in set.chunks() {
-        block_terms::<false, false>(&frame, chunk, min_variance, &mut block);
-        for f in block.f.iter().take(len) {
-            chi2 += f * f;
+        block_terms(&frame, chunk, min_variance, |j, lane| squares[j] = lane.big_f * lane.big_f);
+        for f2 in squares.iter().take(len) {
+            chi2 += f2;
         }
     }
     chi2
@@ -257,11 +257,25 @@ impl Pass<'_> {
             let frame = Frame::new(self.state);
             let mut block = Block::new();
             for (chunk, len) in self.set.chunks() {
-                if self.with_sampson {
-                    block_terms::<true, true>(&frame, chunk, self.min_variance, &mut block);
-                } else {
-                    block_terms::<true, false>(&frame, chunk, self.min_variance, &mut block);
-                }
+                let Block { f: fs, g: gs, d: ds } = &mut block;
+                block_terms(&frame, chunk, self.min_variance, |j, lane| {
+                    let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
+                    fs[j] = lane.big_f;
+                    if self.with_sampson {
+                        let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
+                        ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
+                    }
+                    // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
+                    gs[0][j] = qx * qx * inv_sigma;
+                    gs[1][j] = qy * qy * inv_sigma;
+                    gs[2][j] = qz * qz * inv_sigma;
+                    gs[3][j] = (gy * qz - gz * qy) * inv_sigma;
+                    gs[4][j] = (gz * qx - gx * qz) * inv_sigma;
+                    gs[5][j] = (gx * qy - gy * qx) * inv_sigma;
+                    gs[6][j] = -gx * inv_sigma;
+                    gs[7][j] = -gy * inv_sigma;
+                    gs[8][j] = -gz * inv_sigma;
+                });
                 for j in 0..len {
                     let grad = Local::from_fn(|slot, _| block.g[slot][j]);
                     add(block.f[j], &grad, block.d[j]);
@@ -285,7 +299,7 @@ impl Pass<'_> {
 }
 
 /// Points per chunk of [`PointSet`] and [`block_terms`].
-const BLOCK: usize = 32;
+const BLOCK: usize = 4;
 
 /// Per-point values of one chunk: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
 struct Block {
@@ -319,18 +333,30 @@ impl Frame {
     }
 }
 
+/// One point's values of [`point_terms`] (without the weight derivative).
+struct Lane {
+    /// `F = f / σ` (eq 35).
+    big_f: f64,
+    /// `f` (eq 37).
+    f: f64,
+    inv_sigma: f64,
+    /// `q_l` (eq 38).
+    q: [f64; 3],
+    /// `∂f/∂q_l` (eq 39).
+    g: [f64; 3],
+}
+
 /// [`point_terms`] without the weight derivative for all `BLOCK` slots of a chunk (the padding
-/// of the last chunk included; the caller ignores it), written to `out`. The arithmetic is that
-/// of `point_terms` operation by operation (nalgebra's `M v` is `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row,
-/// dot products likewise), so the results are bit-identical; the fixed-length loop has no
-/// branches and vectorises.
+/// of the last chunk included; the caller ignores it), handed to `sink` with the slot index. The
+/// arithmetic is that of `point_terms` operation by operation (nalgebra's `M v` is
+/// `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row, dot products likewise), so the results are bit-identical;
+/// the fixed-length loop has no branches and vectorises when `sink` writes to arrays.
 #[inline(always)]
-fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, chunk: &Chunk, min_variance: f64, out: &mut Block) {
+fn block_terms(fr: &Frame, chunk: &Chunk, min_variance: f64, mut sink: impl FnMut(usize, &Lane)) {
     let [r0, r1, r2] = fr.r;
     let [kx, ky, kz] = fr.k;
     let [cx, cy, cz] = fr.c;
     let [xs, ys, zs, c0, c1, c2, c3, c4, c5, c6, c7, c8] = chunk;
-    let Block { f: fs, g: gs, d: ds } = out;
     for j in 0..BLOCK {
         let (dx, dy, dz) = (xs[j] - cx, ys[j] - cy, zs[j] - cz);
         // q_l = Rᵀ(q − c) (eq 38)
@@ -351,23 +377,7 @@ fn block_terms<const GRAD: bool, const SAMPSON: bool>(fr: &Frame, chunk: &Chunk,
         let var_raw = gwx * swx + gwy * swy + gwz * swz;
         let var = if var_raw < min_variance { min_variance } else { var_raw };
         let inv_sigma = 1.0 / var.sqrt();
-        fs[j] = f * inv_sigma;
-        if SAMPSON {
-            let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
-            ds[j] = if grad_norm > 0.0 { f.abs() / grad_norm } else { f.abs() };
-        }
-        if GRAD {
-            // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
-            gs[0][j] = qx * qx * inv_sigma;
-            gs[1][j] = qy * qy * inv_sigma;
-            gs[2][j] = qz * qz * inv_sigma;
-            gs[3][j] = (gy * qz - gz * qy) * inv_sigma;
-            gs[4][j] = (gz * qx - gx * qz) * inv_sigma;
-            gs[5][j] = (gx * qy - gy * qx) * inv_sigma;
-            gs[6][j] = -gx * inv_sigma;
-            gs[7][j] = -gy * inv_sigma;
-            gs[8][j] = -gz * inv_sigma;
-        }
+        sink(j, &Lane { big_f: f * inv_sigma, f, inv_sigma, q: [qx, qy, qz], g: [gx, gy, gz] });
     }
 }
 

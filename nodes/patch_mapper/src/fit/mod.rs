@@ -628,8 +628,12 @@ fn finish(
     // Local layout (14): [d (5) | κx κy κz | δx δy δz | δcx δcy δcz], a linear function of two
     // independent sources: the surface increments s (9 slots, WLM covariance) and the sampling
     // noise of the moments (5): local = [G_d (A s + m); s + G_pose (A s + m)], A = ∂m/∂s.
-    let embed = model.embedding();
-    let cov_s = embed * cov_free * embed.transpose();
+    // E C Eᵀ with the 0/1 embedding E: every local slot belongs to at most one free parameter.
+    let slot_param: [Option<usize>; 9] = std::array::from_fn(|slot| model.free_slots().iter().position(|mask| mask & (1 << slot) != 0));
+    let cov_s = SMatrix::<f64, 9, 9>::from_fn(|a, b| match (slot_param[a], slot_param[b]) {
+        (Some(i), Some(j)) => cov_free[(i, j)],
+        _ => 0.0,
+    });
     let jm = boundary::from_moments_jacobian(surface, boundary, &m, kappa, lambda, ln_term);
     let mut g = SMatrix::<f64, 14, 5>::zeros();
     for j in 0..5 {
@@ -664,44 +668,36 @@ fn finish(
     let mut patch = Patch::new(surface, boundary, d, curv, r, state.c).map_err(|e| FitError::InvalidRequest(e.to_string()))?;
     let p = patch.dof();
     let nd = boundary.num_params();
-    let nk = surface.num_curvatures();
-    let mut t = DMatrix::<f64>::zeros(p, 14);
-    for i in 0..nd {
-        t[(i, i)] = 1.0;
-    }
+    // T (p × 14, local layout → minimal parameters) row by row as its non-zeros (at most 3).
+    let mut t: Vec<SparseRow> = (0..nd).map(|i| SparseRow::one(i, 1.0)).collect();
     match surface {
         SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => {
-            t[(nd, 5)] = 1.0;
-            t[(nd + 1, 6)] = 1.0;
+            t.push(SparseRow::one(5, 1.0));
+            t.push(SparseRow::one(6, 1.0));
         }
-        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => t[(nd, 6)] = 1.0,
-        SurfaceType::CircularParaboloid | SurfaceType::Sphere => t[(nd, 5)] = 1.0,
+        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => t.push(SparseRow::one(6, 1.0)),
+        SurfaceType::CircularParaboloid | SurfaceType::Sphere => t.push(SparseRow::one(5, 1.0)),
         SurfaceType::Plane => {}
     }
     let jr_inv = right_jacobian_inverse(&r);
-    let nr = if is5 { 2 } else { 3 };
     if is5 {
         // The final frame of 5-DoF types is R([r_xy 0]); the local tilt maps through eq 45.
         let a = r_xy_jacobian(&r) * jr_inv;
         for i in 0..2 {
-            for j in 0..3 {
-                t[(nd + nk + i, 8 + j)] = a[(i, j)];
-            }
+            t.push(SparseRow::three(8, [a[(i, 0)], a[(i, 1)], a[(i, 2)]]));
         }
     } else {
         for i in 0..3 {
-            for j in 0..3 {
-                t[(nd + nk + i, 8 + j)] = jr_inv[(i, j)];
-            }
+            t.push(SparseRow::three(8, [jr_inv[(i, 0)], jr_inv[(i, 1)], jr_inv[(i, 2)]]));
         }
     }
     for i in 0..3 {
-        for j in 0..3 {
-            t[(nd + nk + nr + i, 11 + j)] = state.rot[(i, j)];
-        }
+        t.push(SparseRow::three(11, [state.rot[(i, 0)], state.rot[(i, 1)], state.rot[(i, 2)]]));
     }
-    let cov_local_d = DMatrix::from_iterator(14, 14, cov_local.iter().copied());
-    let cov = &t * cov_local_d * t.transpose();
+    let cov = DMatrix::from_fn(p, p, |i, j| match (t.get(i), t.get(j)) {
+        (Some(ti), Some(tj)) => ti.sandwich(&cov_local, tj),
+        _ => f64::NAN,
+    });
     if !cov.iter().all(|v| v.is_finite()) {
         return Err(FitError::Diverged("non-finite covariance"));
     }
@@ -709,6 +705,34 @@ fn finish(
     patch.residual = (normal.sampson_sq / points.len() as f64).sqrt();
     patch.num_points = points.len();
     Ok(patch)
+}
+
+/// One row of a sparse matrix over the 14 local slots: up to three consecutive non-zeros.
+struct SparseRow {
+    start: usize,
+    len: usize,
+    values: [f64; 3],
+}
+
+impl SparseRow {
+    fn one(col: usize, value: f64) -> Self {
+        Self { start: col, len: 1, values: [value, 0.0, 0.0] }
+    }
+
+    fn three(start: usize, values: [f64; 3]) -> Self {
+        Self { start, len: 3, values }
+    }
+
+    /// `self · C · otherᵀ`.
+    fn sandwich(&self, c: &SMatrix<f64, 14, 14>, other: &Self) -> f64 {
+        let mut sum = 0.0;
+        for (a, alpha) in self.values.iter().take(self.len).enumerate() {
+            for (b, beta) in other.values.iter().take(other.len).enumerate() {
+                sum += alpha * beta * c[(self.start + a, other.start + b)];
+            }
+        }
+        sum
+    }
 }
 
 #[cfg(test)]

@@ -541,7 +541,7 @@ impl PatchShape {
     }
 
     /// [`Patch::boundary_value`]: `≤ 0` inside (eq 17 for ellipse/circle, eq 19–20 for rectangle/quad).
-    #[inline]
+    #[inline(always)]
     pub fn boundary_value(&self, u: &Vector2<f64>) -> f64 {
         match &self.boundary {
             BoundaryShape::Ellipse { dx, dy } => (u.x / dx).powi(2) + (u.y / dy).powi(2) - 1.0,
@@ -562,15 +562,28 @@ impl PatchShape {
     /// Closest point on the bounded surface to a local-frame point (projected Gauss–Newton over the
     /// explicit parameter `u`, constrained to the boundary). Returns the local closest point.
     pub fn closest_point_local(&self, q_l: &Vector3<f64>) -> Vector3<f64> {
+        // One loop per explicit form (eq 13, 23, 27), so that the height is inlined into it.
+        let k = self.curvatures;
+        match self.surface {
+            SurfaceType::Sphere => self.closest_with(q_l, |u| sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz))),
+            SurfaceType::CircularCylinder => self.closest_with(q_l, |u| sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz)))),
+            _ if k.x == 0.0 && k.y == 0.0 => {
+                // z(u) = 0: the first Gauss–Newton step lands on the projection already.
+                let u = self.project_to_boundary(&q_l.xy());
+                Vector3::new(u.x, u.y, 0.0)
+            }
+            _ => self.closest_with(q_l, |u| Some(paraboloid_height(&k, u))),
+        }
+    }
+
+    /// [`PatchShape::closest_point_local`] of a curved surface with the explicit form `height`
+    /// (`z(u)` and `∂z/∂u`, `None` outside the domain).
+    #[inline(always)]
+    fn closest_with(&self, q_l: &Vector3<f64>, height: impl Fn(&Vector2<f64>) -> Option<(f64, Vector2<f64>)>) -> Vector3<f64> {
         let q_xy = q_l.xy();
         let mut u = self.project_to_boundary(&q_xy);
-        let flat = !matches!(self.surface, SurfaceType::Sphere | SurfaceType::CircularCylinder) && self.curvatures.x == 0.0 && self.curvatures.y == 0.0;
-        if flat {
-            // z(u) = 0: the first Gauss–Newton step lands on the projection already.
-            return Vector3::new(u.x, u.y, 0.0);
-        }
         for _ in 0..12 {
-            let Some((z, g)) = self.height(&u) else { break };
+            let Some((z, g)) = height(&u) else { break };
             // residual e = (u − q_xy, z − q_z); J = [I; gᵀ]; JᵀJ = I + g gᵀ has the inverse
             // I − g gᵀ / (1 + gᵀg) (Sherman–Morrison).
             let e_xy = u - q_xy;
@@ -584,7 +597,7 @@ impl PatchShape {
                 break;
             }
         }
-        match self.height(&u) {
+        match height(&u) {
             Some((z, _)) => Vector3::new(u.x, u.y, z),
             None => Vector3::new(u.x, u.y, 0.0),
         }
@@ -592,7 +605,7 @@ impl PatchShape {
 
     /// Nearest point of the projected boundary region to `u` (identity inside; radial for ellipses,
     /// which is exact for circles and close for mildly eccentric ellipses).
-    #[inline]
+    #[inline(always)]
     fn project_to_boundary(&self, u: &Vector2<f64>) -> Vector2<f64> {
         let mut u = *u;
         // Keep spheres/cylinders inside their domain κ² uᵀu < 1.
@@ -673,12 +686,19 @@ fn explicit_height(surface: SurfaceType, k: &Vector2<f64>, u: &Vector2<f64>) -> 
     match surface {
         SurfaceType::Sphere => sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz)),
         SurfaceType::CircularCylinder => sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))),
-        _ => Some((0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))),
+        _ => Some(paraboloid_height(k, u)),
     }
+}
+
+/// Height and gradient of the paraboloid family (eq 13).
+#[inline(always)]
+fn paraboloid_height(k: &Vector2<f64>, u: &Vector2<f64>) -> (f64, Vector2<f64>) {
+    (0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))
 }
 
 /// Height of a sphere/circle of curvature κ at squared radius `s = uᵀu` (eq 23) in the stable form
 /// `κ s / (1 + √(1 − κ² s))`, and `∂z/∂(u) / u` (so `∂z/∂u = u · dz`).
+#[inline(always)]
 fn sphere_height(kappa: f64, s: f64) -> Option<(f64, f64)> {
     let arg = 1.0 - kappa * kappa * s;
     if arg < 0.0 {

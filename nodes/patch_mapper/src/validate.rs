@@ -215,8 +215,8 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     let mut counts = vec![[0u32; 2]; nx * ny];
     for q in local {
         let u = q.xy();
-        let ci = (u.x / wc).floor() as i64 - i0;
-        let cj = (u.y / wc).floor() as i64 - j0;
+        let ci = floor_to_i64(u.x / wc) - i0;
+        let cj = floor_to_i64(u.y / wc) - j0;
         if ci < 0 || cj < 0 || ci >= nx as i64 || cj >= ny as i64 {
             continue;
         }
@@ -231,14 +231,21 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     let t_o = config.zeta_outside * n_e;
     let s = config.area_subsamples.max(1);
     let k = config.count_tolerance_sigmas.max(0.0);
+    // Cells beyond the boundary's bounding box (by more than rounding) hold no boundary area:
+    // every corner and sub-sample there is outside.
+    let margin = 1e-9 * (h.x + h.y + wc);
     let mut bad = 0;
     for cj in 0..ny {
         for ci in 0..nx {
             let x0 = (i0 + ci as i64) as f64 * wc;
             let y0 = (j0 + cj as i64) as f64 * wc;
+            let beyond_box = x0 > h.x + margin || x0 + wc < -h.x - margin || y0 > h.y + margin || y0 + wc < -h.y - margin;
             // A_i / w_c²: 1 if all corners are inside (convex boundary), else by sub-sampling.
-            let corners_inside = [(0.0, 0.0), (wc, 0.0), (0.0, wc), (wc, wc)].iter().all(|(dx, dy)| shape.contains_uv(&Vector2::new(x0 + dx, y0 + dy)));
-            let frac = if corners_inside {
+            let corners_inside = !beyond_box
+                && [(0.0, 0.0), (wc, 0.0), (0.0, wc), (wc, wc)].iter().all(|(dx, dy)| shape.contains_uv(&Vector2::new(x0 + dx, y0 + dy)));
+            let frac = if beyond_box {
+                0.0
+            } else if corners_inside {
                 1.0
             } else {
                 let mut hits = 0;
@@ -263,6 +270,18 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     (bad, allowed)
 }
 
+/// `x.floor() as i64` without the libm call (the baseline x86-64 target has no `roundsd`):
+/// truncate, then step down for negative non-integers. Saturates like the cast.
+#[inline(always)]
+fn floor_to_i64(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -275,6 +294,13 @@ mod tests {
 
     fn dense_disk(rng: &mut rand::rngs::StdRng, r: f64, n: usize) -> Vec<Vector3<f64>> {
         disk(r).sample_points(rng, n)
+    }
+
+    #[test]
+    fn floor_to_i64_matches_the_cast_of_floor() {
+        for x in [0.0, -0.0, 0.5, -0.5, 1.0, -1.0, 2.999_999, -2.000_001, 1e300, -1e300, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, 4.5e15 + 0.5, -4.5e15 - 0.5] {
+            assert_eq!(floor_to_i64(x), x.floor() as i64, "{x}");
+        }
     }
 
     #[test]

@@ -15,7 +15,7 @@ use nalgebra::{Matrix3, SMatrix, SVector, Vector3};
 pub type Moments = SVector<f64, 5>;
 
 /// Moments of `u_i = Π_xy Rᵀ(q_i − c)` (eq 16), their sampling covariance, and their first-order
-/// dependence on the surface frame.
+/// dependence on the surface frame; [`moments`] takes the points `Rᵀ(q_i − c)` ([`to_local`]).
 pub(crate) struct MomentStats {
     /// `[x̄, ȳ, α, φ, c_xy]`.
     pub m: Moments,
@@ -26,26 +26,29 @@ pub(crate) struct MomentStats {
     pub frame_jacobian: SMatrix<f64, 5, 9>,
 }
 
-pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> MomentStats {
-    let n = points.len().max(1) as f64;
-    let rt = rot.transpose();
-    let mut mean = Vector3::zeros();
-    for q in points {
-        mean += rt * (q - c);
+pub(crate) fn moments(local: &[Vector3<f64>]) -> MomentStats {
+    let (mean, c3) = mean_and_scatter(local);
+    let n = local.len().max(1) as f64;
+    let m = Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy]);
+    // Σ ψ ψᵀ, upper triangle (row ≤ column, column by column) summed point by point.
+    let mut upper = [0.0f64; 15];
+    for q in local {
+        let (dx, dy) = (q.x - mean.x, q.y - mean.y);
+        let [p0, p1, p2, p3, p4] = [dx, dy, dx * dx - c3.xx, dy * dy - c3.yy, dx * dy - c3.xy];
+        let terms = [p0 * p0, p0 * p1, p1 * p1, p0 * p2, p1 * p2, p2 * p2, p0 * p3, p1 * p3, p2 * p3, p3 * p3, p0 * p4, p1 * p4, p2 * p4, p3 * p4, p4 * p4];
+        for (sum, t) in upper.iter_mut().zip(terms) {
+            *sum += t;
+        }
     }
-    mean /= n;
-    let mut c3 = Matrix3::zeros();
-    for q in points {
-        let d = rt * (q - c) - mean;
-        c3 += d * d.transpose();
-    }
-    c3 /= n;
-    let m = Moments::from_column_slice(&[mean.x, mean.y, c3[(0, 0)], c3[(1, 1)], c3[(0, 1)]]);
     let mut cov = SMatrix::<f64, 5, 5>::zeros();
-    for q in points {
-        let d = rt * (q - c) - mean;
-        let psi = Moments::from_column_slice(&[d.x, d.y, d.x * d.x - c3[(0, 0)], d.y * d.y - c3[(1, 1)], d.x * d.y - c3[(0, 1)]]);
-        cov += psi * psi.transpose();
+    let mut k = 0;
+    for j in 0..5 {
+        for i in 0..=j {
+            let v = upper.get(k).copied().unwrap_or(0.0);
+            cov[(i, j)] = v;
+            cov[(j, i)] = v;
+            k += 1;
+        }
     }
     // Unbiased empirical covariance of ψ, divided by N for the mean.
     cov /= (n - 1.0).max(1.0) * n;
@@ -57,14 +60,55 @@ pub(crate) fn moments(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f
     a[(1, 3)] = mean.z;
     a[(1, 5)] = -mean.x;
     a[(1, 7)] = -1.0;
-    a[(2, 4)] = -2.0 * c3[(0, 2)];
-    a[(2, 5)] = 2.0 * c3[(0, 1)];
-    a[(3, 3)] = 2.0 * c3[(1, 2)];
-    a[(3, 5)] = -2.0 * c3[(0, 1)];
-    a[(4, 3)] = c3[(0, 2)];
-    a[(4, 4)] = -c3[(1, 2)];
-    a[(4, 5)] = c3[(1, 1)] - c3[(0, 0)];
+    a[(2, 4)] = -2.0 * c3.xz;
+    a[(2, 5)] = 2.0 * c3.xy;
+    a[(3, 3)] = 2.0 * c3.yz;
+    a[(3, 5)] = -2.0 * c3.xy;
+    a[(4, 3)] = c3.xz;
+    a[(4, 4)] = -c3.yz;
+    a[(4, 5)] = c3.yy - c3.xx;
     MomentStats { m, cov, frame_jacobian: a }
+}
+
+/// The moments `m` of [`moments`] alone (no sampling covariance, no frame Jacobian).
+pub(crate) fn moment_values(local: &[Vector3<f64>]) -> Moments {
+    let (mean, c3) = mean_and_scatter(local);
+    Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy])
+}
+
+/// `Rᵀ(q_i − c)` (eq 16 before the projection), once per point for all moment passes.
+pub(crate) fn to_local(points: &[Vector3<f64>], rot: &Matrix3<f64>, c: &Vector3<f64>) -> Vec<Vector3<f64>> {
+    let rt = rot.transpose();
+    points.iter().map(|q| rt * (q - c)).collect()
+}
+
+/// The central second moments the boundary needs (`zz` is never used).
+struct Scatter {
+    xx: f64,
+    yy: f64,
+    xy: f64,
+    xz: f64,
+    yz: f64,
+}
+
+/// Mean and central second moments (divided by N) of local points (two-pass).
+fn mean_and_scatter(local: &[Vector3<f64>]) -> (Vector3<f64>, Scatter) {
+    let n = local.len().max(1) as f64;
+    let mut mean = Vector3::zeros();
+    for q in local {
+        mean += q;
+    }
+    mean /= n;
+    let (mut xx, mut yy, mut xy, mut xz, mut yz) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for q in local {
+        let d = q - mean;
+        xx += d.x * d.x;
+        yy += d.y * d.y;
+        xy += d.x * d.y;
+        xz += d.x * d.z;
+        yz += d.y * d.z;
+    }
+    (mean, Scatter { xx: xx / n, yy: yy / n, xy: xy / n, xz: xz / n, yz: yz / n })
 }
 
 /// Values taken from the moments: boundary params (up to 5) and the moment-fixed local increments

@@ -18,7 +18,7 @@ mod wlm;
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse, rotation_from_normal};
 use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, Vector2, Vector3};
-use wlm::{Covariances, LmSettings, Model, SurfaceState};
+use wlm::{Covariances, LmSettings, Model, PointSet, SurfaceState};
 use serde::{Deserialize, Serialize};
 
 /// Which surface to fit (IROS IV input `s`).
@@ -263,6 +263,7 @@ pub fn fit_patch_with_boundary_points(
         Some(c) => Covariances::PerPoint(c),
         None => Covariances::Constant(Matrix3::identity()),
     };
+    let covs = PointSet::new(points, &covs);
     let weighted = point_covariances.is_some();
     let settings = LmSettings {
         max_iterations: config.max_iterations,
@@ -289,7 +290,7 @@ pub fn chi_square(patch: &Patch, points: &[Vector3<f64>], point_covariances: Opt
         None => Covariances::Constant(Matrix3::identity()),
     };
     let state = SurfaceState { k3: patch.k3(), rot: patch.rotation_matrix(), c: patch.center };
-    wlm::accumulate(Model::Paraboloid, &state, points, &covs, config.min_variance, false, false).chi2
+    wlm::chi_square(&state, &PointSet::new(points, &covs), config.min_variance)
 }
 
 /// Reject inputs that would make the fit meaningless (typed errors, never panics).
@@ -313,10 +314,10 @@ fn check_inputs(points: &[Vector3<f64>], covs: Option<&[Matrix3<f64>]>, needed: 
 
 /// Symmetric positive semi-definite test by principal minors (with a relative tolerance).
 pub fn is_psd(c: &Matrix3<f64>) -> bool {
-    if !c.iter().all(|v| v.is_finite()) {
+    if !c.as_slice().iter().all(|v| v.is_finite()) {
         return false;
     }
-    let scale = c.diagonal().iter().map(|v| v.abs()).sum::<f64>().max(f64::MIN_POSITIVE);
+    let scale = (c[(0, 0)].abs() + c[(1, 1)].abs() + c[(2, 2)].abs()).max(f64::MIN_POSITIVE);
     let tol = 1e-9 * scale;
     let sym = (c[(0, 1)] - c[(1, 0)]).abs() <= tol && (c[(0, 2)] - c[(2, 0)]).abs() <= tol && (c[(1, 2)] - c[(2, 1)]).abs() <= tol;
     if !sym || c[(0, 0)] < -tol || c[(1, 1)] < -tol || c[(2, 2)] < -tol {
@@ -427,21 +428,21 @@ fn fit_surface(
     target: Target,
     start: SurfaceState,
     points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
+    covs: &PointSet,
     settings: &LmSettings,
     config: &FitConfig,
     weighted: bool,
 ) -> Result<(SurfaceType, BoundaryType, SurfaceState), FitError> {
     match target {
         Target::Fixed(SurfaceType::Plane, b) => {
-            Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, points, covs, &settings_for(Model::Plane, settings, config))?.state))
+            Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, covs, &settings_for(Model::Plane, settings, config))?.state))
         }
         Target::Fixed(SurfaceType::Sphere, b) => {
-            Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, points, covs, &settings_for(Model::Sphere, settings, config))?.state))
+            Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, covs, &settings_for(Model::Sphere, settings, config))?.state))
         }
         _ => {
             // Step 2: general paraboloid, started from the LLS quadric graph over the plane.
-            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), points, covs, &settings_for(Model::Paraboloid, settings, config))?;
+            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), covs, &settings_for(Model::Paraboloid, settings, config))?;
             let (state, swapped) = order_axes(par.state);
             let surface = match target {
                 Target::Auto(_) => {
@@ -472,7 +473,7 @@ fn fit_surface(
             };
             let k = state.k3;
             let refit = |model: Model, k3: Vector3<f64>, st: SurfaceState| -> Result<SurfaceState, FitError> {
-                Ok(wlm::run(model, SurfaceState { k3, ..st }, points, covs, &settings_for(model, settings, config))?.state)
+                Ok(wlm::run(model, SurfaceState { k3, ..st }, covs, &settings_for(model, settings, config))?.state)
             };
             let state = match surface {
                 SurfaceType::Plane => refit(Model::Plane, Vector3::zeros(), state)?,
@@ -670,7 +671,7 @@ fn finish(
     state: SurfaceState,
     points: &[Vector3<f64>],
     boundary_points: &[Vector3<f64>],
-    covs: &Covariances<'_>,
+    covs: &PointSet,
     settings: &LmSettings,
     config: &FitConfig,
     containment: f64,
@@ -685,10 +686,14 @@ fn finish(
         _ => state.k3.x,
     };
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
-    let m0 = boundary::moments(boundary_points, &state.rot, &state.c).m;
+    let local = boundary::to_local(boundary_points, &state.rot, &state.c);
+    let m0 = boundary::moment_values(&local);
     let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
-    let state = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
-    let stats = boundary::moments(boundary_points, &state.rot, &state.c);
+    let gauged = apply_gauge(surface, boundary, &state, &m0, first.local[2])?;
+    // Paraboloids keep their frame (no gauge freedom): the points are in it already.
+    let local = if gauged == state { local } else { boundary::to_local(boundary_points, &gauged.rot, &gauged.c) };
+    let state = gauged;
+    let stats = boundary::moments(&local);
     let m = stats.m;
     let from_m = boundary::from_moments(surface, boundary, &m, kappa, lambda, ln_term);
     let mut d: Vec<f64> = from_m.d.iter().take(from_m.nd).copied().collect();
@@ -706,7 +711,7 @@ fn finish(
     // Surface part of Σ: WLM information at the final frame (measurement noise).
     let model = model_for(surface);
     let mfree = model.num_free();
-    let normal = wlm::accumulate(model, &state, points, covs, settings.min_variance, config.weight_derivative.applies_to(model), true);
+    let normal = wlm::accumulate(model, &state, covs, settings.min_variance, config.weight_derivative.applies_to(model), true);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
     let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();
@@ -718,8 +723,12 @@ fn finish(
     // Local layout (14): [d (5) | κx κy κz | δx δy δz | δcx δcy δcz], a linear function of two
     // independent sources: the surface increments s (9 slots, WLM covariance) and the sampling
     // noise of the moments (5): local = [G_d (A s + m); s + G_pose (A s + m)], A = ∂m/∂s.
-    let embed = model.embedding();
-    let cov_s = embed * cov_free * embed.transpose();
+    // E C Eᵀ with the 0/1 embedding E: every local slot belongs to at most one free parameter.
+    let slot_param: [Option<usize>; 9] = std::array::from_fn(|slot| model.free_slots().iter().position(|mask| mask & (1 << slot) != 0));
+    let cov_s = SMatrix::<f64, 9, 9>::from_fn(|a, b| match (slot_param[a], slot_param[b]) {
+        (Some(i), Some(j)) => cov_free[(i, j)],
+        _ => 0.0,
+    });
     let jm = boundary::from_moments_jacobian(surface, boundary, &m, kappa, lambda, ln_term);
     let mut g = SMatrix::<f64, 14, 5>::zeros();
     for j in 0..5 {
@@ -759,44 +768,36 @@ fn finish(
     let mut patch = Patch::new(surface, boundary, d, curv, r, state.c).map_err(|e| FitError::InvalidRequest(e.to_string()))?;
     let p = patch.dof();
     let nd = boundary.num_params();
-    let nk = surface.num_curvatures();
-    let mut t = DMatrix::<f64>::zeros(p, 14);
-    for i in 0..nd {
-        t[(i, i)] = 1.0;
-    }
+    // T (p × 14, local layout → minimal parameters) row by row as its non-zeros (at most 3).
+    let mut t: Vec<SparseRow> = (0..nd).map(|i| SparseRow::one(i, 1.0)).collect();
     match surface {
         SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => {
-            t[(nd, 5)] = 1.0;
-            t[(nd + 1, 6)] = 1.0;
+            t.push(SparseRow::one(5, 1.0));
+            t.push(SparseRow::one(6, 1.0));
         }
-        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => t[(nd, 6)] = 1.0,
-        SurfaceType::CircularParaboloid | SurfaceType::Sphere => t[(nd, 5)] = 1.0,
+        SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder => t.push(SparseRow::one(6, 1.0)),
+        SurfaceType::CircularParaboloid | SurfaceType::Sphere => t.push(SparseRow::one(5, 1.0)),
         SurfaceType::Plane => {}
     }
     let jr_inv = right_jacobian_inverse(&r);
-    let nr = if is5 { 2 } else { 3 };
     if is5 {
         // The final frame of 5-DoF types is R([r_xy 0]); the local tilt maps through eq 45.
         let a = r_xy_jacobian(&r) * jr_inv;
         for i in 0..2 {
-            for j in 0..3 {
-                t[(nd + nk + i, 8 + j)] = a[(i, j)];
-            }
+            t.push(SparseRow::three(8, [a[(i, 0)], a[(i, 1)], a[(i, 2)]]));
         }
     } else {
         for i in 0..3 {
-            for j in 0..3 {
-                t[(nd + nk + i, 8 + j)] = jr_inv[(i, j)];
-            }
+            t.push(SparseRow::three(8, [jr_inv[(i, 0)], jr_inv[(i, 1)], jr_inv[(i, 2)]]));
         }
     }
     for i in 0..3 {
-        for j in 0..3 {
-            t[(nd + nk + nr + i, 11 + j)] = state.rot[(i, j)];
-        }
+        t.push(SparseRow::three(11, [state.rot[(i, 0)], state.rot[(i, 1)], state.rot[(i, 2)]]));
     }
-    let cov_local_d = DMatrix::from_iterator(14, 14, cov_local.iter().copied());
-    let cov = &t * cov_local_d * t.transpose();
+    let cov = DMatrix::from_fn(p, p, |i, j| match (t.get(i), t.get(j)) {
+        (Some(ti), Some(tj)) => ti.sandwich(&cov_local, tj),
+        _ => f64::NAN,
+    });
     if !cov.iter().all(|v| v.is_finite()) {
         return Err(FitError::Diverged("non-finite covariance"));
     }
@@ -804,6 +805,34 @@ fn finish(
     patch.residual = (normal.sampson_sq / points.len() as f64).sqrt();
     patch.num_points = points.len();
     Ok(patch)
+}
+
+/// One row of a sparse matrix over the 14 local slots: up to three consecutive non-zeros.
+struct SparseRow {
+    start: usize,
+    len: usize,
+    values: [f64; 3],
+}
+
+impl SparseRow {
+    fn one(col: usize, value: f64) -> Self {
+        Self { start: col, len: 1, values: [value, 0.0, 0.0] }
+    }
+
+    fn three(start: usize, values: [f64; 3]) -> Self {
+        Self { start, len: 3, values }
+    }
+
+    /// `self · C · otherᵀ`.
+    fn sandwich(&self, c: &SMatrix<f64, 14, 14>, other: &Self) -> f64 {
+        let mut sum = 0.0;
+        for (a, alpha) in self.values.iter().take(self.len).enumerate() {
+            for (b, beta) in other.values.iter().take(other.len).enumerate() {
+                sum += alpha * beta * c[(self.start + a, other.start + b)];
+            }
+        }
+        sum
+    }
 }
 
 #[cfg(test)]

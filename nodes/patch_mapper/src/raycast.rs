@@ -118,19 +118,56 @@ pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrins
     raycast_guided(volume, config, intrinsics, volume_from_camera, None)
 }
 
-/// Raycast guided by a depth hint of the same size (e.g. the frame just integrated at this pose): a
-/// ray with hint depth d marches only [d − 2μ, d + 2μ] (along the optical axis), the band around the
-/// expected surface; rays that do not find a crossing there stop at its end instead of marching the
-/// occluded volume behind it. Pixels without a hint are marched in full.
+/// Where the frame just integrated at the raycast pose saw surfaces, to bound each ray's march.
+#[derive(Debug, Clone, Copy)]
+pub struct RayHint<'a> {
+    /// Depth at the raycast resolution: a ray with depth d there marches [d − 2μ, d + 2μ].
+    pub depth: &'a DepthImage,
+    /// The same frame at an integer multiple f of the raycast resolution (e.g. the full-resolution
+    /// input): where `depth` has no value (holes of the averaged image, mostly depth edges), the ray
+    /// marches [min − 2μ, max + 2μ] of the valid depths in its f × f pixel patch here. Rays whose
+    /// patch has no valid depth either are marched in full.
+    pub fine: Option<&'a DepthImage>,
+}
+
+/// Depth range (m along the optical axis) of the valid depths of `fine` in the `factor × factor`
+/// patch of pixel `(u, v)` of the coarse image.
+fn patch_depth_range(fine: &DepthImage, factor: usize, u: usize, v: usize) -> Option<(f32, f32)> {
+    let (mut near, mut far) = (f32::INFINITY, f32::NEG_INFINITY);
+    for row in (v * factor..(v + 1) * factor).take_while(|row| *row < fine.height) {
+        let start = row * fine.width + u * factor;
+        let end = start + factor.min(fine.width.saturating_sub(u * factor));
+        for &d in fine.depth_m.get(start..end).unwrap_or(&[]) {
+            if d.is_finite() {
+                near = near.min(d);
+                far = far.max(d);
+            }
+        }
+    }
+    (near <= far).then_some((near, far))
+}
+
+/// Raycast guided by a depth hint (e.g. the frame just integrated at this pose): a ray with hint
+/// depth d marches only [d − 2μ, d + 2μ] (along the optical axis), the band around the expected
+/// surface; rays that do not find a crossing there stop at its end instead of marching the occluded
+/// volume behind it. Pixels without a hint at the raycast resolution take the depth range of the
+/// finer image's patch (`RayHint::fine`); pixels without any hint are marched in full.
 pub fn raycast_guided(
     volume: &TsdfVolume,
     config: &RaycastConfig,
     intrinsics: &Intrinsics,
     volume_from_camera: &Isometry3<f64>,
-    hint: Option<&DepthImage>,
+    hint: Option<RayHint<'_>>,
 ) -> ModelRaycast {
-    let hint = hint.filter(|h| h.width == intrinsics.width && h.height == intrinsics.height);
+    let hint = hint.filter(|h| h.depth.width == intrinsics.width && h.depth.height == intrinsics.height);
+    // The finer image must be an integer multiple of the raycast resolution.
+    let fine = hint.and_then(|h| h.fine).and_then(|fine| {
+        let factor = fine.width / intrinsics.width.max(1);
+        (factor >= 1 && fine.width == factor * intrinsics.width && fine.height == factor * intrinsics.height)
+            .then_some((fine, factor))
+    });
     let mu = volume.truncation();
+    let bounds = volume.allocated_bounds().map(|(lo, hi)| (lo, hi - Vector3::repeat(1e-4)));
     let (width, height) = (intrinsics.width, intrinsics.height);
     let pose = volume_from_camera.cast::<f32>();
     let rotation = pose.rotation.to_rotation_matrix();
@@ -148,10 +185,13 @@ pub fn raycast_guided(
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
                 let band = hint
-                    .and_then(|h| h.depth_m.get(v * width + u))
+                    .and_then(|h| h.depth.depth_m.get(v * width + u))
                     .filter(|d| d.is_finite())
-                    .map(|d| ((d - 2.0 * mu) * ray_length, (d + 2.0 * mu) * ray_length));
-                match cast_ray(volume, config, &origin, &direction, band) {
+                    .map(|&d| (d, d))
+                    .or_else(|| fine.and_then(|(fine, factor)| patch_depth_range(fine, factor, u, v)))
+                    .map(|(near, far)| ((near - 2.0 * mu) * ray_length, (far + 2.0 * mu) * ray_length));
+                let hit = bounds.and_then(|bounds| cast_ray(volume, config, &bounds, &origin, &direction, band));
+                match hit {
                     Some((t, normal)) => {
                         points.push(Point3::from(origin + direction * t));
                         normals.push(normal);
@@ -199,11 +239,12 @@ fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32
 }
 
 /// Marches one ray, within `band` (ray parameters) if given; returns the range to the first
-/// front-facing zero crossing and the unit normal. The ray is clipped to the bounds of the allocated
-/// blocks; empty superblocks and unallocated blocks are leapt over whole.
+/// front-facing zero crossing and the unit normal. The ray is clipped to `bounds` (of the allocated
+/// blocks, computed once per raycast); empty superblocks and unallocated blocks are leapt over whole.
 fn cast_ray(
     volume: &TsdfVolume,
     config: &RaycastConfig,
+    bounds: &(Vector3<f32>, Vector3<f32>),
     origin: &Vector3<f32>,
     direction: &Vector3<f32>,
     band: Option<(f32, f32)>,
@@ -211,8 +252,7 @@ fn cast_ray(
     let voxel = volume.voxel_size();
     let inv_voxel = 1.0 / voxel;
     let mu = volume.truncation();
-    let (lo, hi) = volume.allocated_bounds()?;
-    let (t_enter, t_exit) = clip_to_box(origin, direction, &lo, &(hi - Vector3::repeat(1e-4)))?;
+    let (t_enter, t_exit) = clip_to_box(origin, direction, &bounds.0, &bounds.1)?;
     let mut t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
     let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
     let origin_voxel = origin * inv_voxel;
@@ -385,6 +425,16 @@ mod tests {
         // The camera z axis is volume +y.
         let z_axis = view.volume_from_birds_eye.rotation * Vector3::z();
         assert!((z_axis - Vector3::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn patch_depth_range_spans_the_valid_fine_depths() {
+        // 4×2 fine image, factor 2: coarse pixel (0, 0) covers columns 0–1, (1, 0) columns 2–3.
+        let nan = f32::NAN;
+        let fine = DepthImage { width: 4, height: 2, depth_m: vec![1.0, nan, nan, nan, 1.5, 1.2, nan, nan] };
+        assert_eq!(patch_depth_range(&fine, 2, 0, 0), Some((1.0, 1.5)));
+        assert_eq!(patch_depth_range(&fine, 2, 1, 0), None);
+        assert_eq!(patch_depth_range(&fine, 2, 2, 0), None);
     }
 
     #[test]

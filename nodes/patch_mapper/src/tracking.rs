@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
 use crate::fusion::{FusionError, TsdfConfig, TsdfVolume};
-use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RaycastConfig};
+use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint, RaycastConfig};
 use crate::volume::{initial_volume_from_camera, map_from_volume_rotation, plan_remap, remap_tsdf, MovingVolumeConfig};
 
 /// Errors of the tracking loop (bad input; tracking loss is a status, not an error).
@@ -288,8 +288,12 @@ impl Tracker {
 
         let started = Instant::now();
         let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
-        // The frame just integrated at this pose tells where each model ray meets the surface.
-        let hint = images.into_iter().find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height);
+        // The frame just integrated at this pose tells where each model ray meets the surface; the
+        // full-resolution frame fills the holes (depth edges) of the downsampled one.
+        let hint = images
+            .into_iter()
+            .find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height)
+            .map(|image| RayHint { depth: image, fine: Some(depth) });
         self.model =
             Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
         timings.raycast_ms = elapsed_ms(started);

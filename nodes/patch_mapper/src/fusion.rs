@@ -32,6 +32,17 @@ pub fn floor_i(x: f32) -> i32 {
     i - i32::from((i as f32) > x)
 }
 
+/// `floor` of `x` in [0, 2²²) without a float → integer conversion, so that loops using it
+/// vectorise (a saturating `as` cast does not): adding 2²³ rounds `x` to the nearest integer in the
+/// low mantissa bits, one is taken off where that rounded up.
+#[inline(always)]
+pub fn floor_small(x: f32) -> i32 {
+    const SHIFT: f32 = 8_388_608.0;
+    let nearest = (x + SHIFT) - SHIFT;
+    let floor = nearest - if nearest > x { 1.0 } else { 0.0 };
+    ((floor + SHIFT).to_bits() as i32).wrapping_sub(SHIFT.to_bits() as i32)
+}
+
 /// Errors from building or updating a TSDF volume.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FusionError {
@@ -554,48 +565,44 @@ fn integrate_block(
     let base = camera_from_volume * origin;
     let inv_mu = 1.0 / p.mu;
     let (w_max, h_max) = (p.width as f32 - 0.5, p.height as f32 - 0.5);
+    // Largest column and row indices as floats: pixel coordinates are clamped to them (a no-op for
+    // the pixels inside the image) so that `floor_small` sees its valid range.
+    let (col_last, row_last) = ((p.width.max(1) - 1) as f32, (p.height.max(1) - 1) as f32);
     let near = p.min_depth * 0.5;
     let width = p.width as i32;
-    let mut n = 0;
-    for z in 0..BLOCK_EDGE {
-        let pz = base.coords + step_z * z as f32;
-        for y in 0..BLOCK_EDGE {
-            // One row of voxels along x in two passes: camera-frame points and their pixels first
-            // (branch-free, so it vectorises), then the depth look-ups and the running averages.
-            let mut q = pz + step_y * y as f32;
-            let (mut xs, mut ys, mut zs) = ([0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE]);
-            for ((px, py), pz) in xs.iter_mut().zip(ys.iter_mut()).zip(zs.iter_mut()) {
-                (*px, *py, *pz) = (q.x, q.y, q.z);
-                q += step_x;
+    let lanes: [f32; BLOCK_EDGE] = std::array::from_fn(|x| x as f32);
+    for (row_index, row_voxels) in block.voxels.chunks_exact_mut(BLOCK_EDGE).enumerate() {
+        let (y, z) = (row_index % BLOCK_EDGE, row_index / BLOCK_EDGE);
+        // One row of voxels along x in two passes: camera-frame points and their pixels first
+        // (branch-free, so it vectorises), then the depth look-ups and the running averages.
+        let q = base.coords + step_y * y as f32 + step_z * z as f32;
+        let mut pixels = [-1i32; BLOCK_EDGE];
+        let mut zs = [0.0f32; BLOCK_EDGE];
+        for ((pixel, pz), lane) in pixels.iter_mut().zip(zs.iter_mut()).zip(lanes.iter()) {
+            let (px, py) = (q.x + step_x.x * lane, q.y + step_x.y * lane);
+            *pz = q.z + step_x.z * lane;
+            let inv_z = 1.0 / *pz;
+            let u = p.fx * px * inv_z + p.cx;
+            let v = p.fy * py * inv_z + p.cy;
+            let inside = (*pz > near) & (u >= -0.5) & (v >= -0.5) & (u < w_max) & (v < h_max);
+            let col = floor_small((u + 0.5).max(0.0).min(col_last));
+            let row = floor_small((v + 0.5).max(0.0).min(row_last));
+            *pixel = if inside { row * width + col } else { -1 };
+        }
+        for ((voxel, pixel), pz) in row_voxels.iter_mut().zip(pixels.iter()).zip(zs.iter()) {
+            let Ok(pixel) = usize::try_from(*pixel) else { continue };
+            let Some(&d) = depth.depth_m.get(pixel) else { continue };
+            if !(d >= p.min_depth && d <= p.max_depth) {
+                continue;
             }
-            let mut pixels = [-1i32; BLOCK_EDGE];
-            for (pixel, ((px, py), pz)) in pixels.iter_mut().zip(xs.iter().zip(ys.iter()).zip(zs.iter())) {
-                let inv_z = 1.0 / *pz;
-                let u = p.fx * *px * inv_z + p.cx;
-                let v = p.fy * *py * inv_z + p.cy;
-                let inside = *pz > near && u >= -0.5 && v >= -0.5 && u < w_max && v < h_max;
-                let (col, row) = ((u + 0.5) as i32, (v + 0.5) as i32);
-                *pixel = if inside { row * width + col } else { -1 };
+            let sdf = d - *pz;
+            if sdf < -p.mu {
+                continue;
             }
-            for (x, (pixel, pz)) in pixels.iter().zip(zs.iter()).enumerate() {
-                let index = n + x;
-                let Ok(pixel) = usize::try_from(*pixel) else { continue };
-                let Some(&d) = depth.depth_m.get(pixel) else { continue };
-                if !(d >= p.min_depth && d <= p.max_depth) {
-                    continue;
-                }
-                let sdf = d - *pz;
-                if sdf < -p.mu {
-                    continue;
-                }
-                let tsdf = (sdf * inv_mu).min(1.0);
-                if let Some(voxel) = block.voxels.get_mut(index) {
-                    let new_weight = voxel.weight + 1.0;
-                    voxel.tsdf = (voxel.tsdf * voxel.weight + tsdf) / new_weight;
-                    voxel.weight = new_weight.min(p.max_weight);
-                }
-            }
-            n += BLOCK_EDGE;
+            let tsdf = (sdf * inv_mu).min(1.0);
+            let new_weight = voxel.weight + 1.0;
+            voxel.tsdf = (voxel.tsdf * voxel.weight + tsdf) / new_weight;
+            voxel.weight = new_weight.min(p.max_weight);
         }
     }
 }
@@ -666,6 +673,17 @@ pub(crate) mod tests {
         let surface = volume.surface_voxels(0.3);
         assert!(!surface.is_empty());
         assert!(surface.iter().all(|p| (p.y - 0.9).abs() < 0.4 * config.truncation_m()));
+    }
+
+    #[test]
+    fn floor_small_matches_floor() {
+        for x in [0.0f32, 0.25, 0.5, 0.999_999, 1.0, 2.5, 3.5, 639.5, 639.999, 4_194_303.5] {
+            assert_eq!(floor_small(x), x.floor() as i32, "{x}");
+        }
+        for i in 0..100_000 {
+            let x = i as f32 * 0.013_7;
+            assert_eq!(floor_small(x), x.floor() as i32, "{x}");
+        }
     }
 
     #[test]

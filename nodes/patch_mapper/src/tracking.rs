@@ -15,7 +15,7 @@ use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, Translation3, UnitQuaternion
 use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fusion::{FusionError, TsdfConfig, TsdfVolume};
+use crate::fusion::{floor_small, FusionError, TsdfConfig, TsdfVolume};
 use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint, RaycastConfig};
 use crate::volume::{initial_volume_from_camera, map_from_volume_rotation, plan_remap, remap_tsdf, MovingVolumeConfig};
 
@@ -511,33 +511,57 @@ pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, in
     IcpResult { volume_from_camera: pose, summary, min_eigenvalue }
 }
 
-/// Inliers summed in f32 before the partial sums go into the f64 totals: f32 rounding over this
-/// many terms stays near 1e-5 relative, far below what moves the Gauss–Newton step.
-const F32_BATCH: usize = 128;
+/// Inliers gathered before their products are summed (in f32) and added to the f64 totals: f32
+/// rounding over this many terms stays near 1e-5 relative, far below what moves the Gauss–Newton step.
+const BATCH: usize = 64;
 
-/// f32 partial sums of the normal equations: row a holds Σ w·J_a·(J_0 … J_5, r, 0) (J = [n, p × n],
-/// the point-to-plane Jacobian; 8 lanes so the row update vectorises).
-type PartialSums = [[f32; 8]; 6];
+/// A batch of weighted point-to-plane rows √w·(J, r), J = [n, p × n], as columns (structure of
+/// arrays, so the 27 sums of products of column pairs vectorise); unused entries are zero.
+struct RowBatch {
+    columns: [[f32; BATCH]; 7],
+    len: usize,
+}
 
-/// Adds f32 partial sums (upper triangle of JᵀJ and Jᵀr) to the f64 totals.
-fn flush_partial_sums(acc: &mut Normal, partial: &mut PartialSums) {
+impl RowBatch {
+    fn new() -> Self {
+        Self { columns: [[0.0; BATCH]; 7], len: 0 }
+    }
+}
+
+/// Σ a·b over a batch, in 8 lanes.
+#[inline]
+fn batch_dot(a: &[f32; BATCH], b: &[f32; BATCH]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    for (chunk_a, chunk_b) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        for ((lane, x), y) in lanes.iter_mut().zip(chunk_a).zip(chunk_b) {
+            *lane += x * y;
+        }
+    }
+    lanes.iter().sum()
+}
+
+/// Adds the batch's JᵀWJ (upper triangle) and JᵀWr to the f64 totals and empties the batch.
+fn flush_batch(acc: &mut Normal, batch: &mut RowBatch) {
+    if batch.len == 0 {
+        return;
+    }
     let mut k = 0;
-    for (a, row) in partial.iter().enumerate() {
-        for value in row.iter().take(6).skip(a) {
+    for (a, column_a) in batch.columns.iter().take(6).enumerate() {
+        for column_b in batch.columns.iter().take(6).skip(a) {
             if let Some(total) = acc.jtj.get_mut(k) {
-                *total += f64::from(*value);
+                *total += f64::from(batch_dot(column_a, column_b));
             }
             k += 1;
         }
         if let Some(total) = acc.jtr.get_mut(a) {
-            *total += f64::from(row[6]);
+            *total += f64::from(batch_dot(column_a, &batch.columns[6]));
         }
     }
-    *partial = [[0.0; 8]; 6];
+    *batch = RowBatch::new();
 }
 
-/// Projective association + point-to-plane linearisation, summed in parallel (f32 batches of
-/// `F32_BATCH` inliers, f64 totals).
+/// Projective association + point-to-plane linearisation, summed in parallel (f32 sums over
+/// batches of `BATCH` inliers, f64 totals).
 fn accumulate(
     source: &SourceLevel,
     model: &ModelRaycast,
@@ -556,8 +580,7 @@ fn accumulate(
         .par_chunks(1024)
         .map(|chunk| {
             let mut acc = Normal::zero();
-            let mut partial: PartialSums = [[0.0; 8]; 6];
-            let mut batch = 0;
+            let mut batch = RowBatch::new();
             for point in chunk {
                 let p = pose * Point3::from(*point);
                 let m = model_from_volume * p;
@@ -570,7 +593,7 @@ fn accumulate(
                 if !(u >= -0.5 && v >= -0.5 && u < w && v < h) {
                     continue;
                 }
-                let index = (v + 0.5) as usize * mi.width + (u + 0.5) as usize;
+                let index = floor_small(v + 0.5) as usize * mi.width + floor_small(u + 0.5) as usize;
                 let (Some(q), Some(n)) = (model.points_in_volume.get(index), model.normals_in_volume.get(index)) else {
                     continue;
                 };
@@ -583,24 +606,24 @@ fn accumulate(
                     continue;
                 }
                 let r = n.dot(&difference);
-                let weight = if r.abs() <= huber { 1.0 } else { huber / r.abs() };
+                // Huber weight w, applied as √w to both factors of each product.
+                let sqrt_weight = if r.abs() <= huber { 1.0 } else { (huber / r.abs()).sqrt() };
                 let c = p.coords.cross(n);
-                let j = [n.x, n.y, n.z, c.x, c.y, c.z, r, 0.0];
-                for (row, &ja) in partial.iter_mut().zip(&j) {
-                    let wa = weight * ja;
-                    for (sum, &jb) in row.iter_mut().zip(&j) {
-                        *sum += wa * jb;
+                let row = [n.x, n.y, n.z, c.x, c.y, c.z, r];
+                let slot = batch.len;
+                for (column, value) in batch.columns.iter_mut().zip(row) {
+                    if let Some(entry) = column.get_mut(slot) {
+                        *entry = sqrt_weight * value;
                     }
                 }
+                batch.len += 1;
                 acc.inliers += 1;
                 acc.squared_residuals += f64::from(r * r);
-                batch += 1;
-                if batch == F32_BATCH {
-                    flush_partial_sums(&mut acc, &mut partial);
-                    batch = 0;
+                if batch.len == BATCH {
+                    flush_batch(&mut acc, &mut batch);
                 }
             }
-            flush_partial_sums(&mut acc, &mut partial);
+            flush_batch(&mut acc, &mut batch);
             acc
         })
         .reduce(Normal::zero, Normal::add)

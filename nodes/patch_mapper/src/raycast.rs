@@ -177,10 +177,13 @@ pub fn raycast_guided(
     let rows: Vec<Row> = (0..height)
         .into_par_iter()
         .map(|v| {
-            let mut points = Vec::with_capacity(width);
-            let mut normals = Vec::with_capacity(width);
-            let mut depths = Vec::with_capacity(width);
-            for u in 0..width {
+            let mut points = vec![Point3::new(f32::NAN, f32::NAN, f32::NAN); width];
+            let mut normals = vec![Vector3::repeat(f32::NAN); width];
+            let mut depths = vec![f32::NAN; width];
+            let Some(bounds) = bounds else {
+                return (points, normals, depths);
+            };
+            let start_ray = |u: usize| {
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
@@ -190,18 +193,40 @@ pub fn raycast_guided(
                     .map(|&d| (d, d))
                     .or_else(|| fine.and_then(|(fine, factor)| patch_depth_range(fine, factor, u, v)))
                     .map(|(near, far)| ((near - 2.0 * mu) * ray_length, (far + 2.0 * mu) * ray_length));
-                let hit = bounds.and_then(|bounds| cast_ray(volume, config, &bounds, &origin, &direction, band));
-                match hit {
-                    Some((t, normal)) => {
-                        points.push(Point3::from(origin + direction * t));
-                        normals.push(normal);
-                        depths.push(t / ray_length);
+                RayMarch::start(volume, config, &bounds, &origin, &direction, band).map(|march| (u, ray_length, march))
+            };
+            // RAY_LANES rays of the row are marched in turn, one step each: their voxel loads do not
+            // depend on each other, so the processor overlaps their cache misses (a single ray's
+            // next position depends on the TSDF just loaded).
+            let mut lanes: [Option<(usize, f32, RayMarch<'_>)>; RAY_LANES] = std::array::from_fn(|_| None);
+            let mut next_u = 0;
+            loop {
+                let mut active = false;
+                for lane in lanes.iter_mut() {
+                    while lane.is_none() && next_u < width {
+                        *lane = start_ray(next_u);
+                        next_u += 1;
                     }
-                    None => {
-                        points.push(Point3::new(f32::NAN, f32::NAN, f32::NAN));
-                        normals.push(Vector3::repeat(f32::NAN));
-                        depths.push(f32::NAN);
+                    let Some((u, ray_length, march)) = lane else { continue };
+                    active = true;
+                    let outcome = match march.step(volume, config) {
+                        MarchStep::Continue => continue,
+                        MarchStep::Done => None,
+                        MarchStep::Bracketed { t_positive, t_negative } => {
+                            refine_crossing(volume, &origin, &march.direction, t_positive, t_negative, 1.0 / volume.voxel_size())
+                        }
+                    };
+                    if let Some((t, normal)) = outcome {
+                        if let (Some(point), Some(n), Some(depth)) = (points.get_mut(*u), normals.get_mut(*u), depths.get_mut(*u)) {
+                            *point = Point3::from(origin + march.direction * t);
+                            *n = normal;
+                            *depth = t / *ray_length;
+                        }
                     }
+                    *lane = None;
+                }
+                if !active && next_u >= width {
+                    break;
                 }
             }
             (points, normals, depths)
@@ -238,71 +263,110 @@ fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32
     (t_near <= t_far).then_some((t_near, t_far))
 }
 
-/// Marches one ray, within `band` (ray parameters) if given; returns the range to the first
-/// front-facing zero crossing and the unit normal. The ray is clipped to `bounds` (of the allocated
-/// blocks, computed once per raycast); empty superblocks and unallocated blocks are leapt over whole.
-fn cast_ray(
-    volume: &TsdfVolume,
-    config: &RaycastConfig,
-    bounds: &(Vector3<f32>, Vector3<f32>),
-    origin: &Vector3<f32>,
-    direction: &Vector3<f32>,
-    band: Option<(f32, f32)>,
-) -> Option<(f32, Vector3<f32>)> {
-    let voxel = volume.voxel_size();
-    let inv_voxel = 1.0 / voxel;
-    let mu = volume.truncation();
-    let (t_enter, t_exit) = clip_to_box(origin, direction, &bounds.0, &bounds.1)?;
-    let mut t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
-    let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
-    let origin_voxel = origin * inv_voxel;
-    let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
-    let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
-    let block_voxels = BLOCK_EDGE as f32;
-    let mut previous: Option<(f32, f32)> = None;
-    // The allocated block the previous step was in: consecutive steps inside it skip both lookups.
-    let mut current: Option<([i32; 3], &Block)> = None;
-    let mut guard = 0usize;
-    while t < t_end && guard < 100_000 {
-        guard += 1;
-        let p = origin_voxel + direction * (t * inv_voxel);
+/// Rays marched interleaved per row (see `raycast_guided`).
+const RAY_LANES: usize = 4;
+
+/// Outcome of one marching step.
+enum MarchStep {
+    /// Still marching.
+    Continue,
+    /// Left the band, the cube or the range without a crossing: no hit.
+    Done,
+    /// A positive TSDF sample followed by a non-positive one: the crossing lies between.
+    Bracketed { t_positive: f32, t_negative: f32 },
+}
+
+/// One ray being marched within `band` (ray parameters) if given, toward its first front-facing zero
+/// crossing. The ray is clipped to `bounds` (of the allocated blocks, computed once per raycast);
+/// empty superblocks and unallocated blocks are leapt over whole; inside blocks the step shrinks
+/// with the TSDF (the surface is at least |tsdf|·μ away).
+struct RayMarch<'v> {
+    direction: Vector3<f32>,
+    origin_voxel: Vector3<f32>,
+    inverse_direction: Vector3<f32>,
+    t: f32,
+    t_end: f32,
+    /// The last observed sample (t, tsdf), if the step before was in observed data.
+    previous: Option<(f32, f32)>,
+    /// The allocated block the previous step was in: consecutive steps inside it skip both lookups.
+    current: Option<([i32; 3], &'v Block)>,
+    steps: usize,
+}
+
+impl<'v> RayMarch<'v> {
+    /// Starts a ray from `origin` along unit `direction` (volume frame, m); `None` if it misses `bounds`.
+    fn start(
+        volume: &TsdfVolume,
+        config: &RaycastConfig,
+        bounds: &(Vector3<f32>, Vector3<f32>),
+        origin: &Vector3<f32>,
+        direction: &Vector3<f32>,
+        band: Option<(f32, f32)>,
+    ) -> Option<Self> {
+        let inv_voxel = 1.0 / volume.voxel_size();
+        let (t_enter, t_exit) = clip_to_box(origin, direction, &bounds.0, &bounds.1)?;
+        let t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
+        let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
+        Some(Self {
+            direction: *direction,
+            origin_voxel: origin * inv_voxel,
+            inverse_direction: direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d }),
+            t,
+            t_end,
+            previous: None,
+            current: None,
+            steps: 0,
+        })
+    }
+
+    /// One step of the march.
+    #[inline]
+    fn step(&mut self, volume: &'v TsdfVolume, config: &RaycastConfig) -> MarchStep {
+        if !(self.t < self.t_end && self.steps < 100_000) {
+            return MarchStep::Done;
+        }
+        self.steps += 1;
+        let voxel = volume.voxel_size();
+        let mu = volume.truncation();
+        let p = self.origin_voxel + self.direction * (self.t * (1.0 / voxel));
         let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
         let block_coords = [i >> 3, j >> 3, k >> 3];
-        let block = match current {
+        let block = match self.current {
             Some((coords, block)) if coords == block_coords => block,
             _ => {
                 if !volume.superblock_occupied(i, j, k) {
-                    previous = None;
-                    t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
-                    continue;
+                    self.previous = None;
+                    let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
+                    self.t += cell_exit(&p, &self.inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
+                    return MarchStep::Continue;
                 }
                 let Some(block) = volume.block_of_voxel(i, j, k) else {
                     // Empty-space leaping: jump to where the ray leaves this block.
-                    previous = None;
-                    t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
-                    continue;
+                    self.previous = None;
+                    self.t += cell_exit(&p, &self.inverse_direction, BLOCK_EDGE as f32) * voxel + 0.01 * voxel;
+                    return MarchStep::Continue;
                 };
-                current = Some((block_coords, block));
+                self.current = Some((block_coords, block));
                 block
             }
         };
         let local = ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize;
         let Some(tsdf) = block.voxels.get(local).filter(|v| v.weight > 0.0).map(|v| v.tsdf) else {
             // Unobserved voxel (behind a surface): no crossing can be bracketed here.
-            previous = None;
-            t += (0.5 * mu).max(voxel);
-            continue;
+            self.previous = None;
+            self.t += (0.5 * mu).max(voxel);
+            return MarchStep::Continue;
         };
-        if let Some((t_previous, tsdf_previous)) = previous {
+        if let Some((t_previous, tsdf_previous)) = self.previous {
             if tsdf_previous > 0.0 && tsdf <= 0.0 {
-                return refine_crossing(volume, origin, direction, t_previous, t, inv_voxel);
+                return MarchStep::Bracketed { t_positive: t_previous, t_negative: self.t };
             }
         }
-        previous = Some((t, tsdf));
+        self.previous = Some((self.t, tsdf));
         // The surface is at least |tsdf|·μ away (on either side of it).
-        t += (config.step_factor * tsdf.abs() * mu).max(voxel);
+        self.t += (config.step_factor * tsdf.abs() * mu).max(voxel);
+        MarchStep::Continue
     }
-    None
 }
 
 /// Distance (voxel units along the ray) from `p` (voxel units) to the exit of its cubic cell of edge `size`.

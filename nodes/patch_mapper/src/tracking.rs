@@ -571,6 +571,9 @@ fn accumulate(
     huber: f64,
 ) -> Normal {
     let pose = volume_from_camera.cast::<f32>();
+    // Projection straight from the source camera into the model camera; the volume-frame point is
+    // only needed for the points that find a model surface.
+    let model_from_camera = model_from_volume * pose;
     let huber = huber as f32;
     let mi = &model.intrinsics;
     let (fx, fy, cx, cy) = (mi.fx as f32, mi.fy as f32, mi.cx as f32, mi.cy as f32);
@@ -582,8 +585,7 @@ fn accumulate(
             let mut acc = Normal::zero();
             let mut batch = RowBatch::new();
             for point in chunk {
-                let p = pose * Point3::from(*point);
-                let m = model_from_volume * p;
+                let m = model_from_camera * Point3::from(*point);
                 if m.z <= 0.0 {
                     continue;
                 }
@@ -601,6 +603,7 @@ fn accumulate(
                     continue;
                 }
                 acc.associated += 1;
+                let p = pose * Point3::from(*point);
                 let difference = p - q;
                 if difference.norm_squared() > gate * gate {
                     continue;

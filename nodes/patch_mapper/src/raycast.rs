@@ -244,19 +244,20 @@ pub fn raycast_guided(
     ModelRaycast { intrinsics: *intrinsics, volume_from_camera: *volume_from_camera, points_in_volume, normals_in_volume, depth }
 }
 
-/// Entry and exit ray parameters of the box [lo, hi] (slab method).
-fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32>, hi: &Vector3<f32>) -> Option<(f32, f32)> {
+/// Entry and exit ray parameters of the box [lo, hi] (slab method), from the ray's origin and the
+/// per-axis inverse of its direction (infinite along axes it does not move on).
+fn clip_to_box(origin: &Vector3<f32>, inverse_direction: &Vector3<f32>, lo: &Vector3<f32>, hi: &Vector3<f32>) -> Option<(f32, f32)> {
     let mut t_near = f32::NEG_INFINITY;
     let mut t_far = f32::INFINITY;
     for axis in 0..3 {
-        let (o, d) = (origin[axis], direction[axis]);
-        if d.abs() < 1e-9 {
+        let (o, inv) = (origin[axis], inverse_direction[axis]);
+        if !inv.is_finite() {
             if o < lo[axis] || o > hi[axis] {
                 return None;
             }
             continue;
         }
-        let (a, b) = ((lo[axis] - o) / d, (hi[axis] - o) / d);
+        let (a, b) = ((lo[axis] - o) * inv, (hi[axis] - o) * inv);
         t_near = t_near.max(a.min(b));
         t_far = t_far.min(a.max(b));
     }
@@ -304,13 +305,14 @@ impl<'v> RayMarch<'v> {
         band: Option<(f32, f32)>,
     ) -> Option<Self> {
         let inv_voxel = 1.0 / volume.voxel_size();
-        let (t_enter, t_exit) = clip_to_box(origin, direction, &bounds.0, &bounds.1)?;
+        let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
+        let (t_enter, t_exit) = clip_to_box(origin, &inverse_direction, &bounds.0, &bounds.1)?;
         let t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
         let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
         Some(Self {
             direction: *direction,
             origin_voxel: origin * inv_voxel,
-            inverse_direction: direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d }),
+            inverse_direction,
             t,
             t_end,
             previous: None,

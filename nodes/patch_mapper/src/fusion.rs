@@ -12,6 +12,8 @@
 //! Voxel `(i, j, k)` has its centre at `((i, j, k) + 0.5) · voxel_size` in the volume frame, whose
 //! origin is a corner of the cube (J 4, Fig. 8-(ii)).
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use nalgebra::{Isometry3, Point3, Vector3};
 use rayon::prelude::*;
 
@@ -159,6 +161,8 @@ pub struct TsdfVolume {
     /// Allocated blocks per superblock (SUPERBLOCK_EDGE³ blocks), for empty-space leaping.
     occupancy: Vec<u32>,
     superblocks_per_edge: usize,
+    /// One bit per slot: the blocks the frame being integrated touches (all clear between frames).
+    touched: Vec<AtomicU64>,
     /// Inclusive block-coordinate bounds of the allocated blocks (min > max when empty).
     bounds_min: [i32; 3],
     bounds_max: [i32; 3],
@@ -178,6 +182,7 @@ impl TsdfVolume {
             coords: Vec::new(),
             occupancy: vec![0; superblocks_per_edge * superblocks_per_edge * superblocks_per_edge],
             superblocks_per_edge,
+            touched: (0..(blocks_per_edge * blocks_per_edge * blocks_per_edge).div_ceil(64)).map(|_| AtomicU64::new(0)).collect(),
             bounds_min: [i32::MAX; 3],
             bounds_max: [i32::MIN; 3],
         })
@@ -426,35 +431,42 @@ impl TsdfVolume {
         // Every 4th pixel: at 3 m a 640-px-wide view puts 4 pixels ≈ 2.3 cm apart, under the 4 cm
         // block at 5 mm voxels; the ±μ band then covers every block the surface passes through.
         let stride = if self.block_size() >= 0.04 { 4 } else { 2 };
-        let mut slots: Vec<usize> = (0..depth.height)
-            .into_par_iter()
-            .step_by(stride)
-            .flat_map_iter(|v| {
-                let mut row = Vec::new();
-                let mut last = usize::MAX;
-                for u in (0..depth.width).step_by(stride) {
-                    let Some(&d) = depth.depth_m.get(v * depth.width + u) else { continue };
-                    if !(d >= min_d && d <= max_d) {
-                        continue;
-                    }
-                    let ray = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
-                    for s in 0..samples {
-                        let z = d - mu + 2.0 * mu * s as f32 / (samples - 1).max(1) as f32;
-                        let p = pose * Point3::from(ray * z);
-                        let b = p.coords / block;
-                        if let Some(slot) = self.slot_index(floor_i(b.x), floor_i(b.y), floor_i(b.z)) {
-                            if slot != last {
-                                row.push(slot);
-                                last = slot;
+        // Marked in a bitmap (in parallel; each row skips repeats of its last slot), read back in
+        // slot order: sorted and deduplicated without sorting.
+        (0..depth.height).into_par_iter().step_by(stride).for_each(|v| {
+            let mut last = usize::MAX;
+            for u in (0..depth.width).step_by(stride) {
+                let Some(&d) = depth.depth_m.get(v * depth.width + u) else { continue };
+                if !(d >= min_d && d <= max_d) {
+                    continue;
+                }
+                let ray = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
+                for s in 0..samples {
+                    let z = d - mu + 2.0 * mu * s as f32 / (samples - 1).max(1) as f32;
+                    let p = pose * Point3::from(ray * z);
+                    let b = p.coords / block;
+                    if let Some(slot) = self.slot_index(floor_i(b.x), floor_i(b.y), floor_i(b.z)) {
+                        if slot != last {
+                            if let Some(word) = self.touched.get(slot / 64) {
+                                word.fetch_or(1 << (slot % 64), Ordering::Relaxed);
                             }
+                            last = slot;
                         }
                     }
                 }
-                row
-            })
-            .collect();
-        slots.par_sort_unstable();
-        slots.dedup();
+            }
+        });
+        let mut slots = Vec::new();
+        for (index, word) in self.touched.iter().enumerate() {
+            if word.load(Ordering::Relaxed) == 0 {
+                continue;
+            }
+            let mut bits = word.swap(0, Ordering::Relaxed);
+            while bits != 0 {
+                slots.push(index * 64 + bits.trailing_zeros() as usize);
+                bits &= bits - 1;
+            }
+        }
         slots
     }
 

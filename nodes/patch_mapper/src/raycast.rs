@@ -167,6 +167,7 @@ pub fn raycast_guided(
             .then_some((fine, factor))
     });
     let mu = volume.truncation();
+    let inv_voxel = 1.0 / volume.voxel_size();
     let bounds = volume.allocated_bounds().map(|(lo, hi)| (lo, hi - Vector3::repeat(1e-4)));
     let (width, height) = (intrinsics.width, intrinsics.height);
     let pose = volume_from_camera.cast::<f32>();
@@ -209,11 +210,11 @@ pub fn raycast_guided(
                     }
                     let Some((u, ray_length, march)) = lane else { continue };
                     active = true;
-                    let outcome = match march.step(volume, config) {
+                    let outcome = match march.step(volume, config, inv_voxel) {
                         MarchStep::Continue => continue,
                         MarchStep::Done => None,
                         MarchStep::Bracketed { t_positive, t_negative } => {
-                            refine_crossing(volume, &origin, &march.direction, t_positive, t_negative, 1.0 / volume.voxel_size())
+                            refine_crossing(volume, &origin, &march.direction, t_positive, t_negative, inv_voxel)
                         }
                     };
                     if let Some((t, normal)) = outcome {
@@ -321,16 +322,16 @@ impl<'v> RayMarch<'v> {
         })
     }
 
-    /// One step of the march.
+    /// One step of the march; `inv_voxel` is the inverse voxel edge (1/m).
     #[inline]
-    fn step(&mut self, volume: &'v TsdfVolume, config: &RaycastConfig) -> MarchStep {
+    fn step(&mut self, volume: &'v TsdfVolume, config: &RaycastConfig, inv_voxel: f32) -> MarchStep {
         if !(self.t < self.t_end && self.steps < 100_000) {
             return MarchStep::Done;
         }
         self.steps += 1;
         let voxel = volume.voxel_size();
         let mu = volume.truncation();
-        let p = self.origin_voxel + self.direction * (self.t * (1.0 / voxel));
+        let p = self.origin_voxel + self.direction * (self.t * inv_voxel);
         let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
         let block_coords = [i >> 3, j >> 3, k >> 3];
         let block = match self.current {

@@ -403,16 +403,17 @@ pub fn downsample(depth: &DepthImage, depth_jump_m: f32) -> DepthImage {
 
 fn source_level(depth: &DepthImage, intrinsics: &Intrinsics) -> SourceLevel {
     let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
-    let points_in_camera = depth
-        .depth_m
-        .iter()
-        .enumerate()
-        .filter(|(_, d)| d.is_finite())
-        .map(|(i, &d)| {
-            let (u, v) = ((i % depth.width) as f32, (i / depth.width) as f32);
-            Vector3::new((u - cx) / fx * d, (v - cy) / fy * d, d)
-        })
-        .collect();
+    // Ray slopes per column and row, computed once (no per-pixel division).
+    let x_slopes: Vec<f32> = (0..depth.width).map(|u| (u as f32 - cx) / fx).collect();
+    let mut points_in_camera = Vec::with_capacity(depth.depth_m.len());
+    for (v, row) in depth.depth_m.chunks(depth.width.max(1)).enumerate() {
+        let y_slope = (v as f32 - cy) / fy;
+        for (&d, x_slope) in row.iter().zip(&x_slopes) {
+            if d.is_finite() {
+                points_in_camera.push(Vector3::new(x_slope * d, y_slope * d, d));
+            }
+        }
+    }
     SourceLevel { intrinsics: *intrinsics, points_in_camera }
 }
 

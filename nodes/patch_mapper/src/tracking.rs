@@ -380,13 +380,18 @@ fn source_pyramid(images: &[&DepthImage; 3], intrinsics: &Intrinsics, iterations
 pub fn downsample(depth: &DepthImage, depth_jump_m: f32) -> DepthImage {
     let (width, height) = (depth.width / 2, depth.height / 2);
     let mut depth_m = vec![f32::NAN; width * height];
+    let input_width = depth.width.max(1);
     depth_m.par_chunks_mut(width.max(1)).enumerate().for_each(|(v, row)| {
+        // The two input rows of output row v (2v + 1 < height for every output row).
+        let top = depth.depth_m.get(2 * v * input_width..(2 * v + 1) * input_width).unwrap_or(&[]);
+        let bottom = depth.depth_m.get((2 * v + 1) * input_width..(2 * v + 2) * input_width).unwrap_or(&[]);
         for (u, out) in row.iter_mut().enumerate() {
             let mut sum = 0.0;
             let mut count = 0;
             let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-            for (du, dv) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                if let Some(d) = depth.get(2 * u + du, 2 * v + dv) {
+            let quad = [top.get(2 * u), top.get(2 * u + 1), bottom.get(2 * u), bottom.get(2 * u + 1)];
+            for &d in quad.into_iter().flatten() {
+                if d.is_finite() {
                     sum += d;
                     count += 1;
                     lo = lo.min(d);

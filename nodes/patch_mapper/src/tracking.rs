@@ -753,6 +753,21 @@ mod tests {
     }
 
     #[test]
+    fn downsample_averages_agreeing_depths_only() {
+        let nan = f32::NAN;
+        // Three 2×2 cells: four agreeing depths, one valid depth, and a 10 cm jump.
+        #[rustfmt::skip]
+        let depth = DepthImage::new(6, 2, vec![
+            1.0, 1.02, 2.0, nan, 1.0, 1.1,
+            1.01, 1.03, nan, nan, 1.0, 1.1,
+        ]).unwrap();
+        let half = downsample(&depth, 0.03);
+        assert_eq!((half.width, half.height), (3, 1));
+        assert!((half.depth_m[0] - 1.015).abs() < 1e-6, "{}", half.depth_m[0]);
+        assert!(half.depth_m[1].is_nan() && half.depth_m[2].is_nan());
+    }
+
+    #[test]
     fn alignment_recovers_a_known_transform() {
         let truth = Isometry3::new(Vector3::new(0.3, -1.0, 2.0), Vector3::new(0.1, -0.4, 0.9));
         let points: Vec<Vector3<f64>> = (0..10).map(|i| Vector3::new(i as f64, (i * i) as f64 * 0.1, (i as f64).sin())).collect();

@@ -9,7 +9,10 @@
 //! the crossing is found by secant steps on trilinear TSDF values and the normal is the normalized
 //! trilinear gradient. The model raycast for ICP is guided by the frame just integrated: a ray with a
 //! depth d there marches only the band [d − 2μ, d + 2μ] around the surface that frame just fused
-//! (a model crossing farther behind it would be occluded by that surface).
+//! (a model crossing farther behind it would be occluded by that surface); where the downsampled
+//! frame has a hole, the depth range of the full-resolution pixels under the ray gives the band.
+//! Rays of a row are marched a few at a time, one step each in turn, so that their (independent)
+//! voxel cache misses overlap.
 
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;

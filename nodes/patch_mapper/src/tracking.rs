@@ -2,8 +2,8 @@
 //!
 //! ICP is frame-to-model: the new depth frame (a 2×2 pyramid, coarse to fine) is aligned to the
 //! model raycast from the previous pose by projective data association and point-to-plane Gauss–Newton
-//! steps; the 6×6 normal equations are summed in f64 in parallel, with Huber weights and a distance
-//! gate. Loss is declared on few inliers, a large residual, a degenerate system or a pose jump, and
+//! steps; the 6×6 normal equations are summed in parallel (f32 over batches of 64 inliers, f64
+//! totals), with Huber weights and a distance gate. Loss is declared on few inliers, a large residual, a degenerate system or a pose jump, and
 //! the volume is reset (J 5.2: "if camera tracking does fail, then the whole patch map is reset").
 //!
 //! `Tracker::process` reads as the paper's loop: track → integrate → remap → raycast the model.

@@ -318,9 +318,10 @@ impl TsdfVolume {
         (w > 0.0).then_some(t)
     }
 
-    /// Trilinear TSDF and its analytic gradient at a point in voxel units; `None` unless all 8
-    /// surrounding voxels are observed.
-    pub fn trilinear(&self, voxel: &Vector3<f32>) -> Option<TsdfSample> {
+    /// The 8 TSDF values around a point in voxel units (x fastest) and the point's fractional
+    /// position between them; `None` unless all 8 voxels are observed.
+    #[inline]
+    fn trilinear_cell(&self, voxel: &Vector3<f32>) -> Option<([f32; 8], [f32; 3])> {
         // Voxel centres sit at integer + 0.5.
         let g = voxel - Vector3::repeat(0.5);
         let (i, j, k) = (floor_i(g.x), floor_i(g.y), floor_i(g.z));
@@ -351,6 +352,22 @@ impl TsdfVolume {
                 *value = t;
             }
         }
+        Some((c, [fx, fy, fz]))
+    }
+
+    /// Trilinear TSDF at a point in voxel units (the value of `trilinear`, without the gradient).
+    pub fn trilinear_tsdf(&self, voxel: &Vector3<f32>) -> Option<f32> {
+        let (c, [fx, fy, fz]) = self.trilinear_cell(voxel)?;
+        let lerp = |a: f32, b: f32, f: f32| a + (b - a) * f;
+        let y0 = lerp(lerp(c[0], c[1], fx), lerp(c[2], c[3], fx), fy);
+        let y1 = lerp(lerp(c[4], c[5], fx), lerp(c[6], c[7], fx), fy);
+        Some(lerp(y0, y1, fz))
+    }
+
+    /// Trilinear TSDF and its analytic gradient at a point in voxel units; `None` unless all 8
+    /// surrounding voxels are observed.
+    pub fn trilinear(&self, voxel: &Vector3<f32>) -> Option<TsdfSample> {
+        let (c, [fx, fy, fz]) = self.trilinear_cell(voxel)?;
         let lerp = |a: f32, b: f32, f: f32| a + (b - a) * f;
         let x00 = lerp(c[0], c[1], fx);
         let x10 = lerp(c[2], c[3], fx);
@@ -674,6 +691,7 @@ pub(crate) mod tests {
         // Along the vertical through the camera the TSDF changes sign at y = 0.9.
         let s = config.voxel_size_m;
         let above = volume.trilinear(&(Vector3::new(0.64, 0.88, 0.64) / s)).unwrap();
+        assert_eq!(volume.trilinear_tsdf(&(Vector3::new(0.64, 0.88, 0.64) / s)), Some(above.tsdf));
         let below = volume.trilinear(&(Vector3::new(0.64, 0.92, 0.64) / s)).unwrap();
         assert!((above.tsdf - 0.5).abs() < 0.05, "{}", above.tsdf);
         assert!((below.tsdf + 0.5).abs() < 0.05, "{}", below.tsdf);

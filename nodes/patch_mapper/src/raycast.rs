@@ -401,8 +401,9 @@ fn refine_crossing(
     inv_voxel: f32,
 ) -> Option<(f32, Vector3<f32>)> {
     let trilinear = |t: f32| volume.trilinear(&((origin + direction * t) * inv_voxel));
+    let trilinear_tsdf = |t: f32| volume.trilinear_tsdf(&((origin + direction * t) * inv_voxel));
     // Both brackets must be fully observed, else the crossing is at the edge of the data: no hit.
-    let (mut f_a, mut f_b) = (trilinear(t_a)?.tsdf, trilinear(t_b)?.tsdf);
+    let (mut f_a, mut f_b) = (trilinear_tsdf(t_a)?, trilinear_tsdf(t_b)?);
     if !(f_a > 0.0 && f_b <= 0.0) {
         return None;
     }

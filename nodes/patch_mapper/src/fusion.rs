@@ -12,6 +12,8 @@
 //! Voxel `(i, j, k)` has its centre at `((i, j, k) + 0.5) · voxel_size` in the volume frame, whose
 //! origin is a corner of the cube (J 4, Fig. 8-(ii)).
 
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use nalgebra::{Isometry3, Point3, Vector3};
 use rayon::prelude::*;
 
@@ -30,6 +32,17 @@ pub const SUPERBLOCK_EDGE: usize = 4;
 pub fn floor_i(x: f32) -> i32 {
     let i = x as i32;
     i - i32::from((i as f32) > x)
+}
+
+/// `floor` of `x` in [0, 2²²) without a float → integer conversion, so that loops using it
+/// vectorise (a saturating `as` cast does not): adding 2²³ rounds `x` to the nearest integer in the
+/// low mantissa bits, one is taken off where that rounded up.
+#[inline(always)]
+pub fn floor_small(x: f32) -> i32 {
+    const SHIFT: f32 = 8_388_608.0;
+    let nearest = (x + SHIFT) - SHIFT;
+    let floor = nearest - if nearest > x { 1.0 } else { 0.0 };
+    ((floor + SHIFT).to_bits() as i32).wrapping_sub(SHIFT.to_bits() as i32)
 }
 
 /// Errors from building or updating a TSDF volume.
@@ -148,6 +161,8 @@ pub struct TsdfVolume {
     /// Allocated blocks per superblock (SUPERBLOCK_EDGE³ blocks), for empty-space leaping.
     occupancy: Vec<u32>,
     superblocks_per_edge: usize,
+    /// One bit per slot: the blocks the frame being integrated touches (all clear between frames).
+    touched: Vec<AtomicU64>,
     /// Inclusive block-coordinate bounds of the allocated blocks (min > max when empty).
     bounds_min: [i32; 3],
     bounds_max: [i32; 3],
@@ -167,6 +182,7 @@ impl TsdfVolume {
             coords: Vec::new(),
             occupancy: vec![0; superblocks_per_edge * superblocks_per_edge * superblocks_per_edge],
             superblocks_per_edge,
+            touched: (0..(blocks_per_edge * blocks_per_edge * blocks_per_edge).div_ceil(64)).map(|_| AtomicU64::new(0)).collect(),
             bounds_min: [i32::MAX; 3],
             bounds_max: [i32::MIN; 3],
         })
@@ -302,9 +318,10 @@ impl TsdfVolume {
         (w > 0.0).then_some(t)
     }
 
-    /// Trilinear TSDF and its analytic gradient at a point in voxel units; `None` unless all 8
-    /// surrounding voxels are observed.
-    pub fn trilinear(&self, voxel: &Vector3<f32>) -> Option<TsdfSample> {
+    /// The 8 TSDF values around a point in voxel units (x fastest) and the point's fractional
+    /// position between them; `None` unless all 8 voxels are observed.
+    #[inline]
+    fn trilinear_cell(&self, voxel: &Vector3<f32>) -> Option<([f32; 8], [f32; 3])> {
         // Voxel centres sit at integer + 0.5.
         let g = voxel - Vector3::repeat(0.5);
         let (i, j, k) = (floor_i(g.x), floor_i(g.y), floor_i(g.z));
@@ -335,6 +352,22 @@ impl TsdfVolume {
                 *value = t;
             }
         }
+        Some((c, [fx, fy, fz]))
+    }
+
+    /// Trilinear TSDF at a point in voxel units (the value of `trilinear`, without the gradient).
+    pub fn trilinear_tsdf(&self, voxel: &Vector3<f32>) -> Option<f32> {
+        let (c, [fx, fy, fz]) = self.trilinear_cell(voxel)?;
+        let lerp = |a: f32, b: f32, f: f32| a + (b - a) * f;
+        let y0 = lerp(lerp(c[0], c[1], fx), lerp(c[2], c[3], fx), fy);
+        let y1 = lerp(lerp(c[4], c[5], fx), lerp(c[6], c[7], fx), fy);
+        Some(lerp(y0, y1, fz))
+    }
+
+    /// Trilinear TSDF and its analytic gradient at a point in voxel units; `None` unless all 8
+    /// surrounding voxels are observed.
+    pub fn trilinear(&self, voxel: &Vector3<f32>) -> Option<TsdfSample> {
+        let (c, [fx, fy, fz]) = self.trilinear_cell(voxel)?;
         let lerp = |a: f32, b: f32, f: f32| a + (b - a) * f;
         let x00 = lerp(c[0], c[1], fx);
         let x10 = lerp(c[2], c[3], fx);
@@ -415,35 +448,42 @@ impl TsdfVolume {
         // Every 4th pixel: at 3 m a 640-px-wide view puts 4 pixels ≈ 2.3 cm apart, under the 4 cm
         // block at 5 mm voxels; the ±μ band then covers every block the surface passes through.
         let stride = if self.block_size() >= 0.04 { 4 } else { 2 };
-        let mut slots: Vec<usize> = (0..depth.height)
-            .into_par_iter()
-            .step_by(stride)
-            .flat_map_iter(|v| {
-                let mut row = Vec::new();
-                let mut last = usize::MAX;
-                for u in (0..depth.width).step_by(stride) {
-                    let Some(&d) = depth.depth_m.get(v * depth.width + u) else { continue };
-                    if !(d >= min_d && d <= max_d) {
-                        continue;
-                    }
-                    let ray = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
-                    for s in 0..samples {
-                        let z = d - mu + 2.0 * mu * s as f32 / (samples - 1).max(1) as f32;
-                        let p = pose * Point3::from(ray * z);
-                        let b = p.coords / block;
-                        if let Some(slot) = self.slot_index(floor_i(b.x), floor_i(b.y), floor_i(b.z)) {
-                            if slot != last {
-                                row.push(slot);
-                                last = slot;
+        // Marked in a bitmap (in parallel; each row skips repeats of its last slot), read back in
+        // slot order: sorted and deduplicated without sorting.
+        (0..depth.height).into_par_iter().step_by(stride).for_each(|v| {
+            let mut last = usize::MAX;
+            for u in (0..depth.width).step_by(stride) {
+                let Some(&d) = depth.depth_m.get(v * depth.width + u) else { continue };
+                if !(d >= min_d && d <= max_d) {
+                    continue;
+                }
+                let ray = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
+                for s in 0..samples {
+                    let z = d - mu + 2.0 * mu * s as f32 / (samples - 1).max(1) as f32;
+                    let p = pose * Point3::from(ray * z);
+                    let b = p.coords / block;
+                    if let Some(slot) = self.slot_index(floor_i(b.x), floor_i(b.y), floor_i(b.z)) {
+                        if slot != last {
+                            if let Some(word) = self.touched.get(slot / 64) {
+                                word.fetch_or(1 << (slot % 64), Ordering::Relaxed);
                             }
+                            last = slot;
                         }
                     }
                 }
-                row
-            })
-            .collect();
-        slots.par_sort_unstable();
-        slots.dedup();
+            }
+        });
+        let mut slots = Vec::new();
+        for (index, word) in self.touched.iter().enumerate() {
+            if word.load(Ordering::Relaxed) == 0 {
+                continue;
+            }
+            let mut bits = word.swap(0, Ordering::Relaxed);
+            while bits != 0 {
+                slots.push(index * 64 + bits.trailing_zeros() as usize);
+                bits &= bits - 1;
+            }
+        }
         slots
     }
 
@@ -554,48 +594,44 @@ fn integrate_block(
     let base = camera_from_volume * origin;
     let inv_mu = 1.0 / p.mu;
     let (w_max, h_max) = (p.width as f32 - 0.5, p.height as f32 - 0.5);
+    // Largest column and row indices as floats: pixel coordinates are clamped to them (a no-op for
+    // the pixels inside the image) so that `floor_small` sees its valid range.
+    let (col_last, row_last) = ((p.width.max(1) - 1) as f32, (p.height.max(1) - 1) as f32);
     let near = p.min_depth * 0.5;
     let width = p.width as i32;
-    let mut n = 0;
-    for z in 0..BLOCK_EDGE {
-        let pz = base.coords + step_z * z as f32;
-        for y in 0..BLOCK_EDGE {
-            // One row of voxels along x in two passes: camera-frame points and their pixels first
-            // (branch-free, so it vectorises), then the depth look-ups and the running averages.
-            let mut q = pz + step_y * y as f32;
-            let (mut xs, mut ys, mut zs) = ([0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE], [0.0f32; BLOCK_EDGE]);
-            for ((px, py), pz) in xs.iter_mut().zip(ys.iter_mut()).zip(zs.iter_mut()) {
-                (*px, *py, *pz) = (q.x, q.y, q.z);
-                q += step_x;
+    let lanes: [f32; BLOCK_EDGE] = std::array::from_fn(|x| x as f32);
+    for (row_index, row_voxels) in block.voxels.chunks_exact_mut(BLOCK_EDGE).enumerate() {
+        let (y, z) = (row_index % BLOCK_EDGE, row_index / BLOCK_EDGE);
+        // One row of voxels along x in two passes: camera-frame points and their pixels first
+        // (branch-free, so it vectorises), then the depth look-ups and the running averages.
+        let q = base.coords + step_y * y as f32 + step_z * z as f32;
+        let mut pixels = [-1i32; BLOCK_EDGE];
+        let mut zs = [0.0f32; BLOCK_EDGE];
+        for ((pixel, pz), lane) in pixels.iter_mut().zip(zs.iter_mut()).zip(lanes.iter()) {
+            let (px, py) = (q.x + step_x.x * lane, q.y + step_x.y * lane);
+            *pz = q.z + step_x.z * lane;
+            let inv_z = 1.0 / *pz;
+            let u = p.fx * px * inv_z + p.cx;
+            let v = p.fy * py * inv_z + p.cy;
+            let inside = (*pz > near) & (u >= -0.5) & (v >= -0.5) & (u < w_max) & (v < h_max);
+            let col = floor_small((u + 0.5).max(0.0).min(col_last));
+            let row = floor_small((v + 0.5).max(0.0).min(row_last));
+            *pixel = if inside { row * width + col } else { -1 };
+        }
+        for ((voxel, pixel), pz) in row_voxels.iter_mut().zip(pixels.iter()).zip(zs.iter()) {
+            let Ok(pixel) = usize::try_from(*pixel) else { continue };
+            let Some(&d) = depth.depth_m.get(pixel) else { continue };
+            if !(d >= p.min_depth && d <= p.max_depth) {
+                continue;
             }
-            let mut pixels = [-1i32; BLOCK_EDGE];
-            for (pixel, ((px, py), pz)) in pixels.iter_mut().zip(xs.iter().zip(ys.iter()).zip(zs.iter())) {
-                let inv_z = 1.0 / *pz;
-                let u = p.fx * *px * inv_z + p.cx;
-                let v = p.fy * *py * inv_z + p.cy;
-                let inside = *pz > near && u >= -0.5 && v >= -0.5 && u < w_max && v < h_max;
-                let (col, row) = ((u + 0.5) as i32, (v + 0.5) as i32);
-                *pixel = if inside { row * width + col } else { -1 };
+            let sdf = d - *pz;
+            if sdf < -p.mu {
+                continue;
             }
-            for (x, (pixel, pz)) in pixels.iter().zip(zs.iter()).enumerate() {
-                let index = n + x;
-                let Ok(pixel) = usize::try_from(*pixel) else { continue };
-                let Some(&d) = depth.depth_m.get(pixel) else { continue };
-                if !(d >= p.min_depth && d <= p.max_depth) {
-                    continue;
-                }
-                let sdf = d - *pz;
-                if sdf < -p.mu {
-                    continue;
-                }
-                let tsdf = (sdf * inv_mu).min(1.0);
-                if let Some(voxel) = block.voxels.get_mut(index) {
-                    let new_weight = voxel.weight + 1.0;
-                    voxel.tsdf = (voxel.tsdf * voxel.weight + tsdf) / new_weight;
-                    voxel.weight = new_weight.min(p.max_weight);
-                }
-            }
-            n += BLOCK_EDGE;
+            let tsdf = (sdf * inv_mu).min(1.0);
+            let new_weight = voxel.weight + 1.0;
+            voxel.tsdf = (voxel.tsdf * voxel.weight + tsdf) / new_weight;
+            voxel.weight = new_weight.min(p.max_weight);
         }
     }
 }
@@ -655,6 +691,7 @@ pub(crate) mod tests {
         // Along the vertical through the camera the TSDF changes sign at y = 0.9.
         let s = config.voxel_size_m;
         let above = volume.trilinear(&(Vector3::new(0.64, 0.88, 0.64) / s)).unwrap();
+        assert_eq!(volume.trilinear_tsdf(&(Vector3::new(0.64, 0.88, 0.64) / s)), Some(above.tsdf));
         let below = volume.trilinear(&(Vector3::new(0.64, 0.92, 0.64) / s)).unwrap();
         assert!((above.tsdf - 0.5).abs() < 0.05, "{}", above.tsdf);
         assert!((below.tsdf + 0.5).abs() < 0.05, "{}", below.tsdf);
@@ -666,6 +703,17 @@ pub(crate) mod tests {
         let surface = volume.surface_voxels(0.3);
         assert!(!surface.is_empty());
         assert!(surface.iter().all(|p| (p.y - 0.9).abs() < 0.4 * config.truncation_m()));
+    }
+
+    #[test]
+    fn floor_small_matches_floor() {
+        for x in [0.0f32, 0.25, 0.5, 0.999_999, 1.0, 2.5, 3.5, 639.5, 639.999, 4_194_303.5] {
+            assert_eq!(floor_small(x), x.floor() as i32, "{x}");
+        }
+        for i in 0..100_000 {
+            let x = i as f32 * 0.013_7;
+            assert_eq!(floor_small(x), x.floor() as i32, "{x}");
+        }
     }
 
     #[test]

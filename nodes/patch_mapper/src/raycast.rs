@@ -9,7 +9,10 @@
 //! the crossing is found by secant steps on trilinear TSDF values and the normal is the normalized
 //! trilinear gradient. The model raycast for ICP is guided by the frame just integrated: a ray with a
 //! depth d there marches only the band [d − 2μ, d + 2μ] around the surface that frame just fused
-//! (a model crossing farther behind it would be occluded by that surface).
+//! (a model crossing farther behind it would be occluded by that surface); where the downsampled
+//! frame has a hole, the depth range of the full-resolution pixels under the ray gives the band.
+//! Rays of a row are marched a few at a time, one step each in turn, so that their (independent)
+//! voxel cache misses overlap.
 
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -118,19 +121,57 @@ pub fn raycast(volume: &TsdfVolume, config: &RaycastConfig, intrinsics: &Intrins
     raycast_guided(volume, config, intrinsics, volume_from_camera, None)
 }
 
-/// Raycast guided by a depth hint of the same size (e.g. the frame just integrated at this pose): a
-/// ray with hint depth d marches only [d − 2μ, d + 2μ] (along the optical axis), the band around the
-/// expected surface; rays that do not find a crossing there stop at its end instead of marching the
-/// occluded volume behind it. Pixels without a hint are marched in full.
+/// Where the frame just integrated at the raycast pose saw surfaces, to bound each ray's march.
+#[derive(Debug, Clone, Copy)]
+pub struct RayHint<'a> {
+    /// Depth at the raycast resolution: a ray with depth d there marches [d − 2μ, d + 2μ].
+    pub depth: &'a DepthImage,
+    /// The same frame at an integer multiple f of the raycast resolution (e.g. the full-resolution
+    /// input): where `depth` has no value (holes of the averaged image, mostly depth edges), the ray
+    /// marches [min − 2μ, max + 2μ] of the valid depths in its f × f pixel patch here. Rays whose
+    /// patch has no valid depth either are marched in full.
+    pub fine: Option<&'a DepthImage>,
+}
+
+/// Depth range (m along the optical axis) of the valid depths of `fine` in the `factor × factor`
+/// patch of pixel `(u, v)` of the coarse image.
+fn patch_depth_range(fine: &DepthImage, factor: usize, u: usize, v: usize) -> Option<(f32, f32)> {
+    let (mut near, mut far) = (f32::INFINITY, f32::NEG_INFINITY);
+    for row in (v * factor..(v + 1) * factor).take_while(|row| *row < fine.height) {
+        let start = row * fine.width + u * factor;
+        let end = start + factor.min(fine.width.saturating_sub(u * factor));
+        for &d in fine.depth_m.get(start..end).unwrap_or(&[]) {
+            if d.is_finite() {
+                near = near.min(d);
+                far = far.max(d);
+            }
+        }
+    }
+    (near <= far).then_some((near, far))
+}
+
+/// Raycast guided by a depth hint (e.g. the frame just integrated at this pose): a ray with hint
+/// depth d marches only [d − 2μ, d + 2μ] (along the optical axis), the band around the expected
+/// surface; rays that do not find a crossing there stop at its end instead of marching the occluded
+/// volume behind it. Pixels without a hint at the raycast resolution take the depth range of the
+/// finer image's patch (`RayHint::fine`); pixels without any hint are marched in full.
 pub fn raycast_guided(
     volume: &TsdfVolume,
     config: &RaycastConfig,
     intrinsics: &Intrinsics,
     volume_from_camera: &Isometry3<f64>,
-    hint: Option<&DepthImage>,
+    hint: Option<RayHint<'_>>,
 ) -> ModelRaycast {
-    let hint = hint.filter(|h| h.width == intrinsics.width && h.height == intrinsics.height);
+    let hint = hint.filter(|h| h.depth.width == intrinsics.width && h.depth.height == intrinsics.height);
+    // The finer image must be an integer multiple of the raycast resolution.
+    let fine = hint.and_then(|h| h.fine).and_then(|fine| {
+        let factor = fine.width / intrinsics.width.max(1);
+        (factor >= 1 && fine.width == factor * intrinsics.width && fine.height == factor * intrinsics.height)
+            .then_some((fine, factor))
+    });
     let mu = volume.truncation();
+    let inv_voxel = 1.0 / volume.voxel_size();
+    let bounds = volume.allocated_bounds().map(|(lo, hi)| (lo, hi - Vector3::repeat(1e-4)));
     let (width, height) = (intrinsics.width, intrinsics.height);
     let pose = volume_from_camera.cast::<f32>();
     let rotation = pose.rotation.to_rotation_matrix();
@@ -140,28 +181,56 @@ pub fn raycast_guided(
     let rows: Vec<Row> = (0..height)
         .into_par_iter()
         .map(|v| {
-            let mut points = Vec::with_capacity(width);
-            let mut normals = Vec::with_capacity(width);
-            let mut depths = Vec::with_capacity(width);
-            for u in 0..width {
+            let mut points = vec![Point3::new(f32::NAN, f32::NAN, f32::NAN); width];
+            let mut normals = vec![Vector3::repeat(f32::NAN); width];
+            let mut depths = vec![f32::NAN; width];
+            let Some(bounds) = bounds else {
+                return (points, normals, depths);
+            };
+            let start_ray = |u: usize| {
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
                 let band = hint
-                    .and_then(|h| h.depth_m.get(v * width + u))
+                    .and_then(|h| h.depth.depth_m.get(v * width + u))
                     .filter(|d| d.is_finite())
-                    .map(|d| ((d - 2.0 * mu) * ray_length, (d + 2.0 * mu) * ray_length));
-                match cast_ray(volume, config, &origin, &direction, band) {
-                    Some((t, normal)) => {
-                        points.push(Point3::from(origin + direction * t));
-                        normals.push(normal);
-                        depths.push(t / ray_length);
+                    .map(|&d| (d, d))
+                    .or_else(|| fine.and_then(|(fine, factor)| patch_depth_range(fine, factor, u, v)))
+                    .map(|(near, far)| ((near - 2.0 * mu) * ray_length, (far + 2.0 * mu) * ray_length));
+                RayMarch::start(volume, config, &bounds, &origin, &direction, band).map(|march| (u, ray_length, march))
+            };
+            // RAY_LANES rays of the row are marched in turn, one step each: their voxel loads do not
+            // depend on each other, so the processor overlaps their cache misses (a single ray's
+            // next position depends on the TSDF just loaded).
+            let mut lanes: [Option<(usize, f32, RayMarch<'_>)>; RAY_LANES] = std::array::from_fn(|_| None);
+            let mut next_u = 0;
+            loop {
+                let mut active = false;
+                for lane in lanes.iter_mut() {
+                    while lane.is_none() && next_u < width {
+                        *lane = start_ray(next_u);
+                        next_u += 1;
                     }
-                    None => {
-                        points.push(Point3::new(f32::NAN, f32::NAN, f32::NAN));
-                        normals.push(Vector3::repeat(f32::NAN));
-                        depths.push(f32::NAN);
+                    let Some((u, ray_length, march)) = lane else { continue };
+                    active = true;
+                    let outcome = match march.step(volume, config, inv_voxel) {
+                        MarchStep::Continue => continue,
+                        MarchStep::Done => None,
+                        MarchStep::Bracketed { t_positive, t_negative } => {
+                            refine_crossing(volume, &origin, &march.direction, t_positive, t_negative, inv_voxel)
+                        }
+                    };
+                    if let Some((t, normal)) = outcome {
+                        if let (Some(point), Some(n), Some(depth)) = (points.get_mut(*u), normals.get_mut(*u), depths.get_mut(*u)) {
+                            *point = Point3::from(origin + march.direction * t);
+                            *n = normal;
+                            *depth = t / *ray_length;
+                        }
                     }
+                    *lane = None;
+                }
+                if !active && next_u >= width {
+                    break;
                 }
             }
             (points, normals, depths)
@@ -179,90 +248,131 @@ pub fn raycast_guided(
     ModelRaycast { intrinsics: *intrinsics, volume_from_camera: *volume_from_camera, points_in_volume, normals_in_volume, depth }
 }
 
-/// Entry and exit ray parameters of the box [lo, hi] (slab method).
-fn clip_to_box(origin: &Vector3<f32>, direction: &Vector3<f32>, lo: &Vector3<f32>, hi: &Vector3<f32>) -> Option<(f32, f32)> {
+/// Entry and exit ray parameters of the box [lo, hi] (slab method), from the ray's origin and the
+/// per-axis inverse of its direction (infinite along axes it does not move on).
+fn clip_to_box(origin: &Vector3<f32>, inverse_direction: &Vector3<f32>, lo: &Vector3<f32>, hi: &Vector3<f32>) -> Option<(f32, f32)> {
     let mut t_near = f32::NEG_INFINITY;
     let mut t_far = f32::INFINITY;
     for axis in 0..3 {
-        let (o, d) = (origin[axis], direction[axis]);
-        if d.abs() < 1e-9 {
+        let (o, inv) = (origin[axis], inverse_direction[axis]);
+        if !inv.is_finite() {
             if o < lo[axis] || o > hi[axis] {
                 return None;
             }
             continue;
         }
-        let (a, b) = ((lo[axis] - o) / d, (hi[axis] - o) / d);
+        let (a, b) = ((lo[axis] - o) * inv, (hi[axis] - o) * inv);
         t_near = t_near.max(a.min(b));
         t_far = t_far.min(a.max(b));
     }
     (t_near <= t_far).then_some((t_near, t_far))
 }
 
-/// Marches one ray, within `band` (ray parameters) if given; returns the range to the first
-/// front-facing zero crossing and the unit normal. The ray is clipped to the bounds of the allocated
-/// blocks; empty superblocks and unallocated blocks are leapt over whole.
-fn cast_ray(
-    volume: &TsdfVolume,
-    config: &RaycastConfig,
-    origin: &Vector3<f32>,
-    direction: &Vector3<f32>,
-    band: Option<(f32, f32)>,
-) -> Option<(f32, Vector3<f32>)> {
-    let voxel = volume.voxel_size();
-    let inv_voxel = 1.0 / voxel;
-    let mu = volume.truncation();
-    let (lo, hi) = volume.allocated_bounds()?;
-    let (t_enter, t_exit) = clip_to_box(origin, direction, &lo, &(hi - Vector3::repeat(1e-4)))?;
-    let mut t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
-    let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
-    let origin_voxel = origin * inv_voxel;
-    let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
-    let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
-    let block_voxels = BLOCK_EDGE as f32;
-    let mut previous: Option<(f32, f32)> = None;
-    // The allocated block the previous step was in: consecutive steps inside it skip both lookups.
-    let mut current: Option<([i32; 3], &Block)> = None;
-    let mut guard = 0usize;
-    while t < t_end && guard < 100_000 {
-        guard += 1;
-        let p = origin_voxel + direction * (t * inv_voxel);
+/// Rays marched interleaved per row (see `raycast_guided`).
+const RAY_LANES: usize = 4;
+
+/// Outcome of one marching step.
+enum MarchStep {
+    /// Still marching.
+    Continue,
+    /// Left the band, the cube or the range without a crossing: no hit.
+    Done,
+    /// A positive TSDF sample followed by a non-positive one: the crossing lies between.
+    Bracketed { t_positive: f32, t_negative: f32 },
+}
+
+/// One ray being marched within `band` (ray parameters) if given, toward its first front-facing zero
+/// crossing. The ray is clipped to `bounds` (of the allocated blocks, computed once per raycast);
+/// empty superblocks and unallocated blocks are leapt over whole; inside blocks the step shrinks
+/// with the TSDF (the surface is at least |tsdf|·μ away).
+struct RayMarch<'v> {
+    direction: Vector3<f32>,
+    origin_voxel: Vector3<f32>,
+    inverse_direction: Vector3<f32>,
+    t: f32,
+    t_end: f32,
+    /// The last observed sample (t, tsdf), if the step before was in observed data.
+    previous: Option<(f32, f32)>,
+    /// The allocated block the previous step was in: consecutive steps inside it skip both lookups.
+    current: Option<([i32; 3], &'v Block)>,
+    steps: usize,
+}
+
+impl<'v> RayMarch<'v> {
+    /// Starts a ray from `origin` along unit `direction` (volume frame, m); `None` if it misses `bounds`.
+    fn start(
+        volume: &TsdfVolume,
+        config: &RaycastConfig,
+        bounds: &(Vector3<f32>, Vector3<f32>),
+        origin: &Vector3<f32>,
+        direction: &Vector3<f32>,
+        band: Option<(f32, f32)>,
+    ) -> Option<Self> {
+        let inv_voxel = 1.0 / volume.voxel_size();
+        let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
+        let (t_enter, t_exit) = clip_to_box(origin, &inverse_direction, &bounds.0, &bounds.1)?;
+        let t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));
+        let t_end = t_exit.min(config.max_range_m).min(band.map_or(f32::INFINITY, |(_, end)| end));
+        Some(Self {
+            direction: *direction,
+            origin_voxel: origin * inv_voxel,
+            inverse_direction,
+            t,
+            t_end,
+            previous: None,
+            current: None,
+            steps: 0,
+        })
+    }
+
+    /// One step of the march; `inv_voxel` is the inverse voxel edge (1/m).
+    #[inline]
+    fn step(&mut self, volume: &'v TsdfVolume, config: &RaycastConfig, inv_voxel: f32) -> MarchStep {
+        if !(self.t < self.t_end && self.steps < 100_000) {
+            return MarchStep::Done;
+        }
+        self.steps += 1;
+        let voxel = volume.voxel_size();
+        let mu = volume.truncation();
+        let p = self.origin_voxel + self.direction * (self.t * inv_voxel);
         let (i, j, k) = (floor_i(p.x), floor_i(p.y), floor_i(p.z));
         let block_coords = [i >> 3, j >> 3, k >> 3];
-        let block = match current {
+        let block = match self.current {
             Some((coords, block)) if coords == block_coords => block,
             _ => {
                 if !volume.superblock_occupied(i, j, k) {
-                    previous = None;
-                    t += cell_exit(&p, &inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
-                    continue;
+                    self.previous = None;
+                    let superblock_voxels = (BLOCK_EDGE * SUPERBLOCK_EDGE) as f32;
+                    self.t += cell_exit(&p, &self.inverse_direction, superblock_voxels) * voxel + 0.01 * voxel;
+                    return MarchStep::Continue;
                 }
                 let Some(block) = volume.block_of_voxel(i, j, k) else {
                     // Empty-space leaping: jump to where the ray leaves this block.
-                    previous = None;
-                    t += cell_exit(&p, &inverse_direction, block_voxels) * voxel + 0.01 * voxel;
-                    continue;
+                    self.previous = None;
+                    self.t += cell_exit(&p, &self.inverse_direction, BLOCK_EDGE as f32) * voxel + 0.01 * voxel;
+                    return MarchStep::Continue;
                 };
-                current = Some((block_coords, block));
+                self.current = Some((block_coords, block));
                 block
             }
         };
         let local = ((i & 7) + 8 * ((j & 7) + 8 * (k & 7))) as usize;
         let Some(tsdf) = block.voxels.get(local).filter(|v| v.weight > 0.0).map(|v| v.tsdf) else {
             // Unobserved voxel (behind a surface): no crossing can be bracketed here.
-            previous = None;
-            t += (0.5 * mu).max(voxel);
-            continue;
+            self.previous = None;
+            self.t += (0.5 * mu).max(voxel);
+            return MarchStep::Continue;
         };
-        if let Some((t_previous, tsdf_previous)) = previous {
+        if let Some((t_previous, tsdf_previous)) = self.previous {
             if tsdf_previous > 0.0 && tsdf <= 0.0 {
-                return refine_crossing(volume, origin, direction, t_previous, t, inv_voxel);
+                return MarchStep::Bracketed { t_positive: t_previous, t_negative: self.t };
             }
         }
-        previous = Some((t, tsdf));
+        self.previous = Some((self.t, tsdf));
         // The surface is at least |tsdf|·μ away (on either side of it).
-        t += (config.step_factor * tsdf.abs() * mu).max(voxel);
+        self.t += (config.step_factor * tsdf.abs() * mu).max(voxel);
+        MarchStep::Continue
     }
-    None
 }
 
 /// Distance (voxel units along the ray) from `p` (voxel units) to the exit of its cubic cell of edge `size`.
@@ -291,8 +401,9 @@ fn refine_crossing(
     inv_voxel: f32,
 ) -> Option<(f32, Vector3<f32>)> {
     let trilinear = |t: f32| volume.trilinear(&((origin + direction * t) * inv_voxel));
+    let trilinear_tsdf = |t: f32| volume.trilinear_tsdf(&((origin + direction * t) * inv_voxel));
     // Both brackets must be fully observed, else the crossing is at the edge of the data: no hit.
-    let (mut f_a, mut f_b) = (trilinear(t_a)?.tsdf, trilinear(t_b)?.tsdf);
+    let (mut f_a, mut f_b) = (trilinear_tsdf(t_a)?, trilinear_tsdf(t_b)?);
     if !(f_a > 0.0 && f_b <= 0.0) {
         return None;
     }
@@ -385,6 +496,16 @@ mod tests {
         // The camera z axis is volume +y.
         let z_axis = view.volume_from_birds_eye.rotation * Vector3::z();
         assert!((z_axis - Vector3::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn patch_depth_range_spans_the_valid_fine_depths() {
+        // 4×2 fine image, factor 2: coarse pixel (0, 0) covers columns 0–1, (1, 0) columns 2–3.
+        let nan = f32::NAN;
+        let fine = DepthImage { width: 4, height: 2, depth_m: vec![1.0, nan, nan, nan, 1.5, 1.2, nan, nan] };
+        assert_eq!(patch_depth_range(&fine, 2, 0, 0), Some((1.0, 1.5)));
+        assert_eq!(patch_depth_range(&fine, 2, 1, 0), None);
+        assert_eq!(patch_depth_range(&fine, 2, 2, 0), None);
     }
 
     #[test]

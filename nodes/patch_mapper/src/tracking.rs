@@ -2,8 +2,8 @@
 //!
 //! ICP is frame-to-model: the new depth frame (a 2×2 pyramid, coarse to fine) is aligned to the
 //! model raycast from the previous pose by projective data association and point-to-plane Gauss–Newton
-//! steps; the 6×6 normal equations are summed in f64 in parallel, with Huber weights and a distance
-//! gate. Loss is declared on few inliers, a large residual, a degenerate system or a pose jump, and
+//! steps; the 6×6 normal equations are summed in parallel (f32 over batches of 64 inliers, f64
+//! totals), with Huber weights and a distance gate. Loss is declared on few inliers, a large residual, a degenerate system or a pose jump, and
 //! the volume is reset (J 5.2: "if camera tracking does fail, then the whole patch map is reset").
 //!
 //! `Tracker::process` reads as the paper's loop: track → integrate → remap → raycast the model.
@@ -15,8 +15,8 @@ use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, Translation3, UnitQuaternion
 use rayon::prelude::*;
 
 use crate::camera::{DepthImage, Intrinsics};
-use crate::fusion::{FusionError, TsdfConfig, TsdfVolume};
-use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RaycastConfig};
+use crate::fusion::{floor_small, FusionError, TsdfConfig, TsdfVolume};
+use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint, RaycastConfig};
 use crate::volume::{initial_volume_from_camera, map_from_volume_rotation, plan_remap, remap_tsdf, MovingVolumeConfig};
 
 /// Errors of the tracking loop (bad input; tracking loss is a status, not an error).
@@ -288,8 +288,12 @@ impl Tracker {
 
         let started = Instant::now();
         let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
-        // The frame just integrated at this pose tells where each model ray meets the surface.
-        let hint = images.into_iter().find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height);
+        // The frame just integrated at this pose tells where each model ray meets the surface; the
+        // full-resolution frame fills the holes (depth edges) of the downsampled one.
+        let hint = images
+            .into_iter()
+            .find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height)
+            .map(|image| RayHint { depth: image, fine: Some(depth) });
         self.model =
             Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
         timings.raycast_ms = elapsed_ms(started);
@@ -376,13 +380,18 @@ fn source_pyramid(images: &[&DepthImage; 3], intrinsics: &Intrinsics, iterations
 pub fn downsample(depth: &DepthImage, depth_jump_m: f32) -> DepthImage {
     let (width, height) = (depth.width / 2, depth.height / 2);
     let mut depth_m = vec![f32::NAN; width * height];
+    let input_width = depth.width.max(1);
     depth_m.par_chunks_mut(width.max(1)).enumerate().for_each(|(v, row)| {
+        // The two input rows of output row v (2v + 1 < height for every output row).
+        let top = depth.depth_m.get(2 * v * input_width..(2 * v + 1) * input_width).unwrap_or(&[]);
+        let bottom = depth.depth_m.get((2 * v + 1) * input_width..(2 * v + 2) * input_width).unwrap_or(&[]);
         for (u, out) in row.iter_mut().enumerate() {
             let mut sum = 0.0;
             let mut count = 0;
             let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-            for (du, dv) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                if let Some(d) = depth.get(2 * u + du, 2 * v + dv) {
+            let quad = [top.get(2 * u), top.get(2 * u + 1), bottom.get(2 * u), bottom.get(2 * u + 1)];
+            for &d in quad.into_iter().flatten() {
+                if d.is_finite() {
                     sum += d;
                     count += 1;
                     lo = lo.min(d);
@@ -399,16 +408,17 @@ pub fn downsample(depth: &DepthImage, depth_jump_m: f32) -> DepthImage {
 
 fn source_level(depth: &DepthImage, intrinsics: &Intrinsics) -> SourceLevel {
     let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
-    let points_in_camera = depth
-        .depth_m
-        .iter()
-        .enumerate()
-        .filter(|(_, d)| d.is_finite())
-        .map(|(i, &d)| {
-            let (u, v) = ((i % depth.width) as f32, (i / depth.width) as f32);
-            Vector3::new((u - cx) / fx * d, (v - cy) / fy * d, d)
-        })
-        .collect();
+    // Ray slopes per column and row, computed once (no per-pixel division).
+    let x_slopes: Vec<f32> = (0..depth.width).map(|u| (u as f32 - cx) / fx).collect();
+    let mut points_in_camera = Vec::with_capacity(depth.depth_m.len());
+    for (v, row) in depth.depth_m.chunks(depth.width.max(1)).enumerate() {
+        let y_slope = (v as f32 - cy) / fy;
+        for (&d, x_slope) in row.iter().zip(&x_slopes) {
+            if d.is_finite() {
+                points_in_camera.push(Vector3::new(x_slope * d, y_slope * d, d));
+            }
+        }
+    }
     SourceLevel { intrinsics: *intrinsics, points_in_camera }
 }
 
@@ -507,7 +517,57 @@ pub fn icp(config: &IcpConfig, pyramid: &[SourceLevel], model: &ModelRaycast, in
     IcpResult { volume_from_camera: pose, summary, min_eigenvalue }
 }
 
-/// Projective association + point-to-plane linearisation, summed in parallel (f64 sums).
+/// Inliers gathered before their products are summed (in f32) and added to the f64 totals: f32
+/// rounding over this many terms stays near 1e-5 relative, far below what moves the Gauss–Newton step.
+const BATCH: usize = 64;
+
+/// A batch of weighted point-to-plane rows √w·(J, r), J = [n, p × n], as columns (structure of
+/// arrays, so the 27 sums of products of column pairs vectorise); unused entries are zero.
+struct RowBatch {
+    columns: [[f32; BATCH]; 7],
+    len: usize,
+}
+
+impl RowBatch {
+    fn new() -> Self {
+        Self { columns: [[0.0; BATCH]; 7], len: 0 }
+    }
+}
+
+/// Σ a·b over a batch, in 8 lanes.
+#[inline]
+fn batch_dot(a: &[f32; BATCH], b: &[f32; BATCH]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    for (chunk_a, chunk_b) in a.chunks_exact(8).zip(b.chunks_exact(8)) {
+        for ((lane, x), y) in lanes.iter_mut().zip(chunk_a).zip(chunk_b) {
+            *lane += x * y;
+        }
+    }
+    lanes.iter().sum()
+}
+
+/// Adds the batch's JᵀWJ (upper triangle) and JᵀWr to the f64 totals and empties the batch.
+fn flush_batch(acc: &mut Normal, batch: &mut RowBatch) {
+    if batch.len == 0 {
+        return;
+    }
+    let mut k = 0;
+    for (a, column_a) in batch.columns.iter().take(6).enumerate() {
+        for column_b in batch.columns.iter().take(6).skip(a) {
+            if let Some(total) = acc.jtj.get_mut(k) {
+                *total += f64::from(batch_dot(column_a, column_b));
+            }
+            k += 1;
+        }
+        if let Some(total) = acc.jtr.get_mut(a) {
+            *total += f64::from(batch_dot(column_a, &batch.columns[6]));
+        }
+    }
+    *batch = RowBatch::new();
+}
+
+/// Projective association + point-to-plane linearisation, summed in parallel (f32 sums over
+/// batches of `BATCH` inliers, f64 totals).
 fn accumulate(
     source: &SourceLevel,
     model: &ModelRaycast,
@@ -517,6 +577,10 @@ fn accumulate(
     huber: f64,
 ) -> Normal {
     let pose = volume_from_camera.cast::<f32>();
+    // Projection straight from the source camera into the model camera; the volume-frame point is
+    // only needed for the points that find a model surface.
+    let model_from_camera = model_from_volume * pose;
+    let huber = huber as f32;
     let mi = &model.intrinsics;
     let (fx, fy, cx, cy) = (mi.fx as f32, mi.fy as f32, mi.cx as f32, mi.cy as f32);
     let (w, h) = (mi.width as f32 - 0.5, mi.height as f32 - 0.5);
@@ -525,18 +589,19 @@ fn accumulate(
         .par_chunks(1024)
         .map(|chunk| {
             let mut acc = Normal::zero();
+            let mut batch = RowBatch::new();
             for point in chunk {
-                let p = pose * Point3::from(*point);
-                let m = model_from_volume * p;
+                let m = model_from_camera * Point3::from(*point);
                 if m.z <= 0.0 {
                     continue;
                 }
-                let u = fx * m.x / m.z + cx;
-                let v = fy * m.y / m.z + cy;
+                let inv_z = 1.0 / m.z;
+                let u = fx * m.x * inv_z + cx;
+                let v = fy * m.y * inv_z + cy;
                 if !(u >= -0.5 && v >= -0.5 && u < w && v < h) {
                     continue;
                 }
-                let index = (v + 0.5) as usize * mi.width + (u + 0.5) as usize;
+                let index = floor_small(v + 0.5) as usize * mi.width + floor_small(u + 0.5) as usize;
                 let (Some(q), Some(n)) = (model.points_in_volume.get(index), model.normals_in_volume.get(index)) else {
                     continue;
                 };
@@ -544,27 +609,30 @@ fn accumulate(
                     continue;
                 }
                 acc.associated += 1;
+                let p = pose * Point3::from(*point);
                 let difference = p - q;
                 if difference.norm_squared() > gate * gate {
                     continue;
                 }
-                let r = f64::from(n.dot(&difference));
-                let weight = if r.abs() <= huber { 1.0 } else { huber / r.abs() };
-                let n64 = n.cast::<f64>();
-                let c = p.coords.cast::<f64>().cross(&n64);
-                let j = [n64.x, n64.y, n64.z, c.x, c.y, c.z];
-                let mut k = 0;
-                for a in 0..6 {
-                    let wa = weight * j[a];
-                    for b in a..6 {
-                        acc.jtj[k] += wa * j[b];
-                        k += 1;
+                let r = n.dot(&difference);
+                // Huber weight w, applied as √w to both factors of each product.
+                let sqrt_weight = if r.abs() <= huber { 1.0 } else { (huber / r.abs()).sqrt() };
+                let c = p.coords.cross(n);
+                let row = [n.x, n.y, n.z, c.x, c.y, c.z, r];
+                let slot = batch.len;
+                for (column, value) in batch.columns.iter_mut().zip(row) {
+                    if let Some(entry) = column.get_mut(slot) {
+                        *entry = sqrt_weight * value;
                     }
-                    acc.jtr[a] += wa * r;
                 }
+                batch.len += 1;
                 acc.inliers += 1;
-                acc.squared_residuals += r * r;
+                acc.squared_residuals += f64::from(r * r);
+                if batch.len == BATCH {
+                    flush_batch(&mut acc, &mut batch);
+                }
             }
+            flush_batch(&mut acc, &mut batch);
             acc
         })
         .reduce(Normal::zero, Normal::add)
@@ -682,6 +750,21 @@ mod tests {
             eprintln!("pair {i}: {:.2} mm, {:.3} deg", t * 1e3, r);
             assert!(*t < 0.02 && *r < 1.0, "pair {i}: {t} m, {r} deg");
         }
+    }
+
+    #[test]
+    fn downsample_averages_agreeing_depths_only() {
+        let nan = f32::NAN;
+        // Three 2×2 cells: four agreeing depths, one valid depth, and a 10 cm jump.
+        #[rustfmt::skip]
+        let depth = DepthImage::new(6, 2, vec![
+            1.0, 1.02, 2.0, nan, 1.0, 1.1,
+            1.01, 1.03, nan, nan, 1.0, 1.1,
+        ]).unwrap();
+        let half = downsample(&depth, 0.03);
+        assert_eq!((half.width, half.height), (3, 1));
+        assert!((half.depth_m[0] - 1.015).abs() < 1e-6, "{}", half.depth_m[0]);
+        assert!(half.depth_m[1].is_nan() && half.depth_m[2].is_nan());
     }
 
     #[test]

@@ -174,8 +174,8 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
                 if weight <= 0.0 {
                     continue;
                 }
-                let tsdf = match old.trilinear(&voxel_old) {
-                    Some(sample) => sample.tsdf,
+                let tsdf = match old.trilinear_tsdf(&voxel_old) {
+                    Some(tsdf) => tsdf,
                     None => old.nearest(&voxel_old).unwrap_or(1.0),
                 };
                 if let Some(voxel) = block.voxels.get_mut(index) {

@@ -636,8 +636,8 @@ fn slide_sag_variance(surface: SurfaceType, k3: &Vector3<f64>, s: &Matrix2<f64>)
 /// Second-order terms of the extents that steps 6–8 take from moments about the apex (not about the
 /// data centroid): an apex error `u_i` along axis i adds `u_i²` to `v_i = avg(x_i²)`, so
 /// `d_i = λ√v_i` grows by `λ² u_i² / (2 d_i)` — zero to first order, and always upward. For
-/// `u ~ N(0, S)`: `E[u_i² u_j²] = S_ii S_jj + 2 S_ij²`, capped at its large-u limit `λ² √(S_ii S_jj)`.
-/// Returns `(row, col, added second moment)` in the local layout (d at 0..5).
+/// `u ~ N(0, S)`: `E[u_i² u_j²] = S_ii S_jj + 2 S_ij²`. Returns `(row, col, added second moment)` in
+/// the local layout (d at 0..5).
 fn apex_moment_second_order(surface: SurfaceType, d: &[f64], lambda: f64, s: &Matrix2<f64>) -> Vec<(usize, usize, f64)> {
     // (index in d, local axis) of the extents measured about the apex.
     let axes: &[(usize, usize)] = match surface {
@@ -646,21 +646,24 @@ fn apex_moment_second_order(surface: SurfaceType, d: &[f64], lambda: f64, s: &Ma
         SurfaceType::CircularParaboloid => &[(0, if s[(0, 0)] >= s[(1, 1)] { 0 } else { 1 })],
         _ => &[],
     };
+    // Per extent: the second moment of its growth, `3 g² S_ii²` with `g = λ²/(2 d)`, capped at the
+    // large-slide limit `λ² S_ii` (`(λ√(v + u²) − λ√v)² ≤ λ² u²`: once the apex is uncertain by more
+    // than the extent, the growth is linear in u — weakly curved patches far from their apex).
+    // Between two extents the correlation of u_i² and u_j², `(S_ii S_jj + 2 S_ij²) / (3 S_ii S_jj)`,
+    // which keeps the added block positive semi-definite.
+    let rms = |a: usize, i: usize| -> Option<f64> {
+        let d = *d.get(a)?;
+        let g = lambda * lambda / (2.0 * d);
+        let v = (3.0 * g * g * s[(i, i)] * s[(i, i)]).min(lambda * lambda * s[(i, i)]);
+        (d > 0.0 && v.is_finite() && v >= 0.0).then(|| v.sqrt())
+    };
     let mut out = Vec::with_capacity(axes.len() * axes.len());
     for &(a, i) in axes {
         for &(b, j) in axes {
-            let (Some(&da), Some(&db)) = (d.get(a), d.get(b)) else { continue };
-            if !(da > 0.0 && db > 0.0) {
-                continue;
-            }
-            let gain = (lambda * lambda / (2.0 * da)) * (lambda * lambda / (2.0 * db));
-            // `(λ√(v + u²) − λ√v)² ≤ λ² u²`: once the apex is uncertain by more than the extent, the
-            // growth is linear in u, not quadratic (weakly curved patches far from their apex).
-            let cap = lambda * lambda * (s[(i, i)] * s[(j, j)]).sqrt();
-            let extra = (gain * (s[(i, i)] * s[(j, j)] + 2.0 * s[(i, j)] * s[(i, j)])).min(cap);
-            if extra.is_finite() {
-                out.push((a, b, extra));
-            }
+            let (Some(ea), Some(eb)) = (rms(a, i), rms(b, j)) else { continue };
+            let denominator = 3.0 * s[(i, i)] * s[(j, j)];
+            let correlation = if denominator > 0.0 { (s[(i, i)] * s[(j, j)] + 2.0 * s[(i, j)] * s[(i, j)]) / denominator } else { 0.0 };
+            out.push((a, b, correlation.min(1.0) * ea * eb));
         }
     }
     out

@@ -472,12 +472,25 @@ pub(crate) struct LmSettings {
 /// to the patch pose.
 const NEGLIGIBLE_STEP: f64 = 1e-9;
 
-/// Weighted Levenberg–Marquardt (IROS IV-A) from `start`.
-pub(crate) fn run(
+/// Weighted Levenberg–Marquardt (IROS IV-A) from `start`: the converged surface alone.
+pub(crate) fn run(model: Model, start: SurfaceState, set: &PointSet, settings: &LmSettings) -> Result<SurfaceState, FitError> {
+    levenberg_marquardt(model, start, set, settings, false).map(|r| r.state)
+}
+
+/// [`run`] with the normal equations (eq 36) at the converged surface, e.g. for its covariance.
+pub(crate) fn run_with_normal(model: Model, start: SurfaceState, set: &PointSet, settings: &LmSettings) -> Result<WlmResult, FitError> {
+    levenberg_marquardt(model, start, set, settings, true)
+}
+
+/// The LM iteration of [`run`]. Without `final_normal` the run ends after an accepted step below
+/// the tolerance without the normal equations at the new state (only their χ² is set), which
+/// nothing else would use; the iterates and the result are the same either way.
+fn levenberg_marquardt(
     model: Model,
     start: SurfaceState,
     set: &PointSet,
     settings: &LmSettings,
+    final_normal: bool,
 ) -> Result<WlmResult, FitError> {
     let m = model.num_free();
     let embed = model.embedding();
@@ -519,6 +532,10 @@ pub(crate) fn run(
         if trial_chi2.is_finite() && trial_chi2 <= normal.chi2 {
             let decrease = normal.chi2 - trial_chi2;
             state = trial;
+            if decrease < settings.chi2_tolerance && !final_normal {
+                normal.chi2 = trial_chi2;
+                break;
+            }
             normal = accumulate(model, &state, set, settings.min_variance, settings.weight_derivative, false);
             lambda = (lambda * 0.1).max(1e-9);
             // A full step that gains nothing measurable: converged (or crawling along a

@@ -565,23 +565,32 @@ impl PatchShape {
         // One loop per explicit form (eq 13, 23, 27), so that the height is inlined into it.
         let k = self.curvatures;
         match self.surface {
-            SurfaceType::Sphere => self.closest_with(q_l, |u| sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz))),
-            SurfaceType::CircularCylinder => self.closest_with(q_l, |u| sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz)))),
+            SurfaceType::Sphere => self.closest_with(q_l, None, |u| sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz))),
+            SurfaceType::CircularCylinder => {
+                self.closest_with(q_l, None, |u| sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))))
+            }
             _ if k.x == 0.0 && k.y == 0.0 => {
                 // z(u) = 0: the first Gauss–Newton step lands on the projection already.
                 let u = self.project_to_boundary(&q_l.xy());
                 Vector3::new(u.x, u.y, 0.0)
             }
-            _ => self.closest_with(q_l, |u| Some(paraboloid_height(&k, u))),
+            // ∇²z = diag(κx, κy) (eq 13): Newton steps inside the boundary.
+            _ => self.closest_with(q_l, Some(k), |u| Some(paraboloid_height(&k, u))),
         }
     }
 
     /// [`PatchShape::closest_point_local`] of a curved surface with the explicit form `height`
-    /// (`z(u)` and `∂z/∂u`, `None` outside the domain).
+    /// (`z(u)` and `∂z/∂u`, `None` outside the domain). With the constant diagonal Hessian
+    /// `hessian` of `z`, steps are Newton steps on `½‖(u, z(u)) − q‖²` (quadratic convergence)
+    /// while they stay strictly inside the boundary and the Hessian `I + g gᵀ + e_z ∇²z` is positive
+    /// definite: an interior minimum is a stationary point of both iterations, the same point. From
+    /// the first step that would leave the boundary on, projected Gauss–Newton as without `hessian`
+    /// (whose fixed point on the boundary depends on the step's metric).
     #[inline(always)]
-    fn closest_with(&self, q_l: &Vector3<f64>, height: impl Fn(&Vector2<f64>) -> Option<(f64, Vector2<f64>)>) -> Vector3<f64> {
+    fn closest_with(&self, q_l: &Vector3<f64>, hessian: Option<Vector2<f64>>, height: impl Fn(&Vector2<f64>) -> Option<(f64, Vector2<f64>)>) -> Vector3<f64> {
         let q_xy = q_l.xy();
         let mut u = self.project_to_boundary(&q_xy);
+        let mut hessian = hessian;
         for _ in 0..12 {
             let Some((z, g)) = height(&u) else { break };
             // residual e = (u − q_xy, z − q_z); J = [I; gᵀ]; JᵀJ = I + g gᵀ has the inverse
@@ -589,8 +598,15 @@ impl PatchShape {
             let e_xy = u - q_xy;
             let e_z = z - q_l.z;
             let jte = e_xy + g * e_z;
-            let step = jte - g * (g.dot(&jte) / (1.0 + g.norm_squared()));
-            let next = self.project_to_boundary(&(u - step));
+            let newton = hessian.and_then(|h| newton_step(&g, e_z, &h, &jte)).map(|step| u - step).filter(|next| self.boundary_value(next) < 0.0);
+            let next = match newton {
+                Some(next) => next,
+                None => {
+                    hessian = None;
+                    let step = jte - g * (g.dot(&jte) / (1.0 + g.norm_squared()));
+                    self.project_to_boundary(&(u - step))
+                }
+            };
             let moved_sq = (next - u).norm_squared();
             u = next;
             if moved_sq < 1e-20 {
@@ -694,6 +710,20 @@ fn explicit_height(surface: SurfaceType, k: &Vector2<f64>, u: &Vector2<f64>) -> 
 #[inline(always)]
 fn paraboloid_height(k: &Vector2<f64>, u: &Vector2<f64>) -> (f64, Vector2<f64>) {
     (0.5 * (k.x * u.x * u.x + k.y * u.y * u.y), Vector2::new(k.x * u.x, k.y * u.y))
+}
+
+/// The Newton step `(I + g gᵀ + e_z diag(h))⁻¹ jte` of the closest-point problem on an explicit
+/// surface with gradient `g` and diagonal Hessian `h` (eq 13), `None` unless positive definite.
+#[inline(always)]
+fn newton_step(g: &Vector2<f64>, e_z: f64, h: &Vector2<f64>, jte: &Vector2<f64>) -> Option<Vector2<f64>> {
+    let a11 = 1.0 + g.x * g.x + e_z * h.x;
+    let a22 = 1.0 + g.y * g.y + e_z * h.y;
+    let a12 = g.x * g.y;
+    let det = a11 * a22 - a12 * a12;
+    if !(a11 > 0.0 && det > 1e-12 * a11 * a22) {
+        return None;
+    }
+    Some(Vector2::new(a22 * jte.x - a12 * jte.y, a11 * jte.y - a12 * jte.x) / det)
 }
 
 /// Height of a sphere/circle of curvature κ at squared radius `s = uᵀu` (eq 23) in the stable form
@@ -848,6 +878,28 @@ mod tests {
                 assert!(p.implicit_world(&q).abs() < 1e-12, "{s:?}");
                 assert!(p.contains_point(&q));
                 assert!(p.distance(&q) < 1e-9, "{s:?} {b:?} d {}", p.distance(&q));
+            }
+        }
+    }
+
+    /// The Newton steps of the paraboloid closest point reach the projected Gauss–Newton result
+    /// (inside and on the boundary), for points near and far from the surface.
+    #[test]
+    fn newton_closest_point_matches_gauss_newton() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        for (s, b) in all_types() {
+            if !matches!(s, SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid | SurfaceType::CylindricParaboloid | SurfaceType::CircularParaboloid) {
+                continue;
+            }
+            let shape = example(s, b).shape();
+            let k = shape.curvatures;
+            for i in 0..400 {
+                let u = example(s, b).sample_uv(&mut rng) * (0.5 + 0.002 * i as f64);
+                let q_l = Vector3::new(u.x, u.y, paraboloid_height(&k, &u).0 + 0.01 * ((i % 21) as f64 - 10.0) / 10.0);
+                let newton = shape.closest_with(&q_l, Some(k), |u| Some(paraboloid_height(&k, u)));
+                let gauss_newton = shape.closest_with(&q_l, None, |u| Some(paraboloid_height(&k, u)));
+                let (dn, dg) = ((newton - q_l).norm(), (gauss_newton - q_l).norm());
+                assert!((dn - dg).abs() <= 1e-12 + 1e-9 * dg, "{s:?} {i}: {dn} vs {dg}");
             }
         }
     }

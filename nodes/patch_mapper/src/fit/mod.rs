@@ -17,7 +17,7 @@ mod wlm;
 
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse, rotation_from_normal};
-use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, Vector2, Vector3};
+use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
 use wlm::{Covariances, LmSettings, Model, PointSet, SurfaceState};
 use serde::{Deserialize, Serialize};
 
@@ -435,14 +435,14 @@ fn fit_surface(
 ) -> Result<(SurfaceType, BoundaryType, SurfaceState), FitError> {
     match target {
         Target::Fixed(SurfaceType::Plane, b) => {
-            Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, covs, &settings_for(Model::Plane, settings, config))?.state))
+            Ok((SurfaceType::Plane, b, wlm::run(Model::Plane, start, covs, &settings_for(Model::Plane, settings, config))?))
         }
         Target::Fixed(SurfaceType::Sphere, b) => {
-            Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, covs, &settings_for(Model::Sphere, settings, config))?.state))
+            Ok((SurfaceType::Sphere, b, wlm::run(Model::Sphere, start, covs, &settings_for(Model::Sphere, settings, config))?))
         }
         _ => {
             // Step 2: general paraboloid, started from the LLS quadric graph over the plane.
-            let par = wlm::run(Model::Paraboloid, quadric_start(&start, points), covs, &settings_for(Model::Paraboloid, settings, config))?;
+            let par = wlm::run_with_normal(Model::Paraboloid, quadric_start(&start, points), covs, &settings_for(Model::Paraboloid, settings, config))?;
             let (state, swapped) = order_axes(par.state);
             let surface = match target {
                 Target::Auto(_) => {
@@ -473,7 +473,7 @@ fn fit_surface(
             };
             let k = state.k3;
             let refit = |model: Model, k3: Vector3<f64>, st: SurfaceState| -> Result<SurfaceState, FitError> {
-                Ok(wlm::run(model, SurfaceState { k3, ..st }, covs, &settings_for(model, settings, config))?.state)
+                wlm::run(model, SurfaceState { k3, ..st }, covs, &settings_for(model, settings, config))
             };
             let state = match surface {
                 SurfaceType::Plane => refit(Model::Plane, Vector3::zeros(), state)?,
@@ -749,7 +749,7 @@ fn finish(
     for i in 0..9 {
         from_s[(5 + i, i)] += 1.0;
     }
-    let mut cov_local = from_s * cov_s * from_s.transpose() + g * stats.cov * g.transpose();
+    let mut cov_local = sandwich_over_slots(&from_s, &cov_s, &slot_param) + g * stats.cov * g.transpose();
     let slide = cov_local.fixed_view::<2, 2>(11, 11).into_owned();
     cov_local[(13, 13)] += slide_sag_variance(surface, &state.k3, &slide);
     for (i, j, extra) in apex_moment_second_order(surface, &d, lambda, &slide) {
@@ -811,6 +811,54 @@ fn finish(
     patch.residual = (normal.sampson_sq / points.len() as f64).sqrt();
     patch.num_points = points.len();
     Ok(patch)
+}
+
+/// `F C Fᵀ` for a `C` that is zero outside the slots with a free parameter (`E C_free Eᵀ`, eq 36's
+/// information embedded): the products of nalgebra's `F * C * F.transpose()` (column by column, the
+/// terms of every sum in slot order) without the terms that are exact zeros, so the non-zero entries
+/// are bit-identical and the work scales with the number of free slots (3 for planes, 8 for general
+/// paraboloids) instead of 9.
+fn sandwich_over_slots(f: &SMatrix<f64, 14, 9>, c: &SMatrix<f64, 9, 9>, slot_param: &[Option<usize>; 9]) -> SMatrix<f64, 14, 14> {
+    let mut slots = [0usize; 9];
+    let mut n = 0;
+    for (slot, param) in slot_param.iter().enumerate() {
+        if param.is_some() {
+            if let Some(s) = slots.get_mut(n) {
+                *s = slot;
+            }
+            n += 1;
+        }
+    }
+    let slots = slots.get(..n).unwrap_or(&[]);
+    // F C, column b (free slots only): Σ_a F[:, a] C[a, b] over the free slots a.
+    let mut fc = SMatrix::<f64, 14, 9>::zeros();
+    for &b in slots {
+        let mut column = SVector::<f64, 14>::zeros();
+        for (k, &a) in slots.iter().enumerate() {
+            let v = c[(a, b)];
+            if k == 0 {
+                column = f.column(a) * v;
+            } else {
+                column += f.column(a) * v;
+            }
+        }
+        fc.set_column(b, &column);
+    }
+    // (F C) Fᵀ, column j: Σ_b (F C)[:, b] F[j, b] over the free slots b.
+    let mut out = SMatrix::<f64, 14, 14>::zeros();
+    for j in 0..14 {
+        let mut column = SVector::<f64, 14>::zeros();
+        for (k, &b) in slots.iter().enumerate() {
+            let v = f[(j, b)];
+            if k == 0 {
+                column = fc.column(b) * v;
+            } else {
+                column += fc.column(b) * v;
+            }
+        }
+        out.set_column(j, &column);
+    }
+    out
 }
 
 /// One row of a sparse matrix over the 14 local slots: up to three consecutive non-zeros.

@@ -204,6 +204,14 @@ pub(crate) fn accumulate(model: Model, state: &SurfaceState, set: &PointSet, min
 /// [`accumulate`] (so the value is bit-identical), without the gradient and the rank-1 updates of
 /// eq 36. LM uses it to accept or reject a trial step; most trials near convergence are rejected.
 pub(crate) fn chi_square(state: &SurfaceState, set: &PointSet, min_variance: f64) -> f64 {
+    chi_square_unless_above(state, set, min_variance, f64::INFINITY, 0.0)
+}
+
+/// [`chi_square`], or the first partial sum `s` with `s > base` and `s − base ≥ margin`. The terms
+/// are non-negative and rounding is monotone, so χ² is then at least `s` and both `χ² ≤ base` and
+/// `χ² − base < margin` are false, as for `s`: LM decides a trial step whose χ² rises by more than
+/// the tolerance after a part of the points, with the outcome of the full sum.
+fn chi_square_unless_above(state: &SurfaceState, set: &PointSet, min_variance: f64, base: f64, margin: f64) -> f64 {
     let frame = Frame::new(state);
     let mut squares = [0.0; BLOCK];
     let mut chi2 = 0.0;
@@ -211,6 +219,9 @@ pub(crate) fn chi_square(state: &SurfaceState, set: &PointSet, min_variance: f64
         block_terms(&frame, chunk, min_variance, |j, lane| squares[j] = lane.big_f * lane.big_f);
         for f2 in squares.iter().take(len) {
             chi2 += f2;
+        }
+        if chi2 > base && chi2 - base >= margin {
+            return chi2;
         }
     }
     chi2
@@ -472,12 +483,25 @@ pub(crate) struct LmSettings {
 /// to the patch pose.
 const NEGLIGIBLE_STEP: f64 = 1e-9;
 
-/// Weighted Levenberg–Marquardt (IROS IV-A) from `start`.
-pub(crate) fn run(
+/// Weighted Levenberg–Marquardt (IROS IV-A) from `start`: the converged surface alone.
+pub(crate) fn run(model: Model, start: SurfaceState, set: &PointSet, settings: &LmSettings) -> Result<SurfaceState, FitError> {
+    levenberg_marquardt(model, start, set, settings, false).map(|r| r.state)
+}
+
+/// [`run`] with the normal equations (eq 36) at the converged surface, e.g. for its covariance.
+pub(crate) fn run_with_normal(model: Model, start: SurfaceState, set: &PointSet, settings: &LmSettings) -> Result<WlmResult, FitError> {
+    levenberg_marquardt(model, start, set, settings, true)
+}
+
+/// The LM iteration of [`run`]. Without `final_normal` the run ends after an accepted step below
+/// the tolerance without the normal equations at the new state (only their χ² is set), which
+/// nothing else would use; the iterates and the result are the same either way.
+fn levenberg_marquardt(
     model: Model,
     start: SurfaceState,
     set: &PointSet,
     settings: &LmSettings,
+    final_normal: bool,
 ) -> Result<WlmResult, FitError> {
     let m = model.num_free();
     let embed = model.embedding();
@@ -515,10 +539,16 @@ pub(crate) fn run(
         }
         let trial = state.apply(&(embed * step));
         // χ² first; the normal equations (eq 36) only for an accepted step.
-        let trial_chi2 = chi_square(&trial, set, settings.min_variance);
+        // Only the outcomes below matter for a χ² that exceeds the current one by more than the
+        // tolerance (rejected, not flat), so its pass may stop early (same decisions, same results).
+        let trial_chi2 = chi_square_unless_above(&trial, set, settings.min_variance, normal.chi2, settings.chi2_tolerance);
         if trial_chi2.is_finite() && trial_chi2 <= normal.chi2 {
             let decrease = normal.chi2 - trial_chi2;
             state = trial;
+            if decrease < settings.chi2_tolerance && !final_normal {
+                normal.chi2 = trial_chi2;
+                break;
+            }
             normal = accumulate(model, &state, set, settings.min_variance, settings.weight_derivative, false);
             lambda = (lambda * 0.1).max(1e-9);
             // A full step that gains nothing measurable: converged (or crawling along a
@@ -535,6 +565,14 @@ pub(crate) fn run(
             // along the Gauss–Newton direction (the σ_i(p) term of eq 36 that the steps ignore) and
             // LM would otherwise reject its way up to λ = 1e12.
             if step.amax() < NEGLIGIBLE_STEP {
+                break;
+            }
+            // A rejected step that raises χ² by less than the tolerance: χ² is flat within the
+            // tolerance along the step, so the larger damping of the following trials (a shorter
+            // step in nearly the same direction) could gain at most that much: converged, as after
+            // an accepted step below the tolerance. Saves the trials that shrink the step until it
+            // is accepted or negligible (typically λ from 1e-7 up past 1, several χ² passes).
+            if trial_chi2 - normal.chi2 < settings.chi2_tolerance {
                 break;
             }
             lambda *= 10.0;
@@ -613,6 +651,27 @@ mod tests {
             assert_eq!((n.b, n.chi2, n.sampson_sq), (b, chi2, sampson_sq), "{weight_derivative}");
             assert_eq!(chi_square(&state, &set, 1e-20), chi2);
         }
+    }
+
+    /// The early-stopping χ² pass is the full sum, or a partial sum that already decides both LM
+    /// comparisons (`χ² ≤ base`, `χ² − base < margin`) as the full sum does.
+    #[test]
+    fn early_stopping_chi_square_decides_as_the_full_sum() {
+        let state = SurfaceState { k3: Vector3::new(3.0, -2.0, 0.0), rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)), c: Vector3::new(0.1, -0.2, 1.0) };
+        let points: Vec<_> = (0..43).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
+        let covs = Covariances::Constant(Matrix3::identity() * 1e-6);
+        let set = PointSet::new(&points, &covs);
+        let full = chi_square(&state, &set, 1e-20);
+        let mut early = 0;
+        for base in [0.0, 0.1 * full, 0.5 * full, full - 1e-3, full, 2.0 * full] {
+            for margin in [0.0, 1e-2, 0.3 * full] {
+                let s = chi_square_unless_above(&state, &set, 1e-20, base, margin);
+                assert!(s <= full);
+                assert_eq!((s <= base, s - base < margin), (full <= base, full - base < margin), "{base} {margin}");
+                early += usize::from(s < full);
+            }
+        }
+        assert!(early > 0);
     }
 
     /// The free-parameter accumulation equals `Eᵀ (Σ ∇F ∇Fᵀ) E` over the 9 local slots.

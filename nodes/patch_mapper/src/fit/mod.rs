@@ -833,32 +833,28 @@ fn sandwich_over_slots(f: &SMatrix<f64, 14, 9>, c: &SMatrix<f64, 9, 9>, slot_par
     // F C, column b (free slots only): Σ_a F[:, a] C[a, b] over the free slots a.
     let mut fc = SMatrix::<f64, 14, 9>::zeros();
     for &b in slots {
-        let mut column = SVector::<f64, 14>::zeros();
-        for (k, &a) in slots.iter().enumerate() {
-            let v = c[(a, b)];
-            if k == 0 {
-                column = f.column(a) * v;
-            } else {
-                column += f.column(a) * v;
-            }
-        }
-        fc.set_column(b, &column);
+        fc.set_column(b, &column_sum(slots, |a| f.column(a).into_owned(), |a| c[(a, b)]));
     }
     // (F C) Fᵀ, column j: Σ_b (F C)[:, b] F[j, b] over the free slots b.
     let mut out = SMatrix::<f64, 14, 14>::zeros();
     for j in 0..14 {
-        let mut column = SVector::<f64, 14>::zeros();
-        for (k, &b) in slots.iter().enumerate() {
-            let v = f[(j, b)];
-            if k == 0 {
-                column = fc.column(b) * v;
-            } else {
-                column += fc.column(b) * v;
-            }
-        }
-        out.set_column(j, &column);
+        out.set_column(j, &column_sum(slots, |b| fc.column(b).into_owned(), |b| f[(j, b)]));
     }
     out
+}
+
+/// `Σ_k column(slot_k) · weight(slot_k)` in slot order, the first term assigned rather than added
+/// to zero (nalgebra's product summation order, so the result is bit-identical to the dense product).
+fn column_sum(slots: &[usize], column: impl Fn(usize) -> SVector<f64, 14>, weight: impl Fn(usize) -> f64) -> SVector<f64, 14> {
+    let mut sum = SVector::<f64, 14>::zeros();
+    for (k, &slot) in slots.iter().enumerate() {
+        if k == 0 {
+            sum = column(slot) * weight(slot);
+        } else {
+            sum += column(slot) * weight(slot);
+        }
+    }
+    sum
 }
 
 /// One row of a sparse matrix over the 14 local slots: up to three consecutive non-zeros.

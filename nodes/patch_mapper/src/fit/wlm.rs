@@ -611,18 +611,24 @@ mod tests {
         }
     }
 
+    /// A tilted surface state (κz given), `n` points near it and anisotropic covariances.
+    fn fixture(kappa_z: f64, n: usize) -> (SurfaceState, Vec<Vector3<f64>>, Vec<Matrix3<f64>>) {
+        let state = SurfaceState {
+            k3: Vector3::new(3.0, -2.0, kappa_z),
+            rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)),
+            c: Vector3::new(0.1, -0.2, 1.0),
+        };
+        let points = (0..n).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
+        let covs = (0..n).map(|i| Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0 + i as f64) * 1e-6).collect();
+        (state, points, covs)
+    }
+
     /// The chunked pass reproduces `point_terms` bit for bit (the paraboloid's free parameters
     /// are a plain selection of the local slots), also for a point count that leaves padding in
     /// the last chunk; `chi_square` is its χ²; the weight-derivative branch is eq 36 in full.
     #[test]
     fn chunked_pass_is_bit_identical_to_point_terms() {
-        let state = SurfaceState {
-            k3: Vector3::new(3.0, -2.0, 0.0),
-            rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)),
-            c: Vector3::new(0.1, -0.2, 1.0),
-        };
-        let points: Vec<_> = (0..43).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
-        let covs: Vec<_> = (0..43).map(|i| Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0 + i as f64) * 1e-6).collect();
+        let (state, points, covs) = fixture(0.0, 43);
         let covs = Covariances::PerPoint(&covs);
         let set = PointSet::new(&points, &covs);
         assert_eq!(set.len(), 43);
@@ -677,13 +683,7 @@ mod tests {
     /// The free-parameter accumulation equals `Eᵀ (Σ ∇F ∇Fᵀ) E` over the 9 local slots.
     #[test]
     fn free_accumulation_matches_the_embedding() {
-        let state = SurfaceState {
-            k3: Vector3::new(3.0, -2.0, 1.5),
-            rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)),
-            c: Vector3::new(0.1, -0.2, 1.0),
-        };
-        let points: Vec<_> = (0..40).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
-        let covs: Vec<_> = (0..40).map(|i| Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0 + i as f64) * 1e-6).collect();
+        let (state, points, covs) = fixture(1.5, 40);
         let covs = Covariances::PerPoint(&covs);
         for model in [Model::Plane, Model::Paraboloid, Model::CircularParaboloid, Model::CylindricParaboloid, Model::Sphere, Model::Cylinder] {
             let mut h9 = SMatrix::<f64, 9, 9>::zeros();

@@ -3,10 +3,10 @@
 //! (what the moment-based boundary fit converges to for uniform samples of the true boundary).
 
 use super::boundary;
-use crate::geometry::{exp_map, r_xy_from_normal};
+use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse};
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::sensor::{sample_noise, ErrorModel};
-use nalgebra::{Matrix3, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector2, Vector3};
 use rand::Rng;
 
 /// Ranges of the random scenes.
@@ -198,4 +198,111 @@ pub fn boundary_estimand<R: Rng + ?Sized>(rng: &mut R, patch: &Patch, containmen
     let kappa = patch.curvatures.y;
     let out = boundary::from_moments(patch.surface, patch.boundary, &m, kappa, lambda, ln_term);
     out.d.iter().take(out.nd).copied().collect()
+}
+
+/// χ²_k 95% quantile (Wilson–Hilferty; within 0.1% for k ≥ 2).
+pub fn chi2_95(k: usize) -> f64 {
+    let k = k as f64;
+    let z = 1.644_853_626_951_472_2;
+    let a = 2.0 / (9.0 * k);
+    k * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// Truth parameter vector in the fit's representation: boundary estimand, and of the discrete
+/// symmetries (rotation by π about the normal) the one nearest the estimate.
+pub fn truth_params<R: Rng + ?Sized>(rng: &mut R, truth: &Patch, fit: &Patch, containment: f64) -> Option<DVector<f64>> {
+    let rot = truth.rotation_matrix();
+    // Equivalent descriptions of the same patch: rotations by kπ/2 about the normal (k odd swaps
+    // the x/y roles, allowed only where the types are symmetric under the swap: ellipse-bounded
+    // paraboloids, IROS footnote 5).
+    let quarter_turns: &[u32] = match truth.surface {
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => &[0, 1, 2, 3],
+        _ => &[0, 2],
+    };
+    let mut best: Option<(f64, Patch)> = None;
+    for &k in quarter_turns {
+        let angle = k as f64 * std::f64::consts::FRAC_PI_2;
+        let r = log_map(&(rot * exp_map(&Vector3::new(0.0, 0.0, angle))));
+        let (curv, bparams) = if k % 2 == 1 {
+            let mut d = truth.boundary_params.clone();
+            d.swap(0, 1);
+            (nalgebra::Vector2::new(truth.curvatures.y, truth.curvatures.x), d)
+        } else {
+            (truth.curvatures, truth.boundary_params.clone())
+        };
+        let Ok(candidate) = Patch::new(truth.surface, truth.boundary, bparams, curv, r, truth.center) else { continue };
+        let dist = (candidate.rotation_matrix() - fit.rotation_matrix()).norm();
+        if best.as_ref().is_none_or(|(b, _)| dist < *b) {
+            best = Some((dist, candidate));
+        }
+    }
+    let (_, mut t) = best?;
+    t.boundary_params = boundary_estimand(rng, &t, containment);
+    // Exp-map vectors near ‖r‖ = π can differ by a 2π wrap although the rotations agree.
+    let rf = fit.rotation;
+    if (t.rotation - rf).norm() > 1.0 {
+        let th = t.rotation.norm();
+        if th > 0.0 {
+            let alt = t.rotation * (1.0 - 2.0 * std::f64::consts::PI / th);
+            if (alt - rf).norm() < (t.rotation - rf).norm() {
+                t.rotation = alt;
+            }
+        }
+    }
+    Some(t.params())
+}
+
+/// `fit − truth` with the rotation part measured on SO(3), not as a difference of exp-map vectors:
+/// `R_truth = R(r̂)·exp(δ)` with `δ = log(R(r̂)ᵀ R_truth)`, mapped into the chart at r̂ by the same
+/// first-order map the fit uses for Σ (right Jacobian inverse, and eq 45 for 5-DoF r_xy). Camera-facing
+/// patches have ‖r‖ ≈ π, where the exp-map chart is strongly curved: there a plain difference of r
+/// vectors leaves the linear regime Σ describes although the rotations differ by a fraction of a degree.
+pub fn error_on_manifold(fit: &Patch, truth_params: &DVector<f64>) -> DVector<f64> {
+    let mut err = fit.params() - truth_params;
+    let at = fit.boundary.num_params() + fit.surface.num_curvatures();
+    let is5 = fit.is_5dof();
+    let r_truth = if is5 {
+        Vector3::new(truth_params[at], truth_params[at + 1], 0.0)
+    } else {
+        Vector3::new(truth_params[at], truth_params[at + 1], truth_params[at + 2])
+    };
+    let rot_fit = fit.rotation_matrix();
+    let jr_inv = right_jacobian_inverse(&fit.rotation);
+    if is5 {
+        // Only the normal is defined: the tilt that takes the fitted normal to the true one, in the
+        // fitted frame (no twist, which r_xy does not see but which would leak in at second order).
+        let n_truth_local = rot_fit.transpose() * exp_map(&r_truth).column(2);
+        let axis = Vector3::z().cross(&n_truth_local);
+        let angle = axis.norm().atan2(n_truth_local.z);
+        let delta = if axis.norm() > 0.0 { axis * (angle / axis.norm()) } else { Vector3::zeros() };
+        let e = -(r_xy_jacobian(&fit.rotation) * jr_inv * delta);
+        err[at] = e.x;
+        err[at + 1] = e.y;
+    } else {
+        let delta = log_map(&(rot_fit.transpose() * exp_map(&r_truth)));
+        let e = -(jr_inv * delta);
+        for i in 0..3 {
+            err[at + i] = e[i];
+        }
+    }
+    err
+}
+
+/// Mahalanobis distance² of the truth under Σ (pseudo-inverse) and the rank used as χ² dof.
+pub fn mahalanobis(err: &DVector<f64>, cov: &DMatrix<f64>) -> Option<(f64, usize)> {
+    let eig = cov.clone().symmetric_eigen();
+    let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+    if !(max > 0.0) {
+        return None;
+    }
+    let mut m2 = 0.0;
+    let mut rank = 0;
+    for (i, &l) in eig.eigenvalues.iter().enumerate() {
+        if l > 1e-12 * max {
+            let proj = eig.eigenvectors.column(i).dot(err);
+            m2 += proj * proj / l;
+            rank += 1;
+        }
+    }
+    Some((m2, rank))
 }

@@ -70,6 +70,8 @@ fn main() -> Result<()> {
     config.seeds.per_cell = 8;
     config.seeds.max_seeds = 512;
     let (mut per_patch_us, mut patches_per_s, mut nbh_us, mut frame_ms, mut validate_us) = (vec![], vec![], vec![], vec![], vec![]);
+    let mut frame_patches_per_s = vec![];
+    let (mut fixed_ms, mut fitted_per_frame, mut stage_ms) = (vec![], vec![], [vec![], vec![], vec![]]);
     for r in 0..repeats.div_ceil(3) {
         let depth = &depths[r % depths.len()];
         let gravity = gravity_from_dominant_plane(&organized_cloud(depth, &intrinsics)?, 0.02, 1)?;
@@ -82,6 +84,12 @@ fn main() -> Result<()> {
         nbh_us.push(1e3 * result.timings.neighbourhood_cpu_ms / result.outcomes.len().max(1) as f64);
         patches_per_s.push(fitted / (result.timings.fit_stage_ms / 1e3));
         frame_ms.push(result.timings.total_ms);
+        frame_patches_per_s.push(fitted / (result.timings.total_ms / 1e3));
+        fixed_ms.push(result.timings.total_ms - result.timings.fit_stage_ms);
+        fitted_per_frame.push(fitted);
+        for (v, t) in stage_ms.iter_mut().zip([result.timings.preprocess_ms, result.timings.saliency_ms, result.timings.seeds_ms]) {
+            v.push(t);
+        }
     }
     println!("stages iv-v with ns = 512 seeds per frame:");
     stats("  neighbourhood CPU per seed (us)", nbh_us);
@@ -89,5 +97,11 @@ fn main() -> Result<()> {
     stats("  of which validate (us)", validate_us);
     stats("  patches/s (stages iv-v wall)", patches_per_s);
     stats("  whole frame (ms)", frame_ms);
+    stats("  patches/s (whole frame, stages i-v)", frame_patches_per_s);
+    stats("  per-frame part, stages i-iii (ms)", fixed_ms);
+    stats("  patches fitted per frame", fitted_per_frame);
+    for (name, v) in ["    of which preprocess (ms)", "    of which saliency (ms)", "    of which seeds (ms)"].into_iter().zip(stage_ms) {
+        stats(name, v);
+    }
     Ok(())
 }

@@ -562,13 +562,12 @@ impl PatchShape {
     /// Closest point on the bounded surface to a local-frame point (projected Gauss–Newton over the
     /// explicit parameter `u`, constrained to the boundary). Returns the local closest point.
     pub fn closest_point_local(&self, q_l: &Vector3<f64>) -> Vector3<f64> {
-        // One loop per explicit form (eq 13, 23, 27), so that the height is inlined into it.
+        // One loop per explicit form (eq 13, 23, 27): with the surface a constant, the height's
+        // match folds away and the form is inlined into the loop.
         let k = self.curvatures;
         match self.surface {
-            SurfaceType::Sphere => self.closest_with(q_l, None, |u| sphere_height(k.x, u.norm_squared()).map(|(z, dz)| (z, u * dz))),
-            SurfaceType::CircularCylinder => {
-                self.closest_with(q_l, None, |u| sphere_height(k.y, u.y * u.y).map(|(z, dz)| (z, Vector2::new(0.0, u.y * dz))))
-            }
+            SurfaceType::Sphere => self.closest_with(q_l, None, |u| explicit_height(SurfaceType::Sphere, &k, u)),
+            SurfaceType::CircularCylinder => self.closest_with(q_l, None, |u| explicit_height(SurfaceType::CircularCylinder, &k, u)),
             _ if k.x == 0.0 && k.y == 0.0 => {
                 // z(u) = 0: the first Gauss–Newton step lands on the projection already.
                 let u = self.project_to_boundary(&q_l.xy());

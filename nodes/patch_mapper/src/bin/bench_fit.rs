@@ -7,7 +7,7 @@
 
 use anyhow::{bail, Context, Result};
 use nalgebra::Vector3;
-use patch_mapper::fit::simulate::{chi2_95, error_on_manifold as tangent_error, mahalanobis, random_visible_patch as random_patch, sample_sensor, truth_params, SceneConfig};
+use patch_mapper::fit::simulate::{chi2_95, error_on_manifold, mahalanobis, random_visible_patch as random_patch, sample_sensor, truth_params, SceneConfig};
 use patch_mapper::fit::{fit_patch, BoundaryRequest, FitConfig, FitRequest, SurfaceRequest};
 use patch_mapper::patch::{BoundaryType, Patch, SurfaceType};
 use patch_mapper::sensor::{ErrorModel, StereoErrorParams};
@@ -137,7 +137,7 @@ fn accuracy(args: &Args) {
                         inside_chart += 1;
                     }
                 }
-                let err = tangent_error(&fit, &tp);
+                let err = error_on_manifold(&fit, &tp);
                 if debug {
                     for i in 0..err.len() {
                         z2[i] += err[i] * err[i] / fit.covariance[(i, i)].max(1e-300);

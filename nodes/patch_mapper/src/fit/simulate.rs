@@ -226,7 +226,7 @@ pub fn truth_params<R: Rng + ?Sized>(rng: &mut R, truth: &Patch, fit: &Patch, co
         let (curv, bparams) = if k % 2 == 1 {
             let mut d = truth.boundary_params.clone();
             d.swap(0, 1);
-            (nalgebra::Vector2::new(truth.curvatures.y, truth.curvatures.x), d)
+            (Vector2::new(truth.curvatures.y, truth.curvatures.x), d)
         } else {
             (truth.curvatures, truth.boundary_params.clone())
         };

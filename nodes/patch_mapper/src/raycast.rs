@@ -197,7 +197,7 @@ pub fn raycast_guided(
                     .map(|&d| (d, d))
                     .or_else(|| fine.and_then(|(fine, factor)| patch_depth_range(fine, factor, u, v)))
                     .map(|(near, far)| ((near - 2.0 * mu) * ray_length, (far + 2.0 * mu) * ray_length));
-                RayMarch::start(volume, config, &bounds, &origin, &direction, band).map(|march| (u, ray_length, march))
+                RayMarch::start(config, inv_voxel, &bounds, &origin, &direction, band).map(|march| (u, ray_length, march))
             };
             // RAY_LANES rays of the row are marched in turn, one step each: their voxel loads do not
             // depend on each other, so the processor overlaps their cache misses (a single ray's
@@ -299,16 +299,16 @@ struct RayMarch<'v> {
 }
 
 impl<'v> RayMarch<'v> {
-    /// Starts a ray from `origin` along unit `direction` (volume frame, m); `None` if it misses `bounds`.
+    /// Starts a ray from `origin` along unit `direction` (volume frame, m; `inv_voxel` the inverse
+    /// voxel edge, 1/m); `None` if it misses `bounds`.
     fn start(
-        volume: &TsdfVolume,
         config: &RaycastConfig,
+        inv_voxel: f32,
         bounds: &(Vector3<f32>, Vector3<f32>),
         origin: &Vector3<f32>,
         direction: &Vector3<f32>,
         band: Option<(f32, f32)>,
     ) -> Option<Self> {
-        let inv_voxel = 1.0 / volume.voxel_size();
         let inverse_direction = direction.map(|d| if d.abs() < 1e-9 { f32::INFINITY } else { 1.0 / d });
         let (t_enter, t_exit) = clip_to_box(origin, &inverse_direction, &bounds.0, &bounds.1)?;
         let t = t_enter.max(config.min_range_m).max(band.map_or(0.0, |(start, _)| start));

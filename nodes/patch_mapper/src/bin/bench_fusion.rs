@@ -96,7 +96,8 @@ fn main() -> anyhow::Result<()> {
                     println!("  frame {index}: tracking lost: {reason:?}");
                 }
                 let t = report.timings;
-                if report.status == TrackingStatus::Tracked {
+                let tracked = report.status == TrackingStatus::Tracked;
+                if tracked {
                     icp.push(t.icp_ms);
                     total.push(frame_ms);
                 }
@@ -108,7 +109,7 @@ fn main() -> anyhow::Result<()> {
                 let birds_eye_ms = started.elapsed().as_secs_f64() * 1e3;
                 birds_eye.push(birds_eye_ms);
                 std::hint::black_box(view.depth.valid_count());
-                if report.status == TrackingStatus::Tracked {
+                if tracked {
                     with_birds_eye.push(frame_ms + birds_eye_ms);
                     if let (Some(before), Some(after)) = (cpu_before, process_cpu_seconds()) {
                         cpu_seconds += after - before;

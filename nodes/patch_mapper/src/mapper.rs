@@ -383,9 +383,8 @@ pub fn fit_neighbourhood(fit_points_in_camera: &[Vector3<f64>], boundary_points_
 }
 
 /// Sizes a plane's boundary like every other type's (J 3.2.1 step 5, see
-/// [`MapperConfig::plane_boundary_j_step5`]); other surfaces are left as they are. For anyone who fits
-/// a patch outside the mapper and compares it with mapped ones (e.g. the step executor's training).
-pub fn size_plane_boundary_j_step5(patch: &mut Patch, containment: f64) {
+/// [`MapperConfig::plane_boundary_j_step5`]); other surfaces are left as they are.
+fn size_plane_boundary_j_step5(patch: &mut Patch, containment: f64) {
     if patch.surface == SurfaceType::Plane {
         rescale_boundary(patch, plane_boundary_factor(containment));
     }

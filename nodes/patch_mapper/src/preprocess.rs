@@ -134,7 +134,7 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
     // Zero-padded copy, 0 = invalid (step 3 applied here), so the inner loop needs no bounds or
     // NaN branches.
     let mut padded = vec![0.0f32; padded_width * height];
-    padded.par_chunks_mut(padded_width).zip(depth.depth_m.par_chunks(width.max(1))).for_each(|(dst, src)| {
+    padded.par_chunks_mut(padded_width.max(1)).zip(depth.depth_m.par_chunks(width.max(1))).for_each(|(dst, src)| {
         for (d, &z) in dst[radius..radius + width].iter_mut().zip(src) {
             *d = if z >= lo && z <= hi && z > 0.0 { z } else { 0.0 };
         }
@@ -183,23 +183,10 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
                         continue;
                     };
                     let (sum_w, sum_wz) = (&mut sum_w[..width], &mut sum_wz[..width]);
-                    // Equal-length slices, no division, no branch: the loop vectorises.
                     if zero_tap_ignored {
-                        for i in 0..width {
-                            let zs = taps[i];
-                            let a = biweight(zs - centre[i], quarter_inv[i]);
-                            let w = ws * a * a;
-                            sum_w[i] += w;
-                            sum_wz[i] += w * zs;
-                        }
+                        tap_row::<false>(taps, ws, centre, quarter_inv, sum_w, sum_wz);
                     } else {
-                        for i in 0..width {
-                            let zs = taps[i];
-                            let a = biweight(zs - centre[i], quarter_inv[i]);
-                            let w = ws * a * a * if zs > 0.0 { 1.0 } else { 0.0 };
-                            sum_w[i] += w;
-                            sum_wz[i] += w * zs;
-                        }
+                        tap_row::<true>(taps, ws, centre, quarter_inv, sum_w, sum_wz);
                     }
                 }
             }
@@ -209,6 +196,23 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
         },
     );
     DepthImage { width, height, depth_m: out }
+}
+
+/// Step 4 sums of one tap (spatial weight `ws`) for every pixel of an output row; `MASK` multiplies
+/// each weight by the tap's validity (see [`bilateral_filter_in_range`]). Equal-length slices, no
+/// division, no branch: the loop vectorises.
+#[inline(always)]
+fn tap_row<const MASK: bool>(taps: &[f32], ws: f32, centre: &[f32], quarter_inv: &[f32], sum_w: &mut [f32], sum_wz: &mut [f32]) {
+    let n = sum_w.len().min(sum_wz.len()).min(taps.len()).min(centre.len()).min(quarter_inv.len());
+    let (taps, centre, quarter_inv) = (&taps[..n], &centre[..n], &quarter_inv[..n]);
+    let (sum_w, sum_wz) = (&mut sum_w[..n], &mut sum_wz[..n]);
+    for i in 0..n {
+        let zs = taps[i];
+        let a = biweight(zs - centre[i], quarter_inv[i]);
+        let w = if MASK { ws * a * a * if zs > 0.0 { 1.0 } else { 0.0 } } else { ws * a * a };
+        sum_w[i] += w;
+        sum_wz[i] += w * zs;
+    }
 }
 
 /// Step 4 sums of one window row with `D` taps (`weights`, the spatial weights of the row) into

@@ -147,24 +147,9 @@ impl IntegralCloud {
         Self { width, height, sums }
     }
 
-    /// Sums over columns `u0..u1` and rows `v0..v1` (half-open, clipped to the image).
-    #[inline]
-    pub fn box_sum(&self, u0: isize, v0: isize, u1: isize, v1: isize) -> [f64; 4] {
-        let clip = |x: isize, max: usize| x.clamp(0, max as isize) as usize;
-        let (u0, u1) = (clip(u0, self.width), clip(u1, self.width));
-        let (v0, v1) = (clip(v0, self.height), clip(v1, self.height));
-        if u1 <= u0 || v1 <= v0 {
-            return [0.0; 4];
-        }
-        let stride = self.width + 1;
-        let at = |u: usize, v: usize| self.sums.get(v * stride + u).copied().unwrap_or([0.0; 4]);
-        let (a, b, c, d) = (at(u1, v1), at(u0, v1), at(u1, v0), at(u0, v0));
-        [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1], a[2] - b[2] - c[2] + d[2], a[3] - b[3] - c[3] + d[3]]
-    }
-
     /// The four half-window box sums of [`IntegralCloud::normal`] at `(u, v)`: `[right, left,
-    /// below, above]`, each exactly [`IntegralCloud::box_sum`] of its box, from 12 table reads
-    /// (the boxes share corners) instead of 16.
+    /// below, above]` (boxes clipped to the image), from 12 table reads (the boxes share corners)
+    /// instead of 16.
     #[inline]
     fn half_window_sums(&self, u: usize, v: usize, half: usize) -> [[f64; 4]; 4] {
         let (u, v, h) = (u as isize, v as isize, half as isize);
@@ -177,10 +162,9 @@ impl IntegralCloud {
         let (t0, t1, t2, t3) = (at(top, c0), at(top, c1), at(top, c2), at(top, c3));
         let (b0, b1, b2, b3) = (at(bottom, c0), at(bottom, c1), at(bottom, c2), at(bottom, c3));
         let (m0, m3, l0, l3) = (at(upper, c0), at(upper, c3), at(lower, c0), at(lower, c3));
-        // a − b − c + d as in `box_sum`, a = (u1, v1), b = (u0, v1), c = (u1, v0), d = (u0, v0).
-        let sum = |a: [f64; 4], b: [f64; 4], c: [f64; 4], d: [f64; 4]| {
-            [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1], a[2] - b[2] - c[2] + d[2], a[3] - b[3] - c[3] + d[3]]
-        };
+        // Box sum a − b − c + d from the summed-area table, a = (u1, v1), b = (u0, v1), c = (u1, v0),
+        // d = (u0, v0).
+        let sum = |a: [f64; 4], b: [f64; 4], c: [f64; 4], d: [f64; 4]| std::array::from_fn(|i| a[i] - b[i] - c[i] + d[i]);
         [sum(b3, b2, t3, t2), sum(b1, b0, t1, t0), sum(b3, b0, l3, l0), sum(m3, m0, t3, t0)]
     }
 

@@ -77,7 +77,7 @@ HIP_Z = -0.060
 THIGH = SHIN = 0.100
 SOLE = 0.035
 # base_link above the table with straight legs (terrain_sim motion.base_height_m).
-BASE_HEIGHT = 0.295  # = HIP_Z + THIGH + SHIN + SOLE below base_link
+BASE_HEIGHT = 0.295  # = -HIP_Z + THIGH + SHIN + SOLE below base_link
 # Height of the stepping motion's standing sole below base_link: 1 cm short of full extension, a
 # slightly bent knee keeps the leg IK away from its singularity.
 STANCE_HEIGHT = 0.285
@@ -868,7 +868,7 @@ def main() -> int:
     parser.add_argument("--untrained-rocks", type=int, default=None, help="untrained rocks to visit (default all)")
     parser.add_argument("--trial-timeout", type=float, default=20.0, help="s to wait for a match per trial")
     parser.add_argument("--seed", type=int, default=1, help="seed of the placement perturbations")
-    parser.add_argument("--target-mode", choices=("fit", "nearest"), default="fit",
+    parser.add_argument("--target-mode", choices=("fit", "nearest"), default=ExperimentConfig.target_mode,
                         help="training target: fit the mapper's cloud at the rock top (J 6.3) or the nearest map patch")
     parser.add_argument("--out", type=Path, default=REPO / "build" / "demo" / "experiment")
     parser.add_argument("--terrain-sim-param", action="append", default=[], metavar="KEY=VALUE",

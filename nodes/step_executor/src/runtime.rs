@@ -83,15 +83,11 @@ pub struct Runtime {
     last_fault: Option<(u8, String)>,
     positions: Vec<Option<f64>>,
     latest_map_in_base: Vec<PatchGeometry>,
-    /// Camera pose of the latest patch map (places the mapper's cloud relative to the robot).
-    latest_map_from_camera: Option<Isometry3<f64>>,
-    /// The mapper's latest birds-eye cloud (map frame), for fitting a training target.
-    latest_cloud_in_map: Vec<Vector3<f64>>,
+    /// Where the latest patch map's frame was relative to the robot when the map arrived (places
+    /// the mapper's cloud, like the patches, relative to the robot).
+    latest_base_from_map: Option<Isometry3<f64>>,
     last_report: Option<MatchReport>,
 }
-
-/// Least points for [`Runtime::select_fit`] (J's neighbourhoods hold nf = 50 fit points).
-pub const MIN_FIT_POINTS: usize = 20;
 
 /// Why the runtime could not start at all (bad URDF or config); bus and library problems are not
 /// fatal: the node starts and reports them.
@@ -178,8 +174,7 @@ impl Runtime {
             last_fault: None,
             positions: vec![None; n],
             latest_map_in_base: Vec::new(),
-            latest_map_from_camera: None,
-            latest_cloud_in_map: Vec::new(),
+            latest_base_from_map: None,
             last_report: None,
         };
         Ok((runtime, warnings))
@@ -238,7 +233,7 @@ impl Runtime {
     /// Returns the match report.
     pub fn on_patch_map(&mut self, patches_in_map: &[PatchGeometry], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
-        self.latest_map_from_camera = Some(*map_from_camera);
+        self.latest_base_from_map = Some(base_from_map);
         self.latest_map_in_base = patches_in_map.iter().map(|p| p.transformed(&base_from_map)).collect();
         let report = self.matcher.report(&self.latest_map_in_base);
         if let Some(best) = &report.best {
@@ -310,36 +305,34 @@ impl Runtime {
         Ok(nearest)
     }
 
-    /// The mapper's latest birds-eye cloud (points in the map frame; non-finite points are dropped).
-    pub fn on_cloud(&mut self, points_in_map: Vec<Vector3<f64>>) {
-        self.latest_cloud_in_map = points_in_map.into_iter().filter(|p| p.iter().all(|v| v.is_finite())).collect();
-    }
-
     /// Training target by fitting (J 6.3: "we manually select a neighborhood where we would like the
-    /// robot to place its foot and we fit a patch"): the points of the latest birds-eye cloud within
+    /// robot to place its foot and we fit a patch"): the points of the mapper's birds-eye cloud
+    /// (`cloud_in_map`, in the latest patch map's frame; non-finite points are ignored) within
     /// `radius_m` of `point_in_base`, fitted with the patch core (IROS IV, type by discrimination),
     /// boundaries sized as the mapper sizes them so the target compares with mapped patches.
-    pub fn select_fit(&mut self, point_in_base: [f64; 3], radius_m: f64) -> Result<PatchGeometry, String> {
+    pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<PatchGeometry, String> {
         if !(radius_m.is_finite() && radius_m > 0.0 && radius_m <= 0.5) {
             return Err(format!("radius {radius_m} m must be in (0, 0.5]"));
         }
         if point_in_base.iter().any(|v| !v.is_finite()) {
             return Err("point must be finite".into());
         }
-        let map_from_camera = self.latest_map_from_camera.ok_or("no patch map received yet (its camera pose places the cloud)")?;
-        if self.latest_cloud_in_map.is_empty() {
+        let base_from_map = self.latest_base_from_map.ok_or("no patch map received yet (its camera pose places the cloud)")?;
+        if cloud_in_map.is_empty() {
             return Err("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)".into());
         }
-        let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
         let point_in_map = (base_from_map.inverse() * Point3::from(point_in_base)).coords;
-        let points: Vec<Vector3<f64>> = self.latest_cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
-        if points.len() < MIN_FIT_POINTS {
-            return Err(format!("only {} cloud points within {radius_m} m of the point (need {MIN_FIT_POINTS})", points.len()));
-        }
-        // Fitted exactly as the mapper fits its seeds (same config, nf points, sensor model, boundary
-        // sizing), in a virtual birds-eye camera 1 m above the point looking down (map z is up,
-        // REP-103), so the target compares with mapped patches under J 6.3's thresholds.
+        // NaN and infinite points fail the distance test.
+        let points: Vec<Vector3<f64>> = cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
+        // Fitted as the mapper fits its seeds (same config, nf points spread over the neighbourhood,
+        // sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the point looking
+        // down (map z is up, REP-103), so the target compares with mapped patches under J 6.3's
+        // thresholds.
         let config = default_mapper_config();
+        let min_points = config.neighbourhood.min_points.max(1);
+        if points.len() < min_points {
+            return Err(format!("only {} cloud points within {radius_m} m of the point (need {min_points})", points.len()));
+        }
         let map_from_camera = Isometry3::from_parts(
             Translation3::from(point_in_map + Vector3::z()),
             UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
@@ -507,11 +500,11 @@ mod tests {
     fn select_fit_fits_the_cloud_around_a_point_in_base_link() {
         let dir = tempfile::tempdir().unwrap();
         let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no bus".into())).unwrap();
-        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no patch map"));
+        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no patch map"));
         // Any map frame: here the map is 1 m to the side and turned 30° about its up axis.
         let map_from_camera = Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::z() * 0.5) * runtime.base_from_camera().unwrap().inverse();
         runtime.on_patch_map(&[], &map_from_camera).unwrap();
-        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no birds-eye cloud"));
+        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no birds-eye cloud"));
         let base_from_map = runtime.base_from_camera().unwrap() * map_from_camera.inverse();
         let apex_in_base = Vector3::new(0.28, 0.0, -0.25);
         let kappa = 10.0;
@@ -524,16 +517,15 @@ mod tests {
             }
         }
         cloud_in_map.push(Vector3::new(f64::NAN, 0.0, 0.0));
-        runtime.on_cloud(cloud_in_map);
-        let patch = runtime.select_fit([0.28, 0.0, -0.25], 0.05).unwrap();
+        let patch = runtime.select_fit(&cloud_in_map, [0.28, 0.0, -0.25], 0.05).unwrap();
         assert_eq!(patch.surface, SurfaceType::CircularParaboloid, "{patch:?}");
         assert!((patch.k[0] + kappa).abs() < 0.5, "{patch:?}");
         assert!((Vector3::from(patch.c) - apex_in_base).norm() < 0.003, "{patch:?}");
         assert!(patch.normal().z > 0.99, "{patch:?}");
         // Nothing there, or a nonsense radius: errors, and the target is kept.
-        assert!(runtime.select_fit([2.0, 0.0, -0.25], 0.05).unwrap_err().contains("only 0 cloud points"));
-        assert!(runtime.select_fit([0.28, 0.0, -0.25], 0.0).is_err());
-        assert!(runtime.select_fit([f64::NAN, 0.0, -0.25], 0.05).is_err());
+        assert!(runtime.select_fit(&cloud_in_map, [2.0, 0.0, -0.25], 0.05).unwrap_err().contains("only 0 cloud points"));
+        assert!(runtime.select_fit(&cloud_in_map, [0.28, 0.0, -0.25], 0.0).is_err());
+        assert!(runtime.select_fit(&cloud_in_map, [f64::NAN, 0.0, -0.25], 0.05).is_err());
         assert_eq!(runtime.target.as_ref(), Some(&patch));
     }
 

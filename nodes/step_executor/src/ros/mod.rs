@@ -152,10 +152,7 @@ impl Executor {
             srv::SelectTargetRequest::MODE_FIT_AT_POINT => match self.latest_cloud.as_ref().map(convert::points_from_cloud) {
                 None => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
                 Some(Err(e)) => Err(format!("{CLOUD_TOPIC}: {e}")),
-                Some(Ok(points_in_map)) => {
-                    self.runtime.on_cloud(points_in_map);
-                    self.runtime.select_fit(point, request.radius)
-                }
+                Some(Ok(points_in_map)) => self.runtime.select_fit(&points_in_map, point, request.radius),
             },
             mode => Err(format!("unknown mode {mode} (0 = nearest point, 1 = fit at point)")),
         };

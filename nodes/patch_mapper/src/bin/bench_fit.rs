@@ -79,6 +79,42 @@ fn kinect_scaled(scale: f64) -> ErrorModel {
     ErrorModel::MurrayLittle(StereoErrorParams { sigma_pointing_px: p.sigma_pointing_px * scale, sigma_disparity_px: p.sigma_disparity_px * scale, ..p })
 }
 
+/// Normal angle (°), centre distance (mm) and, for curved types, the largest curvature error
+/// (1/m; elliptic/hyperbolic compared in either axis order) of `fit` against `truth`.
+fn errors(fit: &Patch, truth: &Patch) -> (f64, f64, Option<f64>) {
+    let normal = fit.normal().dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees();
+    let centre = (fit.center - truth.center).norm() * 1000.0;
+    let curv = (truth.surface != SurfaceType::Plane).then(|| {
+        let swapped = nalgebra::Vector2::new(fit.curvatures.y, fit.curvatures.x);
+        let direct = (fit.curvatures - truth.curvatures).abs().max();
+        let alt = (swapped - truth.curvatures).abs().max();
+        let symmetric = matches!(truth.surface, SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid);
+        if symmetric {
+            direct.min(alt)
+        } else {
+            direct
+        }
+    });
+    (normal, centre, curv)
+}
+
+/// A patch with parameters drawn from `N(fit.params(), fit.covariance)` (by the symmetric eigen
+/// decomposition, so a rank-deficient Σ is fine); `None` if Σ is not finite or the draw is not a
+/// valid patch (e.g. a negative extent).
+fn draw_from_covariance<R: rand::Rng + ?Sized>(rng: &mut R, fit: &Patch) -> Option<Patch> {
+    use rand_distr::{Distribution, StandardNormal};
+    if !fit.covariance.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let eig = fit.covariance.clone().symmetric_eigen();
+    let mut params = fit.params();
+    for (i, lambda) in eig.eigenvalues.iter().enumerate() {
+        let z: f64 = StandardNormal.sample(rng);
+        params.axpy(z * lambda.max(0.0).sqrt(), &eig.eigenvectors.column(i), 1.0);
+    }
+    Patch::from_params(fit.surface, fit.boundary, params.as_slice()).ok()
+}
+
 fn accuracy(args: &Args) {
     let model = kinect_scaled(args.noise_scale);
     let scene = SceneConfig::default();
@@ -95,12 +131,14 @@ fn accuracy(args: &Args) {
     );
     println!("  (in95%: truth inside the 95% ellipsoid of Σ, rotation error on SO(3); in95%srf: the same without the");
     println!("  boundary extents; in95%r-r: rotation error as a plain difference of exp-map vectors. Last two columns:");
-    println!("  the fitted surface at the true centre — normal ° and distance mm, med/p95)");
+    println!("  the fitted surface at the true centre — normal ° and distance mm, med/p95. Row 'Σ-predicted': the same");
+    println!("  errors for draws from N(fit, Σ), i.e. the floor an efficient estimator with the fit's Σ would reach)");
     let mut all_in = (0usize, 0usize);
     let mut all_chart = 0usize;
     for (s, b) in ALL_TYPES {
         let (mut normal, mut centre, mut curv) = (Vec::new(), Vec::new(), Vec::new());
         let (mut s_normal, mut s_offset) = (Vec::new(), Vec::new());
+        let mut floor: [Vec<f64>; 3] = Default::default();
         let (mut inside, mut inside_surf, mut inside_chart, mut counted, mut fails) = (0usize, 0usize, 0usize, 0usize, 0usize);
         let debug = std::env::var("BENCH_DEBUG").is_ok();
         let mut z2 = vec![0.0; 11];
@@ -113,8 +151,18 @@ fn accuracy(args: &Args) {
                 fails += 1;
                 continue;
             };
-            normal.push(fit.normal().dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees());
-            centre.push((fit.center - truth.center).norm() * 1000.0);
+            let (n_deg, c_mm, k_err) = errors(&fit, &truth);
+            normal.push(n_deg);
+            centre.push(c_mm);
+            curv.extend(k_err);
+            // The same errors for a draw from N(fit, Σ): what an efficient estimator whose
+            // covariance is Σ would show (Σ is first-order, i.e. the Cramér–Rao bound at the fit).
+            if let Some(draw) = draw_from_covariance(&mut rng, &fit) {
+                let (n_deg, c_mm, k_err) = errors(&draw, &fit);
+                floor[0].push(n_deg);
+                floor[1].push(c_mm);
+                floor[2].extend(k_err);
+            }
             {
                 // The fitted surface where the true centre is: closest point and its normal.
                 let q_l = fit.to_local(&truth.center);
@@ -123,13 +171,6 @@ fn accuracy(args: &Args) {
                 let n_w = fit.rotation_matrix() * Vector3::new(-g.x, -g.y, 1.0).normalize();
                 s_normal.push(n_w.dot(&truth.normal()).clamp(-1.0, 1.0).acos().to_degrees());
                 s_offset.push((p - q_l).norm() * 1000.0);
-            }
-            if s != SurfaceType::Plane {
-                let swapped = nalgebra::Vector2::new(fit.curvatures.y, fit.curvatures.x);
-                let direct = (fit.curvatures - truth.curvatures).abs().max();
-                let alt = (swapped - truth.curvatures).abs().max();
-                let symmetric = matches!(s, SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid);
-                curv.push(if symmetric { direct.min(alt) } else { direct });
             }
             if let Some(tp) = truth_params(&mut rng, &truth, &fit, 0.95) {
                 if let Some((m2, rank)) = mahalanobis(&(fit.params() - &tp), &fit.covariance) {
@@ -184,6 +225,18 @@ fn accuracy(args: &Args) {
             pct(inside),
             pct(inside_surf),
             pct(inside_chart)
+        );
+        let [mut fn_, mut fc, mut fk] = floor;
+        println!(
+            "  {:<32} {:>6} {:>6.2} / {:>5.2} {:>6.2} / {:>5.2}   {:>6.2} / {:>5.2}",
+            "Σ-predicted (efficient estimator)",
+            "",
+            quantile(&mut fn_, 0.5),
+            quantile(&mut fn_, 0.95),
+            quantile(&mut fc, 0.5),
+            quantile(&mut fc, 0.95),
+            quantile(&mut fk, 0.5),
+            quantile(&mut fk, 0.95)
         );
         all_chart += inside_chart;
     }

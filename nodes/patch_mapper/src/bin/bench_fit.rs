@@ -6,9 +6,9 @@
 //! e.g. 0.01 to see the covariance at small noise).
 
 use anyhow::{bail, Context, Result};
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 use patch_mapper::fit::simulate::{chi2_95, error_on_manifold, mahalanobis, random_visible_patch as random_patch, sample_sensor, truth_params, SceneConfig};
-use patch_mapper::fit::{fit_patch, BoundaryRequest, FitConfig, FitRequest, SurfaceRequest};
+use patch_mapper::fit::{fit_patch, fit_patch_with_boundary_points, BoundaryRequest, FitError, FitConfig, FitRequest, SurfaceRequest, WeightDerivative};
 use patch_mapper::patch::{BoundaryType, Patch, SurfaceType};
 use patch_mapper::sensor::{ErrorModel, StereoErrorParams};
 use patch_mapper::validate::{validate_patch, ValidateConfig};
@@ -43,11 +43,15 @@ struct Args {
     accuracy: bool,
     speed: bool,
     noise_scale: f64,
-    significance: Option<f64>,
+    /// Points the boundary moments (and the apex's centroid) are taken over: the N fit points plus
+    /// more samples of the same patch, as the mapper fits nf = 50 points and takes the moments over
+    /// the whole neighbourhood.
+    boundary_points: usize,
+    fit: FitConfig,
 }
 
 fn parse_args() -> Result<Args> {
-    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, significance: None };
+    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, boundary_points: 0, fit: FitConfig::default() };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -57,7 +61,17 @@ fn parse_args() -> Result<Args> {
             "--skip-accuracy" => args.accuracy = false,
             "--skip-speed" => args.speed = false,
             "--noise-scale" => args.noise_scale = it.next().context("--noise-scale X")?.parse()?,
-            "--significance" => args.significance = Some(it.next().context("--significance α")?.parse()?),
+            "--significance" => args.fit.significance = it.next().context("--significance α")?.parse()?,
+            "--boundary-points" => args.boundary_points = it.next().context("--boundary-points M")?.parse()?,
+            "--no-apex-from-centroid" => args.fit.apex_from_centroid = false,
+            "--weight-derivative" => {
+                args.fit.weight_derivative = match it.next().context("--weight-derivative never|distance_like|always")?.as_str() {
+                    "never" => WeightDerivative::Never,
+                    "distance_like" => WeightDerivative::DistanceLike,
+                    "always" => WeightDerivative::Always,
+                    other => bail!("unknown --weight-derivative {other}"),
+                }
+            }
             other => bail!("unknown argument {other}"),
         }
     }
@@ -77,6 +91,27 @@ fn quantile(v: &mut [f64], q: f64) -> f64 {
 fn kinect_scaled(scale: f64) -> ErrorModel {
     let p = StereoErrorParams::default();
     ErrorModel::MurrayLittle(StereoErrorParams { sigma_pointing_px: p.sigma_pointing_px * scale, sigma_disparity_px: p.sigma_disparity_px * scale, ..p })
+}
+
+/// One trial's noisy samples: the points to fit (with their covariances) and the points the boundary
+/// moments are taken over (the fit points plus `--boundary-points − N` more of the same patch).
+struct Sample {
+    fit_points: Vec<Vector3<f64>>,
+    covariances: Vec<Matrix3<f64>>,
+    boundary_points: Vec<Vector3<f64>>,
+}
+
+impl Sample {
+    fn draw<R: rand::Rng + ?Sized>(rng: &mut R, truth: &Patch, args: &Args, model: &ErrorModel) -> Self {
+        let (boundary_points, mut covariances) = sample_sensor(rng, truth, args.boundary_points.max(args.points), model);
+        let fit_points = boundary_points[..args.points.min(boundary_points.len())].to_vec();
+        covariances.truncate(fit_points.len());
+        Self { fit_points, covariances, boundary_points }
+    }
+
+    fn fit(&self, request: &FitRequest, cfg: &FitConfig) -> Result<Patch, FitError> {
+        fit_patch_with_boundary_points(&self.fit_points, Some(&self.covariances), &self.boundary_points, request, cfg)
+    }
 }
 
 /// Normal angle (°), centre distance (mm) and, for curved types, the largest curvature error
@@ -118,8 +153,7 @@ fn draw_from_covariance<R: rand::Rng + ?Sized>(rng: &mut R, fit: &Patch) -> Opti
 fn accuracy(args: &Args) {
     let model = kinect_scaled(args.noise_scale);
     let scene = SceneConfig::default();
-    let defaults = FitConfig::default();
-    let cfg = FitConfig { significance: args.significance.unwrap_or(defaults.significance), ..defaults };
+    let cfg = args.fit;
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     println!(
         "== accuracy: {} trials/type, {} points, range {:.1}-{:.1} m, Kinect Murray-Little noise x {} (requested type) ==",
@@ -145,9 +179,10 @@ fn accuracy(args: &Args) {
         let mut worse = 0usize;
         for _ in 0..args.trials {
             let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
-            let (pts, covs) = sample_sensor(&mut rng, &truth, args.points, &model);
+            let data = Sample::draw(&mut rng, &truth, args, &model);
+            let (pts, covs) = (&data.fit_points, &data.covariances);
             let request = FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
-            let Ok(fit) = fit_patch(&pts, Some(&covs), &request, &cfg) else {
+            let Ok(fit) = data.fit(&request, &cfg) else {
                 fails += 1;
                 continue;
             };
@@ -255,8 +290,8 @@ fn accuracy(args: &Args) {
         let mut t = [[0usize; 2]; 4];
         for _ in 0..args.trials {
             let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
-            let (pts, covs) = sample_sensor(&mut rng, &truth, args.points, &model);
-            let ok = match fit_patch(&pts, Some(&covs), &FitRequest::default(), &cfg) {
+            let data = Sample::draw(&mut rng, &truth, args, &model);
+            let ok = match data.fit(&FitRequest::default(), &cfg) {
                 Ok(fit) => {
                     *counts.entry(fit.surface.name()).or_default() += 1;
                     fit.surface == s
@@ -266,7 +301,7 @@ fn accuracy(args: &Args) {
                     false
                 }
             };
-            let bin = match snr(&truth, pts.len()) {
+            let bin = match snr(&truth, data.fit_points.len()) {
                 x if x < 10.0 => 1,
                 x if x < 30.0 => 2,
                 _ => 3,
@@ -315,7 +350,7 @@ fn snr(truth: &Patch, n: usize) -> f64 {
 fn speed(args: &Args) {
     let model = ErrorModel::default();
     let scene = SceneConfig::default();
-    let cfg = FitConfig::default();
+    let cfg = args.fit;
     let vcfg = ValidateConfig::default();
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed + 1);
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();

@@ -46,12 +46,12 @@ struct Args {
     /// Points the boundary moments (and the apex's centroid) are taken over: the N fit points plus
     /// more samples of the same patch, as the mapper fits nf = 50 points and takes the moments over
     /// the whole neighbourhood.
-    boundary_points: usize,
+    boundary_points: BoundaryPoints,
     fit: FitConfig,
 }
 
 fn parse_args() -> Result<Args> {
-    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, boundary_points: 0, fit: FitConfig::default() };
+    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, boundary_points: BoundaryPoints::Count(0), fit: FitConfig::default() };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -62,7 +62,12 @@ fn parse_args() -> Result<Args> {
             "--skip-speed" => args.speed = false,
             "--noise-scale" => args.noise_scale = it.next().context("--noise-scale X")?.parse()?,
             "--significance" => args.fit.significance = it.next().context("--significance α")?.parse()?,
-            "--boundary-points" => args.boundary_points = it.next().context("--boundary-points M")?.parse()?,
+            "--boundary-points" => {
+                args.boundary_points = match it.next().context("--boundary-points M|pixels")?.as_str() {
+                    "pixels" => BoundaryPoints::Pixels,
+                    m => BoundaryPoints::Count(m.parse()?),
+                }
+            }
             "--no-apex-from-centroid" => args.fit.apex_from_centroid = false,
             "--weight-derivative" => {
                 args.fit.weight_derivative = match it.next().context("--weight-derivative never|distance_like|always")?.as_str() {
@@ -93,6 +98,24 @@ fn kinect_scaled(scale: f64) -> ErrorModel {
     ErrorModel::MurrayLittle(StereoErrorParams { sigma_pointing_px: p.sigma_pointing_px * scale, sigma_disparity_px: p.sigma_disparity_px * scale, ..p })
 }
 
+/// How many points the boundary moments are taken over.
+#[derive(Clone, Copy)]
+enum BoundaryPoints {
+    /// This many (at least the fit points).
+    Count(usize),
+    /// As many as the Kinect's pixels on the patch (the mapper's whole neighbourhood).
+    Pixels,
+}
+
+/// Pixels of the error model's camera (its focal length) the patch covers: its area foreshortened along the ray to
+/// its centre, over the pixel footprint `(z/f)²`.
+fn pixels_on(truth: &Patch) -> usize {
+    let focal = StereoErrorParams::default().focal_px;
+    let range = truth.center.norm();
+    let cos = truth.normal().dot(&truth.center).abs() / range.max(1e-9);
+    (truth.boundary_area() * cos * (focal / range).powi(2)).round() as usize
+}
+
 /// One trial's noisy samples: the points to fit (with their covariances) and the points the boundary
 /// moments are taken over (the fit points plus `--boundary-points − N` more of the same patch).
 struct Sample {
@@ -103,7 +126,11 @@ struct Sample {
 
 impl Sample {
     fn draw<R: rand::Rng + ?Sized>(rng: &mut R, truth: &Patch, args: &Args, model: &ErrorModel) -> Self {
-        let (boundary_points, mut covariances) = sample_sensor(rng, truth, args.boundary_points.max(args.points), model);
+        let m = match args.boundary_points {
+            BoundaryPoints::Count(m) => m,
+            BoundaryPoints::Pixels => pixels_on(truth),
+        };
+        let (boundary_points, mut covariances) = sample_sensor(rng, truth, m.max(args.points), model);
         let fit_points = boundary_points[..args.points.min(boundary_points.len())].to_vec();
         covariances.truncate(fit_points.len());
         Self { fit_points, covariances, boundary_points }

@@ -681,6 +681,32 @@ fn apex_moment_second_order(surface: SurfaceType, d: &[f64], lambda: f64, s: &Ma
     out
 }
 
+/// Second-order terms of the extents measured along in-plane axes that the surface fixes (the
+/// principal curvature directions of elliptic/hyperbolic paraboloids, the axis of cylindric ones
+/// and cylinders): a twist error ψ about the normal mixes the moments, `v_x ← v_x + (v_y − v_x) ψ²`
+/// (the first-order term `2 v_xy ψ` is in the frame Jacobian of the moments), so with `v = d²/λ²`
+/// `Δd_x = (d_y² − d_x²) ψ² / (2 d_x)` and the opposite for `d_y`. For `ψ ~ N(0, σ²)`,
+/// `E[ψ⁴] = 3σ⁴`; each change is capped at `|d_y − d_x|` (a quarter turn swaps the extents), and
+/// the two are perfectly anti-correlated (a rank-1, positive semi-definite block). Returns
+/// `(row, col, added second moment)` in the local layout (d at 0..5).
+fn twist_moment_second_order(surface: SurfaceType, d: &[f64], twist_variance: f64) -> Vec<(usize, usize, f64)> {
+    let twisted = matches!(
+        surface,
+        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid | SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder
+    );
+    let (Some(&dx), Some(&dy)) = (d.first(), d.get(1)) else { return Vec::new() };
+    if !twisted || !(dx > 0.0 && dy > 0.0 && twist_variance.is_finite() && twist_variance > 0.0) {
+        return Vec::new();
+    }
+    let cap = (dy - dx).abs();
+    let change = |mine: f64, other: f64| {
+        let a = (other * other - mine * mine) / (2.0 * mine);
+        a.signum() * (3.0f64.sqrt() * a.abs() * twist_variance).min(cap)
+    };
+    let e = [change(dx, dy), change(dy, dx)];
+    (0..2).flat_map(|i| (0..2).map(move |j| (i, j, e[i] * e[j]))).collect()
+}
+
 /// Steps 4–9 and the covariance Σ over the minimal parameters.
 #[allow(clippy::too_many_arguments)]
 fn finish(
@@ -764,7 +790,8 @@ fn finish(
     let mut cov_local = sandwich_over_slots(&from_s, &cov_s, &slot_param) + g * stats.cov * g.transpose();
     let slide = cov_local.fixed_view::<2, 2>(11, 11).into_owned();
     cov_local[(13, 13)] += slide_sag_variance(surface, &state.k3, &slide);
-    for (i, j, extra) in apex_moment_second_order(surface, &d, lambda, &slide) {
+    let twist_variance = cov_local[(10, 10)];
+    for (i, j, extra) in apex_moment_second_order(surface, &d, lambda, &slide).into_iter().chain(twist_moment_second_order(surface, &d, twist_variance)) {
         cov_local[(i, j)] += extra;
     }
 

@@ -240,36 +240,21 @@ impl Pass<'_> {
     /// The pass with `M` free parameters; `project` maps the 9 local slots to them.
     #[inline(always)]
     fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
-        let mut hm = SMatrix::<f64, M, M>::zeros();
-        let mut bm = SVector::<f64, M>::zeros();
-        let mut chi2 = 0.0;
-        let mut sampson_sq = 0.0;
-        let mut add = |f: f64, grad: &Local, d: f64| {
-            let g = project(grad);
-            // Lower triangle only (H is symmetric); mirrored below.
-            for c in 0..M {
-                let gc = g[c];
-                for r in c..M {
-                    hm[(r, c)] += g[r] * gc;
-                }
-            }
-            bm.axpy(f, &g, 1.0);
-            chi2 += f * f;
-            sampson_sq += d * d;
-        };
+        let mut sums = Sums::<M>::new();
         if self.weight_derivative {
             for i in 0..self.set.len() {
                 let (q, cov) = (self.set.point(i), self.set.cov(i));
                 let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
-                add(f, &grad, d);
+                sums.add_point(f, &project(&grad), d);
             }
         } else {
-            // Per-point values block-wise in a vectorisable loop, then the sums point by point in
-            // the order of the branch above (bit-identical to `point_terms`).
+            // Per-point values block-wise in a vectorisable loop, then the sums in the order of the
+            // branch above (bit-identical to `point_terms`).
             let frame = Frame::new(self.state);
-            let mut block = Block::new();
+            let mut fs = [0.0; BLOCK];
+            let mut ds = [0.0; BLOCK];
+            let mut gs = [SVector::<f64, M>::zeros(); BLOCK];
             for (chunk, len) in self.set.chunks() {
-                let Block { f: fs, g: gs, d: ds } = &mut block;
                 block_terms(&frame, chunk, self.min_variance, |j, lane| {
                     let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
                     fs[j] = lane.big_f;
@@ -278,53 +263,102 @@ impl Pass<'_> {
                         ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
                     }
                     // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
-                    gs[0][j] = qx * qx * inv_sigma;
-                    gs[1][j] = qy * qy * inv_sigma;
-                    gs[2][j] = qz * qz * inv_sigma;
-                    gs[3][j] = (gy * qz - gz * qy) * inv_sigma;
-                    gs[4][j] = (gz * qx - gx * qz) * inv_sigma;
-                    gs[5][j] = (gx * qy - gy * qx) * inv_sigma;
-                    gs[6][j] = -gx * inv_sigma;
-                    gs[7][j] = -gy * inv_sigma;
-                    gs[8][j] = -gz * inv_sigma;
+                    let grad = Local::from([
+                        qx * qx * inv_sigma,
+                        qy * qy * inv_sigma,
+                        qz * qz * inv_sigma,
+                        (gy * qz - gz * qy) * inv_sigma,
+                        (gz * qx - gx * qz) * inv_sigma,
+                        (gx * qy - gy * qx) * inv_sigma,
+                        -gx * inv_sigma,
+                        -gy * inv_sigma,
+                        -gz * inv_sigma,
+                    ]);
+                    gs[j] = project(&grad);
                 });
-                for j in 0..len {
-                    let grad = Local::from_fn(|slot, _| block.g[slot][j]);
-                    add(block.f[j], &grad, block.d[j]);
+                if len == BLOCK {
+                    sums.add_block(&fs, &gs, &ds);
+                } else {
+                    for j in 0..len {
+                        sums.add_point(fs[j], &gs[j], ds[j]);
+                    }
                 }
             }
         }
+        sums.normal()
+    }
+}
+
+/// Running sums of one [`accumulate`] pass over `M` free parameters, point by point in point order.
+struct Sums<const M: usize> {
+    /// Lower triangle of `H` (symmetric; mirrored by [`Sums::normal`]).
+    h: SMatrix<f64, M, M>,
+    b: SVector<f64, M>,
+    chi2: f64,
+    sampson_sq: f64,
+}
+
+impl<const M: usize> Sums<M> {
+    fn new() -> Self {
+        Self { h: SMatrix::zeros(), b: SVector::zeros(), chi2: 0.0, sampson_sq: 0.0 }
+    }
+
+    /// One point: `H += ∇F ∇Fᵀ`, `b += F ∇F` (eq 36), `χ² += F²`.
+    #[inline(always)]
+    fn add_point(&mut self, f: f64, g: &SVector<f64, M>, d: f64) {
+        for c in 0..M {
+            let gc = g[c];
+            for r in c..M {
+                self.h[(r, c)] += g[r] * gc;
+            }
+        }
+        self.b.axpy(f, g, 1.0);
+        self.chi2 += f * f;
+        self.sampson_sq += d * d;
+    }
+
+    /// `BLOCK` points at once: every entry of `H` is loaded and stored once per block, and its
+    /// terms are added in point order (the same sums as [`Sums::add_point`] point by point).
+    #[inline(always)]
+    fn add_block(&mut self, fs: &[f64; BLOCK], gs: &[SVector<f64, M>; BLOCK], ds: &[f64; BLOCK]) {
+        for c in 0..M {
+            for r in c..M {
+                let mut h = self.h[(r, c)];
+                for g in gs {
+                    h += g[r] * g[c];
+                }
+                self.h[(r, c)] = h;
+            }
+        }
+        for (g, f) in gs.iter().zip(fs) {
+            self.b.axpy(*f, g, 1.0);
+        }
+        for (f, d) in fs.iter().zip(ds) {
+            self.chi2 += f * f;
+            self.sampson_sq += d * d;
+        }
+    }
+
+    /// The normal equations over `MAX_FREE` slots (identity beyond `M`).
+    fn normal(&self) -> Normal {
         let mut h = FreeMatrix::zeros();
         let mut b = Free::zeros();
         for c in 0..M {
             for r in c..M {
-                h[(r, c)] = hm[(r, c)];
-                h[(c, r)] = hm[(r, c)];
+                h[(r, c)] = self.h[(r, c)];
+                h[(c, r)] = self.h[(r, c)];
             }
-            b[c] = bm[c];
+            b[c] = self.b[c];
         }
         for r in M..MAX_FREE {
             h[(r, r)] = 1.0;
         }
-        Normal { chi2, h, b, sampson_sq }
+        Normal { chi2: self.chi2, h, b, sampson_sq: self.sampson_sq }
     }
 }
 
 /// Points per chunk of [`PointSet`] and [`block_terms`].
 const BLOCK: usize = 4;
-
-/// Per-point values of one chunk: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
-struct Block {
-    f: [f64; BLOCK],
-    g: [[f64; BLOCK]; 9],
-    d: [f64; BLOCK],
-}
-
-impl Block {
-    fn new() -> Self {
-        Self { f: [0.0; BLOCK], g: [[0.0; BLOCK]; 9], d: [0.0; BLOCK] }
-    }
-}
 
 /// The surface state as plain numbers for [`block_terms`].
 struct Frame {

@@ -448,10 +448,8 @@ fn fit_surface(
                 Target::Auto(_) => {
                     let normal = &par.normal;
                     let scale = residual_scale(normal.chi2, points.len(), Model::Paraboloid.num_free(), weighted, config);
-                    let mut ck = normal
-                        .h
-                        .cholesky()
-                        .map(|c| c.inverse().fixed_view::<2, 2>(0, 0).into_owned() * scale)
+                    let mut ck = wlm::inverse_leading(Model::Paraboloid.num_free(), &normal.h)
+                        .map(|inv| inv.fixed_view::<2, 2>(0, 0).into_owned() * scale)
                         .unwrap_or_else(|| Matrix2::identity() * f64::INFINITY);
                     if swapped {
                         ck = Matrix2::new(ck[(1, 1)], ck[(1, 0)], ck[(0, 1)], ck[(0, 0)]);
@@ -719,7 +717,7 @@ fn finish(
     let mfree = model.num_free();
     let normal = wlm::accumulate(model, &state, covs, settings.min_variance, config.weight_derivative.applies_to(model), true);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
-    let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
+    let h_inv = wlm::inverse_leading(mfree, &normal.h).ok_or(FitError::Degenerate("singular information matrix"))?;
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();
     for r in 0..mfree {
         for c in 0..mfree {

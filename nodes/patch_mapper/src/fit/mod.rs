@@ -514,7 +514,12 @@ fn quadric_start(plane: &SurfaceState, points: &[Vector3<f64>]) -> SurfaceState 
     for q in points {
         let l = rt * (q - plane.c);
         let row = SMatrix::<f64, 6, 1>::from_column_slice(&[0.5 * l.x * l.x, l.x * l.y, 0.5 * l.y * l.y, l.x, l.y, 1.0]);
-        ata.ger(1.0, &row, &row, 1.0);
+        // Lower triangle only: the Cholesky factorisation below reads nothing else.
+        for c in 0..6 {
+            for r in c..6 {
+                ata[(r, c)] += row[r] * row[c];
+            }
+        }
         atb.axpy(l.z, &row, 1.0);
         extent = extent.max(l.x * l.x + l.y * l.y);
     }

@@ -242,10 +242,14 @@ impl Pass<'_> {
     fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
         let mut sums = Sums::<M>::new();
         if self.weight_derivative {
-            for i in 0..self.set.len() {
-                let (q, cov) = (self.set.point(i), self.set.cov(i));
-                let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
-                sums.add_point(f, &project(&grad), d);
+            for (chunk, len) in self.set.chunks() {
+                let [xs, ys, zs, cv @ ..] = chunk;
+                for j in 0..len {
+                    let q = Vector3::new(xs[j], ys[j], zs[j]);
+                    let cov = Matrix3::from_fn(|r, c| cv[3 * c + r][j]);
+                    let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
+                    sums.add_point(f, &project(&grad), d);
+                }
             }
         } else {
             // Per-point values block-wise in a vectorisable loop, then the sums in the order of the
@@ -457,25 +461,14 @@ impl PointSet {
         Self { n: points.len(), chunks }
     }
 
-    pub(crate) fn len(&self) -> usize {
+    #[cfg(test)]
+    fn len(&self) -> usize {
         self.n
     }
 
     /// The chunks with the number of real points in each.
     fn chunks(&self) -> impl Iterator<Item = (&Chunk, usize)> {
         self.chunks.iter().enumerate().map(move |(b, c)| (c, self.n.saturating_sub(b * BLOCK).min(BLOCK)))
-    }
-
-    fn value(&self, k: usize, i: usize) -> f64 {
-        self.chunks.get(i / BLOCK).and_then(|c| c.get(k)).and_then(|a| a.get(i % BLOCK)).copied().unwrap_or(0.0)
-    }
-
-    fn point(&self, i: usize) -> Vector3<f64> {
-        Vector3::from_fn(|r, _| self.value(r, i))
-    }
-
-    fn cov(&self, i: usize) -> Matrix3<f64> {
-        Matrix3::from_fn(|r, c| self.value(3 + 3 * c + r, i))
     }
 }
 

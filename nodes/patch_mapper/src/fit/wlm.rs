@@ -541,11 +541,11 @@ fn levenberg_marquardt(
     // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance
     // (or, below, when an accepted step lowered it by less). Changes only with the normal equations.
     let predicted_decrease = |normal: &Normal| solve_leading(m, &normal.h, &normal.b).map(|x| normal.b.dot(&x)).unwrap_or(f64::INFINITY);
-    let mut predicted = predicted_decrease(&normal);
+    // Computed only when needed: the damped matrix A below is H plus a non-negative diagonal, so the
+    // damped decrease bᵀA⁻¹b is at most bᵀH⁻¹b; while it is clearly above the tolerance the undamped
+    // test cannot stop the run (the 0.1 % margin covers rounding), and H needs no factorisation.
+    let mut predicted = None;
     for _ in 0..settings.max_iterations {
-        if predicted < settings.chi2_tolerance {
-            break;
-        }
         let mut a = normal.h;
         for i in 0..m {
             a[(i, i)] *= 1.0 + lambda;
@@ -553,7 +553,13 @@ fn levenberg_marquardt(
                 a[(i, i)] = lambda.max(1e-12);
             }
         }
-        let Some(solution) = solve_leading(m, &a, &normal.b) else {
+        let solution = solve_leading(m, &a, &normal.b);
+        if !solution.is_some_and(|x| normal.b.dot(&x) >= 1.001 * settings.chi2_tolerance)
+            && *predicted.get_or_insert_with(|| predicted_decrease(&normal)) < settings.chi2_tolerance
+        {
+            break;
+        }
+        let Some(solution) = solution else {
             lambda *= 10.0;
             if lambda > 1e12 {
                 break;
@@ -583,7 +589,7 @@ fn levenberg_marquardt(
             if decrease < settings.chi2_tolerance {
                 break;
             }
-            predicted = predicted_decrease(&normal);
+            predicted = None;
         } else {
             // A rejected step below NEGLIGIBLE_STEP in every parameter: the larger damping of the
             // following trials only shrinks the step further (‖step‖ decreases with λ), so at most a

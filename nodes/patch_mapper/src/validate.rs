@@ -211,8 +211,15 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     if nx.saturating_mul(ny) > 4_000_000 {
         return (usize::MAX, allowed);
     }
-    // Per cell: [points inside the boundary, points outside].
-    let mut counts = vec![[0u32; 2]; nx * ny];
+    // Per cell: [points inside the boundary, points outside]; on the stack for the usual few cells.
+    let mut small = [[0u32; 2]; SMALL_GRID];
+    let mut large = Vec::new();
+    let counts: &mut [[u32; 2]] = if nx * ny <= SMALL_GRID {
+        small.get_mut(..nx * ny).unwrap_or_default()
+    } else {
+        large.resize(nx * ny, [0u32; 2]);
+        &mut large
+    };
     for q in local {
         let u = q.xy();
         let ci = floor_to_i64(u.x / wc) - i0;
@@ -250,8 +257,9 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
             } else {
                 let mut hits = 0;
                 for a in 0..s {
+                    let x = x0 + (a as f64 + 0.5) * wc / s as f64;
                     for b in 0..s {
-                        let u = Vector2::new(x0 + (a as f64 + 0.5) * wc / s as f64, y0 + (b as f64 + 0.5) * wc / s as f64);
+                        let u = Vector2::new(x, y0 + (b as f64 + 0.5) * wc / s as f64);
                         if shape.contains_uv(&u) {
                             hits += 1;
                         }
@@ -269,6 +277,9 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     }
     (bad, allowed)
 }
+
+/// Coverage grids of up to this many cells count on the stack (no allocation for the usual small grids).
+const SMALL_GRID: usize = 64;
 
 /// `x.floor() as i64` without the libm call (the baseline x86-64 target has no `roundsd`):
 /// truncate, then step down for negative non-integers. Saturates like the cast.

@@ -460,10 +460,8 @@ fn fit_surface(
                 Target::Auto(_) => {
                     let normal = &par.normal;
                     let scale = residual_scale(normal.chi2, points.len(), Model::Paraboloid.num_free(), weighted, config);
-                    let mut ck = normal
-                        .h
-                        .cholesky()
-                        .map(|c| c.inverse().fixed_view::<2, 2>(0, 0).into_owned() * scale)
+                    let mut ck = wlm::inverse_leading(Model::Paraboloid.num_free(), &normal.h)
+                        .map(|inv| inv.fixed_view::<2, 2>(0, 0).into_owned() * scale)
                         .unwrap_or_else(|| Matrix2::identity() * f64::INFINITY);
                     if swapped {
                         ck = Matrix2::new(ck[(1, 1)], ck[(1, 0)], ck[(0, 1)], ck[(0, 0)]);
@@ -528,7 +526,12 @@ fn quadric_start(plane: &SurfaceState, points: &[Vector3<f64>]) -> SurfaceState 
     for q in points {
         let l = rt * (q - plane.c);
         let row = SMatrix::<f64, 6, 1>::from_column_slice(&[0.5 * l.x * l.x, l.x * l.y, 0.5 * l.y * l.y, l.x, l.y, 1.0]);
-        ata.ger(1.0, &row, &row, 1.0);
+        // Lower triangle only: the Cholesky factorisation below reads nothing else.
+        for c in 0..6 {
+            for r in c..6 {
+                ata[(r, c)] += row[r] * row[c];
+            }
+        }
         atb.axpy(l.z, &row, 1.0);
         extent = extent.max(l.x * l.x + l.y * l.y);
     }
@@ -757,7 +760,7 @@ fn finish(
     let mfree = model.num_free();
     let normal = wlm::accumulate_with_prior(model, &state, covs, &settings_for(model, settings, config), true);
     let scale = residual_scale(normal.chi2, points.len(), mfree, weighted, config);
-    let h_inv = normal.h.cholesky().ok_or(FitError::Degenerate("singular information matrix"))?.inverse();
+    let h_inv = wlm::inverse_leading(mfree, &normal.h).ok_or(FitError::Degenerate("singular information matrix"))?;
     let mut cov_free = SMatrix::<f64, { wlm::MAX_FREE }, { wlm::MAX_FREE }>::zeros();
     for r in 0..mfree {
         for c in 0..mfree {

@@ -240,36 +240,25 @@ impl Pass<'_> {
     /// The pass with `M` free parameters; `project` maps the 9 local slots to them.
     #[inline(always)]
     fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
-        let mut hm = SMatrix::<f64, M, M>::zeros();
-        let mut bm = SVector::<f64, M>::zeros();
-        let mut chi2 = 0.0;
-        let mut sampson_sq = 0.0;
-        let mut add = |f: f64, grad: &Local, d: f64| {
-            let g = project(grad);
-            // Lower triangle only (H is symmetric); mirrored below.
-            for c in 0..M {
-                let gc = g[c];
-                for r in c..M {
-                    hm[(r, c)] += g[r] * gc;
+        let mut sums = Sums::<M>::new();
+        if self.weight_derivative {
+            for (chunk, len) in self.set.chunks() {
+                let [xs, ys, zs, cv @ ..] = chunk;
+                for j in 0..len {
+                    let q = Vector3::new(xs[j], ys[j], zs[j]);
+                    let cov = Matrix3::from_fn(|r, c| cv[3 * c + r][j]);
+                    let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
+                    sums.add_point(f, &project(&grad), d);
                 }
             }
-            bm.axpy(f, &g, 1.0);
-            chi2 += f * f;
-            sampson_sq += d * d;
-        };
-        if self.weight_derivative {
-            for i in 0..self.set.len() {
-                let (q, cov) = (self.set.point(i), self.set.cov(i));
-                let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
-                add(f, &grad, d);
-            }
         } else {
-            // Per-point values block-wise in a vectorisable loop, then the sums point by point in
-            // the order of the branch above (bit-identical to `point_terms`).
+            // Per-point values block-wise in a vectorisable loop, then the sums in the order of the
+            // branch above (bit-identical to `point_terms`).
             let frame = Frame::new(self.state);
-            let mut block = Block::new();
+            let mut fs = [0.0; BLOCK];
+            let mut ds = [0.0; BLOCK];
+            let mut gs = [SVector::<f64, M>::zeros(); BLOCK];
             for (chunk, len) in self.set.chunks() {
-                let Block { f: fs, g: gs, d: ds } = &mut block;
                 block_terms(&frame, chunk, self.min_variance, |j, lane| {
                     let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
                     fs[j] = lane.big_f;
@@ -278,53 +267,102 @@ impl Pass<'_> {
                         ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
                     }
                     // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
-                    gs[0][j] = qx * qx * inv_sigma;
-                    gs[1][j] = qy * qy * inv_sigma;
-                    gs[2][j] = qz * qz * inv_sigma;
-                    gs[3][j] = (gy * qz - gz * qy) * inv_sigma;
-                    gs[4][j] = (gz * qx - gx * qz) * inv_sigma;
-                    gs[5][j] = (gx * qy - gy * qx) * inv_sigma;
-                    gs[6][j] = -gx * inv_sigma;
-                    gs[7][j] = -gy * inv_sigma;
-                    gs[8][j] = -gz * inv_sigma;
+                    let grad = Local::from([
+                        qx * qx * inv_sigma,
+                        qy * qy * inv_sigma,
+                        qz * qz * inv_sigma,
+                        (gy * qz - gz * qy) * inv_sigma,
+                        (gz * qx - gx * qz) * inv_sigma,
+                        (gx * qy - gy * qx) * inv_sigma,
+                        -gx * inv_sigma,
+                        -gy * inv_sigma,
+                        -gz * inv_sigma,
+                    ]);
+                    gs[j] = project(&grad);
                 });
-                for j in 0..len {
-                    let grad = Local::from_fn(|slot, _| block.g[slot][j]);
-                    add(block.f[j], &grad, block.d[j]);
+                if len == BLOCK {
+                    sums.add_block(&fs, &gs, &ds);
+                } else {
+                    for j in 0..len {
+                        sums.add_point(fs[j], &gs[j], ds[j]);
+                    }
                 }
             }
         }
+        sums.normal()
+    }
+}
+
+/// Running sums of one [`accumulate`] pass over `M` free parameters, point by point in point order.
+struct Sums<const M: usize> {
+    /// Lower triangle of `H` (symmetric; mirrored by [`Sums::normal`]).
+    h: SMatrix<f64, M, M>,
+    b: SVector<f64, M>,
+    chi2: f64,
+    sampson_sq: f64,
+}
+
+impl<const M: usize> Sums<M> {
+    fn new() -> Self {
+        Self { h: SMatrix::zeros(), b: SVector::zeros(), chi2: 0.0, sampson_sq: 0.0 }
+    }
+
+    /// One point: `H += ∇F ∇Fᵀ`, `b += F ∇F` (eq 36), `χ² += F²`.
+    #[inline(always)]
+    fn add_point(&mut self, f: f64, g: &SVector<f64, M>, d: f64) {
+        for c in 0..M {
+            let gc = g[c];
+            for r in c..M {
+                self.h[(r, c)] += g[r] * gc;
+            }
+        }
+        self.b.axpy(f, g, 1.0);
+        self.chi2 += f * f;
+        self.sampson_sq += d * d;
+    }
+
+    /// `BLOCK` points at once: every entry of `H` is loaded and stored once per block, and its
+    /// terms are added in point order (the same sums as [`Sums::add_point`] point by point).
+    #[inline(always)]
+    fn add_block(&mut self, fs: &[f64; BLOCK], gs: &[SVector<f64, M>; BLOCK], ds: &[f64; BLOCK]) {
+        for c in 0..M {
+            for r in c..M {
+                let mut h = self.h[(r, c)];
+                for g in gs {
+                    h += g[r] * g[c];
+                }
+                self.h[(r, c)] = h;
+            }
+        }
+        for (g, f) in gs.iter().zip(fs) {
+            self.b.axpy(*f, g, 1.0);
+        }
+        for (f, d) in fs.iter().zip(ds) {
+            self.chi2 += f * f;
+            self.sampson_sq += d * d;
+        }
+    }
+
+    /// The normal equations over `MAX_FREE` slots (identity beyond `M`).
+    fn normal(&self) -> Normal {
         let mut h = FreeMatrix::zeros();
         let mut b = Free::zeros();
         for c in 0..M {
             for r in c..M {
-                h[(r, c)] = hm[(r, c)];
-                h[(c, r)] = hm[(r, c)];
+                h[(r, c)] = self.h[(r, c)];
+                h[(c, r)] = self.h[(r, c)];
             }
-            b[c] = bm[c];
+            b[c] = self.b[c];
         }
         for r in M..MAX_FREE {
             h[(r, r)] = 1.0;
         }
-        Normal { chi2, h, b, sampson_sq }
+        Normal { chi2: self.chi2, h, b, sampson_sq: self.sampson_sq }
     }
 }
 
 /// Points per chunk of [`PointSet`] and [`block_terms`].
 const BLOCK: usize = 4;
-
-/// Per-point values of one chunk: `F_i`, `∇F_i` over the 9 local slots, Sampson distance.
-struct Block {
-    f: [f64; BLOCK],
-    g: [[f64; BLOCK]; 9],
-    d: [f64; BLOCK],
-}
-
-impl Block {
-    fn new() -> Self {
-        Self { f: [0.0; BLOCK], g: [[0.0; BLOCK]; 9], d: [0.0; BLOCK] }
-    }
-}
 
 /// The surface state as plain numbers for [`block_terms`].
 struct Frame {
@@ -423,25 +461,14 @@ impl PointSet {
         Self { n: points.len(), chunks }
     }
 
-    pub(crate) fn len(&self) -> usize {
+    #[cfg(test)]
+    fn len(&self) -> usize {
         self.n
     }
 
     /// The chunks with the number of real points in each.
     fn chunks(&self) -> impl Iterator<Item = (&Chunk, usize)> {
         self.chunks.iter().enumerate().map(move |(b, c)| (c, self.n.saturating_sub(b * BLOCK).min(BLOCK)))
-    }
-
-    fn value(&self, k: usize, i: usize) -> f64 {
-        self.chunks.get(i / BLOCK).and_then(|c| c.get(k)).and_then(|a| a.get(i % BLOCK)).copied().unwrap_or(0.0)
-    }
-
-    fn point(&self, i: usize) -> Vector3<f64> {
-        Vector3::from_fn(|r, _| self.value(r, i))
-    }
-
-    fn cov(&self, i: usize) -> Matrix3<f64> {
-        Matrix3::from_fn(|r, c| self.value(3 + 3 * c + r, i))
     }
 }
 
@@ -611,12 +638,12 @@ fn levenberg_marquardt(
     let mut lambda = settings.initial_damping;
     // Converged when the undamped Gauss–Newton step would lower χ² by less than the tolerance
     // (or, below, when an accepted step lowered it by less). Changes only with the normal equations.
-    let predicted_decrease = |normal: &Normal| normal.h.cholesky().map(|c| normal.b.dot(&c.solve(&normal.b))).unwrap_or(f64::INFINITY);
-    let mut predicted = predicted_decrease(&normal);
+    let predicted_decrease = |normal: &Normal| solve_leading(m, &normal.h, &normal.b).map(|x| normal.b.dot(&x)).unwrap_or(f64::INFINITY);
+    // Computed only when needed: the damped matrix A below is H plus a non-negative diagonal, so the
+    // damped decrease bᵀA⁻¹b is at most bᵀH⁻¹b; while it is clearly above the tolerance the undamped
+    // test cannot stop the run (the 0.1 % margin covers rounding), and H needs no factorisation.
+    let mut predicted = None;
     for _ in 0..settings.max_iterations {
-        if predicted < settings.chi2_tolerance {
-            break;
-        }
         let mut a = normal.h;
         for i in 0..m {
             a[(i, i)] *= 1.0 + lambda;
@@ -624,14 +651,20 @@ fn levenberg_marquardt(
                 a[(i, i)] = lambda.max(1e-12);
             }
         }
-        let Some(chol) = a.cholesky() else {
+        let solution = solve_leading(m, &a, &normal.b);
+        if !solution.is_some_and(|x| normal.b.dot(&x) >= 1.001 * settings.chi2_tolerance)
+            && *predicted.get_or_insert_with(|| predicted_decrease(&normal)) < settings.chi2_tolerance
+        {
+            break;
+        }
+        let Some(solution) = solution else {
             lambda *= 10.0;
             if lambda > 1e12 {
                 break;
             }
             continue;
         };
-        let step = -chol.solve(&normal.b);
+        let step = -solution;
         if !step.iter().all(|v| v.is_finite()) {
             return Err(FitError::Diverged("non-finite step"));
         }
@@ -657,7 +690,7 @@ fn levenberg_marquardt(
             if decrease < settings.chi2_tolerance {
                 break;
             }
-            predicted = predicted_decrease(&normal);
+            predicted = None;
         } else {
             // A rejected step below NEGLIGIBLE_STEP in every parameter: the larger damping of the
             // following trials only shrinks the step further (‖step‖ decreases with λ), so at most a
@@ -686,6 +719,107 @@ fn levenberg_marquardt(
         return Err(FitError::Diverged("non-finite parameters"));
     }
     Ok(WlmResult { state, normal })
+}
+
+/// `A⁻¹ b` for the symmetric positive definite leading `m × m` block of `a` (the free parameters;
+/// zero beyond `m`), `None` if its Cholesky factorisation fails. Fixed-size code per model size
+/// with nalgebra's Cholesky algorithm and operation order, so the values are bit-identical to
+/// `a.cholesky()?.solve(b)` on the block padded with the identity as [`accumulate`] returns it,
+/// without the work on the padding.
+pub(crate) fn solve_leading(m: usize, a: &FreeMatrix, b: &Free) -> Option<Free> {
+    match m {
+        3 => Cholesky::<3>::new(a).map(|c| c.solve(b)),
+        4 => Cholesky::<4>::new(a).map(|c| c.solve(b)),
+        5 => Cholesky::<5>::new(a).map(|c| c.solve(b)),
+        6 => Cholesky::<6>::new(a).map(|c| c.solve(b)),
+        _ => Cholesky::<MAX_FREE>::new(a).map(|c| c.solve(b)),
+    }
+}
+
+/// The inverse of the leading `m × m` block of `a` (zero elsewhere), as [`solve_leading`] for
+/// the unit vectors (nalgebra's `Cholesky::inverse`, bit-identical on the block).
+pub(crate) fn inverse_leading(m: usize, a: &FreeMatrix) -> Option<FreeMatrix> {
+    match m {
+        3 => Cholesky::<3>::new(a).map(|c| c.inverse()),
+        4 => Cholesky::<4>::new(a).map(|c| c.inverse()),
+        5 => Cholesky::<5>::new(a).map(|c| c.inverse()),
+        6 => Cholesky::<6>::new(a).map(|c| c.inverse()),
+        _ => Cholesky::<MAX_FREE>::new(a).map(|c| c.inverse()),
+    }
+}
+
+/// Lower Cholesky factor of a leading `M × M` block, column-major (`l[column][row]`).
+struct Cholesky<const M: usize> {
+    l: [[f64; M]; M],
+}
+
+impl<const M: usize> Cholesky<M> {
+    /// nalgebra's right-looking factorisation of the lower triangle: column `j` minus `L_jk` times
+    /// column `k` for `k < j`, then `√` of the diagonal (`None` unless positive) and the division
+    /// of the column below it.
+    #[inline(always)]
+    fn new(a: &FreeMatrix) -> Option<Self> {
+        let mut l = [[0.0; M]; M];
+        for (c, column) in l.iter_mut().enumerate() {
+            for (r, v) in column.iter_mut().enumerate().skip(c) {
+                *v = a[(r, c)];
+            }
+        }
+        for j in 0..M {
+            for k in 0..j {
+                let factor = -l[k][j];
+                for i in j..M {
+                    l[j][i] = factor * l[k][i] + l[j][i];
+                }
+            }
+            let diag = l[j][j];
+            if diag == 0.0 || !(diag >= 0.0) {
+                return None;
+            }
+            let denom = diag.sqrt();
+            l[j][j] = denom;
+            for i in j + 1..M {
+                l[j][i] /= denom;
+            }
+        }
+        Some(Self { l })
+    }
+
+    /// `L Lᵀ x = b` over the first `M` entries (forward substitution by columns, back substitution
+    /// by dot products in increasing index order, as nalgebra's `Cholesky::solve`).
+    #[inline(always)]
+    fn solve(&self, b: &Free) -> Free {
+        let l = &self.l;
+        let mut x = [0.0; M];
+        for (i, v) in x.iter_mut().enumerate() {
+            *v = b[i];
+        }
+        for i in 0..M {
+            let coeff = x[i] / l[i][i];
+            x[i] = coeff;
+            for r in i + 1..M {
+                x[r] = -coeff * l[i][r] + x[r];
+            }
+        }
+        for i in (0..M).rev() {
+            let mut dot = 0.0;
+            for k in i + 1..M {
+                dot += l[i][k] * x[k];
+            }
+            x[i] = (x[i] - dot) / l[i][i];
+        }
+        Free::from_fn(|r, _| x.get(r).copied().unwrap_or(0.0))
+    }
+
+    /// The inverse of the block (zero beyond it), column by column as [`Cholesky::solve`].
+    fn inverse(&self) -> FreeMatrix {
+        let mut out = FreeMatrix::zeros();
+        for c in 0..M {
+            let e = Free::from_fn(|r, _| if r == c { 1.0 } else { 0.0 });
+            out.set_column(c, &self.solve(&e));
+        }
+        out
+    }
 }
 
 #[cfg(test)]

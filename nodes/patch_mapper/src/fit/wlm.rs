@@ -111,8 +111,9 @@ impl SurfaceState {
 }
 
 /// Per-point values of the WLM objective: `F`, `∇F` over the local slots, and the Sampson
-/// (first-order Euclidean) distance `|f| / ‖∇_q f‖`.
-#[inline(always)]
+/// (first-order Euclidean) distance `|f| / ‖∇_q f‖`. The reference form of one point: the passes
+/// use [`block_terms`], which the tests check against it bit for bit.
+#[cfg(test)]
 pub(crate) fn point_terms(
     state: &SurfaceState,
     q_w: &Vector3<f64>,
@@ -172,8 +173,8 @@ pub(crate) fn point_terms(
         -4.0 * ks.z,
     ]);
     // eq 36: ∂F/∂p = ∂f/∂p / σ − f ∂σ²/∂p / (2σ³)
-    let grad = if weight_derivative { df / sigma - dv * (f / (2.0 * sigma * var)) } else { df / sigma };
-    (big_f, grad, sampson)
+    let w = big_f / (2.0 * var);
+    (big_f, df * inv_sigma - dv * w, sampson)
 }
 
 /// Accumulated normal equations over the free parameters.
@@ -241,51 +242,62 @@ impl Pass<'_> {
     #[inline(always)]
     fn free<const M: usize>(&self, project: impl Fn(&Local) -> SVector<f64, M>) -> Normal {
         let mut sums = Sums::<M>::new();
-        if self.weight_derivative {
-            for (chunk, len) in self.set.chunks() {
-                let [xs, ys, zs, cv @ ..] = chunk;
-                for j in 0..len {
-                    let q = Vector3::new(xs[j], ys[j], zs[j]);
-                    let cov = Matrix3::from_fn(|r, c| cv[3 * c + r][j]);
-                    let (f, grad, d) = point_terms(self.state, &q, &cov, self.min_variance, true, true, self.with_sampson);
-                    sums.add_point(f, &project(&grad), d);
+        // Per-point values block-wise in a vectorisable loop, then the sums in point order
+        // (bit-identical to `point_terms`).
+        let frame = Frame::new(self.state);
+        let [kx, ky, kz] = frame.k;
+        let mut fs = [0.0; BLOCK];
+        let mut ds = [0.0; BLOCK];
+        let mut gs = [SVector::<f64, M>::zeros(); BLOCK];
+        for (chunk, len) in self.set.chunks() {
+            block_terms(&frame, chunk, self.min_variance, |j, lane| {
+                let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
+                fs[j] = lane.big_f;
+                if self.with_sampson {
+                    let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
+                    ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
                 }
-            }
-        } else {
-            // Per-point values block-wise in a vectorisable loop, then the sums in the order of the
-            // branch above (bit-identical to `point_terms`).
-            let frame = Frame::new(self.state);
-            let mut fs = [0.0; BLOCK];
-            let mut ds = [0.0; BLOCK];
-            let mut gs = [SVector::<f64, M>::zeros(); BLOCK];
-            for (chunk, len) in self.set.chunks() {
-                block_terms(&frame, chunk, self.min_variance, |j, lane| {
-                    let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
-                    fs[j] = lane.big_f;
-                    if self.with_sampson {
-                        let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
-                        ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
-                    }
-                    // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
-                    let grad = Local::from([
-                        qx * qx * inv_sigma,
-                        qy * qy * inv_sigma,
-                        qz * qz * inv_sigma,
-                        (gy * qz - gz * qy) * inv_sigma,
-                        (gz * qx - gx * qz) * inv_sigma,
-                        (gx * qy - gy * qx) * inv_sigma,
-                        -gx * inv_sigma,
-                        -gy * inv_sigma,
-                        -gz * inv_sigma,
+                // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
+                let df = Local::from([
+                    qx * qx,
+                    qy * qy,
+                    qz * qz,
+                    gy * qz - gz * qy,
+                    gz * qx - gx * qz,
+                    gx * qy - gy * qx,
+                    -gx,
+                    -gy,
+                    -gz,
+                ]);
+                let grad = if self.weight_derivative && !lane.clamped {
+                    // ∂σ²/∂p = 2 s_lᵀ Rᵀ ∂g_w/∂p (eq 41): κ_j → 4 s_j q_j, δ → 4(a × s + (K s) × q),
+                    // δc → −4 K s, with a = g_l / 2; eq 36: ∂F/∂p = ∂f/∂p / σ − f ∂σ²/∂p / (2σ³)
+                    let [sx, sy, sz] = lane.s;
+                    let (ax, ay, az) = (kx * qx, ky * qy, kz * qz - 1.0);
+                    let (ksx, ksy, ksz) = (kx * sx, ky * sy, kz * sz);
+                    let dv = Local::from([
+                        4.0 * sx * qx,
+                        4.0 * sy * qy,
+                        4.0 * sz * qz,
+                        ((ay * sz - az * sy) + (ksy * qz - ksz * qy)) * 4.0,
+                        ((az * sx - ax * sz) + (ksz * qx - ksx * qz)) * 4.0,
+                        ((ax * sy - ay * sx) + (ksx * qy - ksy * qx)) * 4.0,
+                        -4.0 * ksx,
+                        -4.0 * ksy,
+                        -4.0 * ksz,
                     ]);
-                    gs[j] = project(&grad);
-                });
-                if len == BLOCK {
-                    sums.add_block(&fs, &gs, &ds);
+                    let w = lane.big_f / (2.0 * lane.var);
+                    df * inv_sigma - dv * w
                 } else {
-                    for j in 0..len {
-                        sums.add_point(fs[j], &gs[j], ds[j]);
-                    }
+                    df * inv_sigma
+                };
+                gs[j] = project(&grad);
+            });
+            if len == BLOCK {
+                sums.add_block(&fs, &gs, &ds);
+            } else {
+                for j in 0..len {
+                    sums.add_point(fs[j], &gs[j], ds[j]);
                 }
             }
         }
@@ -394,6 +406,12 @@ struct Lane {
     q: [f64; 3],
     /// `∂f/∂q_l` (eq 39).
     g: [f64; 3],
+    /// `s_l = Rᵀ Σ_i R ∂f/∂q_l` (for the weight derivative, eq 41).
+    s: [f64; 3],
+    /// `σ²` (eq 34), clamped at the minimum variance.
+    var: f64,
+    /// Whether the clamp applied (then σ does not depend on the parameters).
+    clamped: bool,
 }
 
 /// [`point_terms`] without the weight derivative for all `BLOCK` slots of a chunk (the padding
@@ -425,9 +443,14 @@ fn block_terms(fr: &Frame, chunk: &Chunk, min_variance: f64, mut sink: impl FnMu
         let swy = c1[j] * gwx + c4[j] * gwy + c7[j] * gwz;
         let swz = c2[j] * gwx + c5[j] * gwy + c8[j] * gwz;
         let var_raw = gwx * swx + gwy * swy + gwz * swz;
-        let var = if var_raw < min_variance { min_variance } else { var_raw };
+        let clamped = var_raw < min_variance;
+        let var = if clamped { min_variance } else { var_raw };
         let inv_sigma = 1.0 / var.sqrt();
-        sink(j, &Lane { big_f: f * inv_sigma, f, inv_sigma, q: [qx, qy, qz], g: [gx, gy, gz] });
+        // s_l = Rᵀ s_w
+        let sx = r0[0] * swx + r1[0] * swy + r2[0] * swz;
+        let sy = r0[1] * swx + r1[1] * swy + r2[1] * swz;
+        let sz = r0[2] * swx + r1[2] * swy + r2[2] * swz;
+        sink(j, &Lane { big_f: f * inv_sigma, f, inv_sigma, q: [qx, qy, qz], g: [gx, gy, gz], s: [sx, sy, sz], var, clamped });
     }
 }
 

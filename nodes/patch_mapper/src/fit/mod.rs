@@ -1158,6 +1158,26 @@ mod tests {
         assert!(n_with < 2.0 && n_with < 0.6 * n_without, "normal error median {n_with}° with the centroid, {n_without}° without");
     }
 
+    /// The gauge point of a sphere lies on it, on the line from its centre through the target, with
+    /// the normal of the implicit form there (pointing to the apex side, +z at the apex).
+    #[test]
+    fn round_point_lies_on_the_normal_line_through_the_target() {
+        for kappa in [10.0, -4.0, 0.5] {
+            for target in [Vector3::new(0.0, 0.0, 0.3 * 0.5 / kappa), Vector3::new(0.02, -0.01, 0.01), Vector3::new(-0.03, 0.04, -0.005)] {
+                let (c, n) = round_point_towards(kappa, &target).unwrap();
+                assert!((kappa * c.norm_squared() - 2.0 * c.z).abs() < 1e-12, "κ {kappa}: {c} not on the sphere");
+                // ∇f = 2(κ q − ẑ) is along the normal, opposite for κ > 0 (f grows away from the centre).
+                let grad = (c * kappa - Vector3::z()).normalize();
+                assert!(grad.cross(&n).norm() < 1e-9 && (n.norm() - 1.0).abs() < 1e-12);
+                let centre = Vector3::new(0.0, 0.0, 1.0 / kappa);
+                assert!((target - centre).cross(&(c - centre)).norm() < 1e-9 * (c - centre).norm().max(1.0));
+            }
+            let (apex, normal) = round_point_towards(kappa, &Vector3::new(0.0, 0.0, 0.1 / kappa)).unwrap();
+            assert!(apex.norm() < 1e-12 && (normal - Vector3::z()).norm() < 1e-12);
+        }
+        assert!(round_point_towards(0.0, &Vector3::zeros()).is_none());
+    }
+
     #[test]
     fn sag_second_moment_matches_monte_carlo() {
         use rand_distr::{Distribution, StandardNormal};

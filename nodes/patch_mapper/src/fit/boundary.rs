@@ -70,10 +70,11 @@ pub(crate) fn moments(local: &[Vector3<f64>]) -> MomentStats {
     MomentStats { m, cov, frame_jacobian: a }
 }
 
-/// The moments `m` of [`moments`] alone (no sampling covariance, no frame Jacobian).
-pub(crate) fn moment_values(local: &[Vector3<f64>]) -> Moments {
+/// The moments `m` of [`moments`] alone (no sampling covariance, no frame Jacobian), and the
+/// points' 3D mean (the centroid in the local frame).
+pub(crate) fn moment_values(local: &[Vector3<f64>]) -> (Moments, Vector3<f64>) {
     let (mean, c3) = mean_and_scatter(local);
-    Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy])
+    (Moments::from_column_slice(&[mean.x, mean.y, c3.xx, c3.yy, c3.xy]), mean)
 }
 
 /// `Rᵀ(q_i − c)` (eq 16 before the projection), once per point for all moment passes.
@@ -315,7 +316,7 @@ mod tests {
                         Vector3::new(r * a.cos(), r * a.sin(), 0.0)
                     })
                     .collect();
-                let m = moment_values(&local);
+                let (m, _) = moment_values(&local);
                 from_moments(SurfaceType::Sphere, BoundaryType::Circle, &m, 0.0, lambda, 0.0).d[0]
             })
             .collect();

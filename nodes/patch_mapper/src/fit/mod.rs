@@ -771,9 +771,8 @@ fn finish(
     };
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
     let local = boundary::to_local(boundary_points, &state.rot, &state.c);
-    let m0 = boundary::moment_values(&local);
+    let (m0, mean_local) = boundary::moment_values(&local);
     let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term);
-    let mean_local = local.iter().sum::<Vector3<f64>>() / local.len().max(1) as f64;
     let gauged = apply_gauge(surface, boundary, &state, &m0, &mean_local, first.local[2])?;
     // Paraboloids keep their frame (no gauge freedom): the points are in it already.
     let local = if gauged == state { local } else { boundary::to_local(boundary_points, &gauged.rot, &gauged.c) };

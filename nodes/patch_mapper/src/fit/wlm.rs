@@ -395,7 +395,8 @@ impl Frame {
     }
 }
 
-/// One point's values of [`point_terms`] (without the weight derivative).
+/// One point's values of [`point_terms`]: what the χ², the gradient of eq 40 and the weight
+/// derivative of eq 41 (formed by the caller) need.
 struct Lane {
     /// `F = f / σ` (eq 35).
     big_f: f64,
@@ -414,7 +415,7 @@ struct Lane {
     clamped: bool,
 }
 
-/// [`point_terms`] without the weight derivative for all `BLOCK` slots of a chunk (the padding
+/// The per-point values of [`point_terms`] ([`Lane`]) for all `BLOCK` slots of a chunk (the padding
 /// of the last chunk included; the caller ignores it), handed to `sink` with the slot index. The
 /// arithmetic is that of `point_terms` operation by operation (nalgebra's `M v` is
 /// `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row, dot products likewise), so the results are bit-identical;
@@ -948,8 +949,7 @@ mod tests {
     /// comparisons (`χ² ≤ base`, `χ² − base < margin`) as the full sum does.
     #[test]
     fn early_stopping_chi_square_decides_as_the_full_sum() {
-        let state = SurfaceState { k3: Vector3::new(3.0, -2.0, 0.0), rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)), c: Vector3::new(0.1, -0.2, 1.0) };
-        let points: Vec<_> = (0..43).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
+        let (state, points, _) = fixture(0.0, 43);
         let covs = Covariances::Constant(Matrix3::identity() * 1e-6);
         let set = PointSet::new(&points, &covs);
         let full = chi_square(&state, &set, 1e-20);

@@ -1,5 +1,7 @@
-"""step_executor over ROS 2: status, arm/stop, the motion list, and clear failures from the services
-that are not connected yet."""
+"""step_executor over ROS 2: status, arm/stop/reset_estop, the motion list, and clear failures from
+the services that are not connected yet."""
+
+import threading
 
 from std_srvs.srv import SetBool, Trigger
 from patchwalk_msgs.msg import ExecutorStatus, Patch, PatchArray
@@ -31,6 +33,84 @@ def test_arm_then_stop_latches_estop(ros, step_executor):
     assert response.success
     got = status.wait_for(lambda s: s.state == ExecutorStatus.STATE_ESTOPPED)
     assert not got.armed
+    # Arming does not clear the latch; reset_estop does, and leaves the executor disarmed.
+    response = ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True))
+    assert not response.success and "reset_estop" in response.message
+    assert ros.call(Trigger, "/step_executor/reset_estop").success
+    got = _status(ros).wait_for(lambda s: s.state == ExecutorStatus.STATE_IDLE)  # a fresh collector: after the reset
+    assert not got.armed
+
+
+def _clients(ros, srv_type, name, count):
+    clients = [ros.client(srv_type, name) for _ in range(count)]
+    for client in clients:
+        assert client.wait_for_service(timeout_sec=10.0), name
+    return clients
+
+
+def _send(client, request):
+    """call_async without waiting; returns an Event set when the answer is in."""
+    done = threading.Event()
+    future = client.call_async(request)
+    future.add_done_callback(lambda _: done.set())
+    return future, done
+
+
+def _answer(pending, timeout=10.0):
+    future, done = pending
+    assert done.wait(timeout), "no answer"
+    return future.result()
+
+
+def _reset_until_accepted(reset_client):
+    # A reset that arrives together with a stop is refused (the stop stays in force): send it again.
+    for _ in range(50):
+        if _answer(_send(reset_client, Trigger.Request())).success:
+            return
+    raise AssertionError("reset_estop never accepted")
+
+
+def test_an_acknowledged_stop_is_not_undone_by_an_arm_sent_just_before_it(ros, step_executor):
+    """arm immediately followed by stop, from one client and from two: every time, both are answered
+    and the executor ends e-stopped and disarmed (arming then refused) until an explicit reset."""
+    (arm_a, arm_b), (stop_a,), (reset,) = (_clients(ros, SetBool, "/step_executor/arm", 2),
+                                           _clients(ros, Trigger, "/step_executor/stop", 1),
+                                           _clients(ros, Trigger, "/step_executor/reset_estop", 1))
+    for trial in range(40):
+        arm_client = arm_a if trial % 2 == 0 else arm_b
+        armed = _send(arm_client, SetBool.Request(data=True))
+        stopped = _send(stop_a, Trigger.Request())
+        _answer(armed)
+        assert _answer(stopped).success
+        probe = _answer(_send(arm_a, SetBool.Request(data=True)))
+        assert not probe.success and "reset_estop" in probe.message, f"trial {trial}: armed after an acknowledged stop"
+        _reset_until_accepted(reset)
+    # A burst of alternating arm/stop ending with a stop ends stopped.
+    assert _answer(_send(arm_a, SetBool.Request(data=True))).success
+    pending = [_send(arm_a if i % 2 == 0 else stop_a, SetBool.Request(data=True) if i % 2 == 0 else Trigger.Request())
+               for i in range(10)]
+    for p in pending:
+        _answer(p)
+    probe = _answer(_send(arm_b, SetBool.Request(data=True)))
+    assert not probe.success and "reset_estop" in probe.message
+    got = _status(ros).wait_for(lambda s: s.state == ExecutorStatus.STATE_ESTOPPED)
+    assert not got.armed
+
+
+def test_a_reset_racing_a_stop_never_clears_it(ros, step_executor):
+    """reset_estop sent just before a stop: either the reset was refused or it was taken first; in
+    both cases the stop, acknowledged afterwards, is in force."""
+    (stop_a,), (reset,), (arm,) = (_clients(ros, Trigger, "/step_executor/stop", 1),
+                                   _clients(ros, Trigger, "/step_executor/reset_estop", 1),
+                                   _clients(ros, SetBool, "/step_executor/arm", 1))
+    assert _answer(_send(stop_a, Trigger.Request())).success
+    for trial in range(40):
+        resetting = _send(reset, Trigger.Request())
+        stopped = _send(stop_a, Trigger.Request())
+        _answer(resetting)
+        assert _answer(stopped).success
+        probe = _answer(_send(arm, SetBool.Request(data=True)))
+        assert not probe.success, f"trial {trial}: armed after an acknowledged stop"
 
 
 def test_unconnected_services_fail_with_a_reason(ros, step_executor):

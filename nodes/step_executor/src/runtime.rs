@@ -59,6 +59,9 @@ pub struct MotionInfo {
     pub duration: f64,
 }
 
+/// Why arming and playing are refused while an e-stop is latched.
+const ESTOPPED: &str = "e-stopped: call reset_estop first (arming does not clear an e-stop)";
+
 /// The ROS-free node core.
 pub struct Runtime {
     config: StepExecutorConfig,
@@ -404,14 +407,15 @@ impl Runtime {
     pub fn play_motion(&mut self, name: &str) -> Result<String, String> {
         self.bus()?;
         if self.estopped {
-            return Err("e-stopped: re-arm (arm true) to clear".into());
+            return Err(ESTOPPED.into());
         }
         let motion = self.library.get(name).cloned().ok_or_else(|| format!("no motion named {name:?}"))?;
         self.start(motion)?;
         Ok(format!("playing {name:?}"))
     }
 
-    /// E-stop: disarm, latch, stop the servos within one cycle.
+    /// E-stop: disarm, latch, stop the servos within one cycle. The latch holds until
+    /// [`Runtime::reset_estop`]; arming does not clear it.
     pub fn stop(&mut self) -> String {
         self.armed = false;
         self.estopped = true;
@@ -419,16 +423,22 @@ impl Runtime {
             bus.estop();
         }
         self.current_motion.clear();
-        "stopped; disarmed".into()
+        "stopped; disarmed; latched until reset_estop".into()
     }
 
-    /// Arm/disarm automatic execution; arming clears a latched e-stop.
-    pub fn arm(&mut self, on: bool) -> String {
-        self.armed = on;
-        if on {
-            self.estopped = false;
+    /// Clear a latched e-stop. Does not arm: automatic execution needs a separate `arm`.
+    pub fn reset_estop(&mut self) -> String {
+        let was = std::mem::replace(&mut self.estopped, false);
+        if was { "e-stop cleared; disarmed".into() } else { "not e-stopped; disarmed".into() }
+    }
+
+    /// Arm/disarm automatic execution. Arming is refused while an e-stop is latched.
+    pub fn arm(&mut self, on: bool) -> Result<String, String> {
+        if on && self.estopped {
+            return Err(ESTOPPED.into());
         }
-        if on { "armed".into() } else { "disarmed".into() }
+        self.armed = on;
+        Ok(if on { "armed".into() } else { "disarmed".into() })
     }
 
     /// Nearest failed candidates of the last match, for logs.
@@ -592,7 +602,7 @@ mod tests {
         assert_eq!(reloaded.names(), vec!["rock1"]);
 
         // Non-matching map: nothing moves even when armed.
-        runtime.arm(true);
+        runtime.arm(true).unwrap();
         let writes = bus.state().goal_writes.len();
         let far = PatchGeometry { c: [0.3, 0.1, 0.4], ..camera_patch.clone() };
         let report = runtime.on_patch_map(&[far], &map_from_camera).unwrap();
@@ -611,11 +621,16 @@ mod tests {
         wait(&mut runtime, "finish", |r| r.status().state == RunState::Idle);
         assert!(bus.state().goal_writes.len() > writes + 40);
 
-        // E-stop latches; play is refused until re-armed.
+        // E-stop latches: play and arming are refused until reset_estop, which does not arm.
         runtime.stop();
         assert_eq!(runtime.status().state, RunState::EStopped);
-        assert!(runtime.play_motion("rock1").is_err());
-        runtime.arm(true);
+        assert!(runtime.play_motion("rock1").unwrap_err().contains("reset_estop"));
+        assert!(runtime.arm(true).unwrap_err().contains("reset_estop"));
+        assert_eq!(runtime.status().state, RunState::EStopped);
+        runtime.reset_estop();
+        assert_eq!(runtime.status().state, RunState::Idle);
+        assert!(!runtime.status().armed);
+        runtime.arm(true).unwrap();
         assert!(runtime.delete_motion("rock1").is_ok());
         assert_eq!(runtime.status().library_size, 0);
     }

@@ -47,6 +47,7 @@ pub const DELETE_MOTION: &str = "/step_executor/delete_motion";
 pub const PLAY_MOTION: &str = "/step_executor/play_motion";
 pub const STOP: &str = "/step_executor/stop";
 pub const ARM: &str = "/step_executor/arm";
+pub const RESET_ESTOP: &str = "/step_executor/reset_estop";
 
 /// Poll period of the loop in ms.
 const POLL_PERIOD_MS: u64 = 2;
@@ -59,11 +60,13 @@ struct Executor {
     log: RateLimitedLog,
     /// Latest birds-eye cloud, decoded only when a fit is asked for.
     latest_cloud: Option<PointCloud2>,
+    /// Stops taken in the current loop pass (see [`Executor::reset_estop`]).
+    stops_in_pass: usize,
 }
 
 impl Executor {
     fn new(runtime: Runtime) -> Self {
-        Self { runtime, maps_received: 0, log: RateLimitedLog::default(), latest_cloud: None }
+        Self { runtime, maps_received: 0, log: RateLimitedLog::default(), latest_cloud: None, stops_in_pass: 0 }
     }
 
     /// A patch map: convert, express in base_link, match (J 6.3), auto-play when armed.
@@ -197,19 +200,48 @@ impl Executor {
         }
     }
 
+    /// Start of a loop pass: the stop requests are taken next, then the resets.
+    fn begin_pass(&mut self) {
+        self.stops_in_pass = 0;
+    }
+
     /// E-stop: always succeeds; disarms, stops the servos within one cycle and latches
-    /// `STATE_ESTOPPED` until re-armed.
+    /// `STATE_ESTOPPED` until an explicit `reset_estop` (arming does not clear it).
     fn stop(&mut self) -> TriggerResponse {
+        self.stops_in_pass += 1;
         let message = self.runtime.stop();
         tracing::warn!("e-stop requested");
         TriggerResponse { success: true, message }
     }
 
-    /// Arm/disarm automatic execution on match; arming clears a latched e-stop.
-    fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
-        let message = self.runtime.arm(request.data);
+    /// Clear a latched e-stop, unless a stop was taken in this same pass.
+    ///
+    /// Each pass takes the stop requests before the resets. A stop that arrived after a reset but
+    /// was taken before it can therefore only have been taken in the reset's own pass (the reset
+    /// was waiting before the stop came, so the next reset drain after that stop takes it). Refusing
+    /// the reset in that case keeps every acknowledged stop in force until a reset that arrived
+    /// after it; the caller is told to send the reset again.
+    fn reset_estop(&mut self) -> TriggerResponse {
+        if self.stops_in_pass > 0 {
+            return TriggerResponse {
+                success: false,
+                message: "refused: an e-stop arrived together with this reset and stays in force; send reset_estop again".into(),
+            };
+        }
+        let message = self.runtime.reset_estop();
         tracing::info!("{message}");
-        SetBoolResponse { success: true, message }
+        TriggerResponse { success: true, message }
+    }
+
+    /// Arm/disarm automatic execution on match; refused while an e-stop is latched.
+    fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
+        match self.runtime.arm(request.data) {
+            Ok(message) => {
+                tracing::info!("{message}");
+                SetBoolResponse { success: true, message }
+            }
+            Err(e) => failure_bool(format!("arm({}): {e}", request.data)),
+        }
     }
 }
 
@@ -254,6 +286,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let play_motion_srv = ros.server::<srv::PlayMotion>(PLAY_MOTION)?;
     let stop_srv = ros.server::<Trigger>(STOP)?;
     let arm_srv = ros.server::<SetBool>(ARM)?;
+    let reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
 
     let mut log = RateLimitedLog::default();
     let mut executor = Executor::new(runtime);
@@ -265,8 +298,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     while !shutdown.requested() {
         node::drain(&patches_sub, PATCHES_TOPIC, 8, &mut log, |map, _| executor.on_patches(map));
         node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(cloud));
-        // E-stop first: it must not wait behind other requests.
+        // E-stop first: it must not wait behind other requests; then the resets of this pass
+        // (refused when a stop came in the same pass, see `Executor::reset_estop`).
+        executor.begin_pass();
         node::serve(&stop_srv, STOP, &mut log, |_| executor.stop());
+        node::serve(&reset_estop_srv, RESET_ESTOP, &mut log, |_| executor.reset_estop());
         node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r));
         node::serve(&set_torque_srv, SET_TORQUE, &mut log, |r| executor.set_torque(r));
         node::serve(&record_keyframe_srv, RECORD_KEYFRAME, &mut log, |r| executor.record_keyframe(r));
@@ -314,15 +350,28 @@ mod tests {
     }
 
     #[test]
-    fn stop_latches_and_arming_clears_it() {
+    fn stop_latches_until_an_explicit_reset() {
         let (mut executor, _dir) = without_bus();
         assert!(executor.arm(SetBoolRequest { data: true }).success);
         assert!(executor.status().armed);
+        executor.begin_pass();
         assert!(executor.stop().success);
         assert_eq!(executor.status().state, ExecutorStatus::STATE_ESTOPPED);
         assert!(!executor.status().armed);
-        executor.arm(SetBoolRequest { data: true });
+        // Arming neither clears the stop nor arms.
+        let response = executor.arm(SetBoolRequest { data: true });
+        assert!(!response.success && response.message.contains("reset_estop"), "{}", response.message);
+        assert_eq!(executor.status().state, ExecutorStatus::STATE_ESTOPPED);
+        assert!(!executor.status().armed);
+        // A reset taken in the same pass as a stop is refused; in a later pass it clears, unarmed.
+        let response = executor.reset_estop();
+        assert!(!response.success && response.message.contains("again"), "{}", response.message);
+        assert_eq!(executor.status().state, ExecutorStatus::STATE_ESTOPPED);
+        executor.begin_pass();
+        assert!(executor.reset_estop().success);
         assert_eq!(executor.status().state, ExecutorStatus::STATE_IDLE);
+        assert!(!executor.status().armed);
+        assert!(executor.arm(SetBoolRequest { data: true }).success);
     }
 
     #[test]

@@ -6,6 +6,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use patchwalk_spl::fit::neighbourhood::NeighbourhoodFit;
+use patchwalk_spl::sensor::ErrorModel;
+
 use crate::matcher::MatcherConfig;
 use crate::player::PlayerConfig;
 
@@ -38,6 +41,9 @@ pub struct StepExecutorConfig {
     pub servos: Vec<ServoConfig>,
     pub matcher: MatcherConfig,
     pub player: PlayerConfig,
+    /// How `select_target` fits a training target in the mapper's birds-eye cloud: set it as the
+    /// running mapper is configured, so a target compares with mapped patches (J 6.3).
+    pub training_fit: TrainingFitConfig,
     /// ROS 2 wiring options (owned by the ROS layer; kept here so the file has one schema).
     pub ros: RosConfig,
 }
@@ -78,6 +84,31 @@ pub struct ServoConfig {
 
 fn default_direction() -> i8 {
     1
+}
+
+/// The training target's fit: J 3.2.1 step 13 on the cloud around the chosen point.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainingFitConfig {
+    /// Sensor model, fit settings, containment and plane sizing (the mapper's `sensor`, `fit`,
+    /// `containment`, `plane_boundary_j_step5`).
+    pub fit: NeighbourhoodFit,
+    /// nf: points fitted (the mapper's `neighbourhood.fit_points`, J 6.1.2: 50).
+    pub fit_points: usize,
+    /// Fewer cloud points than this around the point: no fit (the mapper's `neighbourhood.min_points`).
+    pub min_points: usize,
+}
+
+impl Default for TrainingFitConfig {
+    fn default() -> Self {
+        Self {
+            // The cloud is the mapper's birds-eye raycast of the fused TSDF, not a Kinect frame: the
+            // patch_mapper node models its points with a constant 1 mm along the ray, and so does this.
+            fit: NeighbourhoodFit { sensor: ErrorModel::Constant { sigma_m: 0.001 }, ..NeighbourhoodFit::default() },
+            fit_points: 50,
+            min_points: 20,
+        }
+    }
 }
 
 /// ROS 2 node options (publish rates); the ROS layer may extend this struct.
@@ -138,6 +169,7 @@ impl Default for StepExecutorConfig {
             servos,
             matcher: MatcherConfig::default(),
             player: PlayerConfig::default(),
+            training_fit: TrainingFitConfig::default(),
             ros: RosConfig::default(),
         }
     }

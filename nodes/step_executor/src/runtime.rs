@@ -8,9 +8,8 @@
 use std::collections::HashMap;
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use patch_mapper::mapper::fit_neighbourhood;
-use patch_mapper::patch_map::transform_patch;
-use patch_mapper::pipeline::default_mapper_config;
+use patchwalk_spl::fit::neighbourhood::fit_neighbourhood;
+use patchwalk_spl::transform::transform_patch;
 
 use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
@@ -327,12 +326,12 @@ impl Runtime {
         let point_in_map = (base_from_map.inverse() * Point3::from(point_in_base)).coords;
         // NaN and infinite points fail the distance test.
         let points: Vec<Vector3<f64>> = cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
-        // Fitted as the mapper fits its seeds (same config, nf points spread over the neighbourhood,
-        // sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the point looking
-        // down (map z is up, REP-103), so the target compares with mapped patches under J 6.3's
-        // thresholds.
-        let config = default_mapper_config();
-        let min_points = config.neighbourhood.min_points.max(1);
+        // Fitted as the mapper fits its seeds (`training_fit`: nf points spread over the
+        // neighbourhood, sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the
+        // point looking down (map z is up, REP-103), so the target compares with mapped patches
+        // under J 6.3's thresholds.
+        let config = &self.config.training_fit;
+        let min_points = config.min_points.max(1);
         if points.len() < min_points {
             return Err(format!("only {} cloud points within {radius_m} m of the point (need {min_points})", points.len()));
         }
@@ -341,9 +340,9 @@ impl Runtime {
             UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
         );
         let points_in_camera: Vec<Vector3<f64>> = points.iter().map(|p| (map_from_camera.inverse() * Point3::from(*p)).coords).collect();
-        let nf = config.neighbourhood.fit_points.clamp(1, points_in_camera.len());
+        let nf = config.fit_points.clamp(1, points_in_camera.len());
         let fit_points: Vec<Vector3<f64>> = (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
-        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config).map_err(|e| format!("fit: {e}"))?;
+        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
         let fitted = transform_patch(&fitted_in_camera, &map_from_camera).ok_or("fit: the patch could not be moved to the map frame")?;
         let patch = PatchGeometry {
             surface: SurfaceType::from_u8(fitted.surface as u8).ok_or("fit: unknown surface type")?,

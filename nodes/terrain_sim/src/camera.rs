@@ -6,14 +6,14 @@
 //! σp (pixels, in u and v), and its disparity `d = f·b/z` by the matching error σm (pixels); the
 //! depth is `z = f·b/d`, so to first order σz = z²·σm/(f·b). Disparity is then quantised to the
 //! sensor's sub-pixel step and depth to millimetres. The simulation samples the disparity itself
-//! (exact, not linearised); a test checks its σz against `patch_mapper::sensor::murray_little`, the
+//! (exact, not linearised); a test checks its σz against `patchwalk_spl::sensor::murray_little`, the
 //! covariance model perception uses (`CameraConfig::stereo_error_params` gives matching parameters).
 //!
 //! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
 //! camera and the projector images so that per pixel only the rocks that can be hit are tested.
 
 use nalgebra::{Isometry3, Point3, Vector3};
-use patch_mapper::camera::{CameraError, DepthImage, Intrinsics};
+use patchwalk_fusion::camera::{CameraError, DepthImage, Intrinsics};
 use rand::{RngCore, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -112,9 +112,9 @@ impl CameraConfig {
     }
 
     /// This sensor's parameters for the mapper's Murray–Little covariance model
-    /// (`patch_mapper::sensor::murray_little`), so perception can use the simulator's true noise.
-    pub fn stereo_error_params(&self) -> patch_mapper::sensor::StereoErrorParams {
-        patch_mapper::sensor::StereoErrorParams {
+    /// (`patchwalk_spl::sensor::murray_little`), so perception can use the simulator's true noise.
+    pub fn stereo_error_params(&self) -> patchwalk_spl::sensor::StereoErrorParams {
+        patchwalk_spl::sensor::StereoErrorParams {
             sigma_pointing_px: self.noise.sigma_pointing_px,
             sigma_disparity_px: self.noise.sigma_disparity_px,
             baseline_m: self.baseline_m,
@@ -653,7 +653,7 @@ mod tests {
             let std = (values.iter().map(|z| (z - mean).powi(2)).sum::<f64>() / n).sqrt();
             let model = config.depth_sigma(h);
             // Same σz as the mapper's covariance model (J eq. 2) at the image centre.
-            let covariance = patch_mapper::sensor::murray_little(&Vector3::new(0.0, 0.0, h), &config.stereo_error_params()).unwrap();
+            let covariance = patchwalk_spl::sensor::murray_little(&Vector3::new(0.0, 0.0, h), &config.stereo_error_params()).unwrap();
             assert!((covariance[(2, 2)].sqrt() - model).abs() < 1e-12 * model.max(1.0));
             assert!((mean - h).abs() < 0.1 * model, "mean {mean} at {h}");
             assert!((std / model - 1.0).abs() < 0.1, "std {std} vs model {model} at {h}");

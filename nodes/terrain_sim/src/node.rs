@@ -14,7 +14,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context as _;
 use nalgebra::{Isometry3, UnitQuaternion};
-use patch_mapper::camera::{DepthImage, Intrinsics};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::{Quaternion as QuaternionMsg, Vector3 as Vector3Msg};
 use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};

@@ -1,11 +1,11 @@
-//! Writes the simulated stream as a TUM RGB-D-style dataset that `patch_mapper::dataset` reads:
+//! Writes the simulated stream as a TUM RGB-D-style dataset that `patchwalk_fusion::dataset` reads:
 //! `depth/<t>.png` (16-bit, 1/5000 m), `depth.txt`, `accelerometer.txt` (IMU frame, m/s²),
 //! `groundtruth.txt` (`world_from_camera`, world z up), `intrinsics.json` (with `depth_scale` and
 //! the `camera_from_imu` mounting), and `scene.json` (rocks with their ground-truth footholds).
 
 use std::path::{Path, PathBuf};
 
-use patch_mapper::dataset::{save_depth_png, write_tum_poses, DatasetError, StampedPose};
+use patchwalk_fusion::dataset::{save_depth_png, write_tum_poses, DatasetError, StampedPose};
 use serde_json::json;
 
 use crate::sim::Simulator;
@@ -138,7 +138,7 @@ fn write(path: PathBuf, text: &str) -> Result<(), RecordError> {
 mod tests {
     use super::*;
     use crate::config::SimConfig;
-    use patch_mapper::dataset::Dataset;
+    use patchwalk_fusion::dataset::Dataset;
 
     #[test]
     fn recorded_dataset_opens_with_patch_mapper() {

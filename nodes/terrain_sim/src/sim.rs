@@ -3,7 +3,7 @@
 //! `j` at `j / imu.rate_hz`; noise seeds derive from the config seed and the sample index.
 
 use nalgebra::Isometry3;
-use patch_mapper::camera::DepthImage;
+use patchwalk_fusion::camera::DepthImage;
 
 use crate::camera::{mix, DepthCamera, DepthCameraError, RenderCache};
 use crate::config::SimConfig;

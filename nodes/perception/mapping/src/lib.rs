@@ -1,0 +1,21 @@
+//! Patch mapping of patchwalk's perception (J 3–5): from one depth frame (or the fused birds-eye
+//! raycast) to a map of validated foothold patches around the robot.
+//!
+//! Stages in the order of J 3.2: [`acquire`] (organized cloud, gravity) → [`preprocess`]
+//! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1) → [`seeds`] (J 3.2.1
+//! steps 1–10) → [`neighbourhood`] (r-balls, nf subsets) → fit and validate (the Surface Patch
+//! Library) → [`patch_map`] (J 4.6) and [`patch_tracking`] (J 5.2). [`mapper`] runs one frame,
+//! [`pipeline`] the node's per-frame sequence with fusion and tracking; [`render`] draws pictures.
+//!
+//! ROS-free; the `patch_mapper` node wraps it.
+
+pub mod acquire;
+pub mod mapper;
+pub mod neighbourhood;
+pub mod patch_map;
+pub mod patch_tracking;
+pub mod pipeline;
+pub mod preprocess;
+pub mod render;
+pub mod saliency;
+pub mod seeds;

@@ -1,0 +1,385 @@
+//! Stage ii, step 6 (J 4.2.1): the hiking saliency filter on the auxiliary image D.
+//!
+//! - 6.1 DtFP: fixation point `f = l_d·ĝ + l_f·(x̂ × ĝ)/|x̂ × ĝ|` in the camera frame,
+//! - 6.2 H ← points of D within the R-ball around f,
+//! - 6.3 normals N (window 2rf/Z) and N_s (half window) by integral images (J [76], the
+//!   "average 3D gradient" variant: smoothed horizontal and vertical 3D gradients from box means),
+//! - 6.4 DoN: drop i when `N(i)ᵀN_s(i) < cos φ_d`,
+//! - 6.5 DoNG: drop i when `−N(i)ᵀĝ < cos φ_g`.
+//!
+//! The output is a per-pixel label image of D (so the cloud stays organized), the coarse normals,
+//! and the sampled surface area S of the salient set (used by the ν termination of J eq 19).
+
+use nalgebra::{Unit, Vector3};
+use rayon::prelude::*;
+
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+
+/// Configuration of step 6. Defaults from J 6.1.2 / Table 3 ("auto" = human mean + 3σ).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SaliencyConfig {
+    /// Step 6.1: l_d, distance of the fixation point below the camera (m). Not given numerically
+    /// in J; 1.2 m is a chest-height hand-held rig like J's human recordings.
+    pub fixation_down_m: f64,
+    /// Step 6.1: l_f, horizontal distance of the fixation point ahead of the camera (m): "about two
+    /// steps ahead" (J 4.2.1, [75]); 2 × 0.75 m human steps.
+    pub fixation_forward_m: f64,
+    /// Step 6.2: R, radius of the region of interest around f (m). J 6.1.2: "no patches fitted
+    /// further than 0.7 m from the fixation point". Non-finite (`.inf` in YAML) disables DtFP.
+    pub fixation_radius_m: f64,
+    /// Step 6.4: φ_d, DoN threshold (degrees). J Table 3 "auto" max DoN = 15.31° (= 4.95 + 3·3.45).
+    pub don_max_deg: f64,
+    /// Step 6.5: φ_g, DoNG threshold (degrees). J Table 3 "auto" max DoNG = 34.96° (= 12.34 + 3·7.54).
+    pub dong_max_deg: f64,
+    /// Smallest half window (pixels) for the fine normals; below it the box means get noisy.
+    pub min_half_window_px: usize,
+    /// Minimum fraction of valid pixels in each half-window box for a normal to be computed.
+    pub min_support_fraction: f64,
+}
+
+impl Default for SaliencyConfig {
+    fn default() -> Self {
+        Self {
+            fixation_down_m: 1.2,
+            fixation_forward_m: 1.5,
+            fixation_radius_m: 0.7,
+            don_max_deg: 15.3,
+            dong_max_deg: 35.0,
+            min_half_window_px: 2,
+            min_support_fraction: 0.25,
+        }
+    }
+}
+
+/// Why a pixel of D is or is not in the salient set H.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[repr(u8)]
+pub enum SaliencyLabel {
+    /// No depth.
+    Invalid = 0,
+    /// Outside the R-ball around the fixation point (step 6.2).
+    Distant = 1,
+    /// Too few valid neighbours for a normal (window at a hole or the image border).
+    NoNormal = 2,
+    /// Dropped by DoN (step 6.4): irregular surface.
+    Irregular = 3,
+    /// Dropped by DoNG (step 6.5): too steep.
+    Steep = 4,
+    /// In H.
+    Salient = 5,
+}
+
+/// Result of step 6 on D.
+#[derive(Debug, Clone)]
+pub struct Saliency {
+    pub width: usize,
+    pub height: usize,
+    /// One label per pixel of D, row-major.
+    pub labels: Vec<SaliencyLabel>,
+    /// Coarse normals N (unit, towards the camera) per pixel of D; NaN where not computed.
+    pub normals_in_camera: Vec<Vector3<f32>>,
+    /// Fixation point f in the camera frame (step 6.1).
+    pub fixation_in_camera: Vector3<f64>,
+    /// Sampled surface area S of H (m²): Σ z²/(f_x f_y) / |n·ray| over the salient pixels.
+    pub salient_area_m2: f64,
+}
+
+impl Saliency {
+    /// Number of pixels with `label`.
+    pub fn count(&self, label: SaliencyLabel) -> usize {
+        self.labels.iter().filter(|&&l| l == label).count()
+    }
+
+    /// Pixel indices of H (row-major into D).
+    pub fn salient_indices(&self) -> impl Iterator<Item = usize> + '_ {
+        self.labels.iter().enumerate().filter(|(_, &l)| l == SaliencyLabel::Salient).map(|(i, _)| i)
+    }
+}
+
+/// Step 6.1: fixation point `f = l_d ĝ + l_f (x̂ × ĝ)/|x̂ × ĝ|` in the camera frame.
+pub fn fixation_point(gravity_in_camera: &Unit<Vector3<f64>>, down_m: f64, forward_m: f64) -> Vector3<f64> {
+    let forward = Vector3::x().cross(gravity_in_camera);
+    let forward = if forward.norm() > 1e-9 { forward.normalize() } else { Vector3::z() };
+    gravity_in_camera.into_inner() * down_m + forward * forward_m
+}
+
+/// Integral image (summed-area table) of x, y, z and the valid count of an organized cloud.
+#[derive(Debug, Clone)]
+pub struct IntegralCloud {
+    width: usize,
+    height: usize,
+    /// `(width + 1) × (height + 1)` prefix sums [Σx, Σy, Σz, n].
+    sums: Vec<[f64; 4]>,
+}
+
+impl IntegralCloud {
+    /// Builds the sums from D and its intrinsics (points back-projected on the fly). The
+    /// per-row prefix sums run in parallel; each table entry is then `above + row prefix`, the
+    /// same additions in the same order as a single sequential pass.
+    pub fn new(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
+        let (width, height) = (depth.width, depth.height);
+        let stride = width + 1;
+        let mut sums = vec![[0.0f64; 4]; stride * (height + 1)];
+        // Row prefix sums into rows 1..=height.
+        sums.par_chunks_mut(stride).skip(1).zip(depth.depth_m.par_chunks(width.max(1))).enumerate().for_each(|(v, (out, src))| {
+            let mut row = [0.0f64; 4];
+            for (u, (o, &z)) in out.iter_mut().skip(1).zip(src).enumerate() {
+                let z = f64::from(z);
+                if z.is_finite() {
+                    let p = intrinsics.back_project(u as f64, v as f64, z);
+                    row[0] += p.x;
+                    row[1] += p.y;
+                    row[2] += p.z;
+                    row[3] += 1.0;
+                }
+                *o = row;
+            }
+        });
+        // Column accumulation, row by row (vectorised adds).
+        for v in 1..height {
+            let (done, rest) = sums.split_at_mut((v + 1) * stride);
+            let (above, row) = (&done[v * stride..], &mut rest[..stride]);
+            for (r, a) in row.iter_mut().zip(above) {
+                *r = [a[0] + r[0], a[1] + r[1], a[2] + r[2], a[3] + r[3]];
+            }
+        }
+        Self { width, height, sums }
+    }
+
+    /// The four half-window box sums of [`IntegralCloud::normal`] at `(u, v)`: `[right, left,
+    /// below, above]` (boxes clipped to the image), from 12 table reads (the boxes share corners)
+    /// instead of 16.
+    #[inline]
+    fn half_window_sums(&self, u: usize, v: usize, half: usize) -> [[f64; 4]; 4] {
+        let (u, v, h) = (u as isize, v as isize, half as isize);
+        let [c0, c1, c2, c3] = [u - h, u, u + 1, u + h + 1].map(|x| x.clamp(0, self.width as isize) as usize);
+        let [r0, r1, r2, r3] = [v - h, v, v + 1, v + h + 1].map(|x| x.clamp(0, self.height as isize) as usize);
+        let stride = self.width + 1;
+        let row = |r: usize| self.sums.get(r * stride..(r + 1) * stride).unwrap_or(&[]);
+        let at = |row: &[[f64; 4]], c: usize| row.get(c).copied().unwrap_or([0.0; 4]);
+        let (top, upper, lower, bottom) = (row(r0), row(r1), row(r2), row(r3));
+        let (t0, t1, t2, t3) = (at(top, c0), at(top, c1), at(top, c2), at(top, c3));
+        let (b0, b1, b2, b3) = (at(bottom, c0), at(bottom, c1), at(bottom, c2), at(bottom, c3));
+        let (m0, m3, l0, l3) = (at(upper, c0), at(upper, c3), at(lower, c0), at(lower, c3));
+        // Box sum a − b − c + d from the summed-area table, a = (u1, v1), b = (u0, v1), c = (u1, v0),
+        // d = (u0, v0).
+        let sum = |a: [f64; 4], b: [f64; 4], c: [f64; 4], d: [f64; 4]| std::array::from_fn(|i| a[i] - b[i] - c[i] + d[i]);
+        [sum(b3, b2, t3, t2), sum(b1, b0, t1, t0), sum(b3, b0, l3, l0), sum(m3, m0, t3, t0)]
+    }
+
+    /// Normal at pixel `(u, v)` from half window `half` (J [76], average 3D gradient): the
+    /// horizontal gradient is mean(right box) − mean(left box), the vertical one mean(lower box) −
+    /// mean(upper box), each box `half × (2·half + 1)` pixels; `n = ∂h × ∂v` turned towards the camera.
+    pub fn normal(&self, u: usize, v: usize, half: usize, point: &Vector3<f64>, min_support: f64) -> Option<Vector3<f64>> {
+        let h = half as isize;
+        let min_count = (min_support * (h * (2 * h + 1)) as f64).max(1.0);
+        let [right, left, below, above] = self.half_window_sums(u, v, half);
+        let mean = |s: [f64; 4]| (s[3] >= min_count).then(|| Vector3::new(s[0], s[1], s[2]) / s[3]);
+        let normal = (mean(right)? - mean(left)?).cross(&(mean(below)? - mean(above)?));
+        let norm = normal.norm();
+        if !(norm > 1e-12) {
+            return None;
+        }
+        let normal = normal / norm;
+        Some(if normal.dot(point) > 0.0 { -normal } else { normal })
+    }
+}
+
+/// Step 6 on D: labels, normals and the salient area. `foot_radius_m` is r (J 4: foot size).
+pub fn hiking_saliency(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    gravity_in_camera: &Unit<Vector3<f64>>,
+    foot_radius_m: f64,
+    config: &SaliencyConfig,
+) -> Saliency {
+    let (width, height) = (depth.width, depth.height);
+    let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
+    let radius_sq = if config.fixation_radius_m.is_finite() { config.fixation_radius_m.powi(2) } else { f64::INFINITY };
+    let integral = IntegralCloud::new(depth, intrinsics);
+    let cos_don = config.don_max_deg.to_radians().cos();
+    let cos_dong = config.dong_max_deg.to_radians().cos();
+    let focal = 0.5 * (intrinsics.fx + intrinsics.fy);
+    let pixel_area_per_z2 = 1.0 / (intrinsics.fx * intrinsics.fy);
+    let g = gravity_in_camera.into_inner();
+    let mut labels = vec![SaliencyLabel::Invalid; width * height];
+    let mut normals_in_camera = vec![Vector3::repeat(f32::NAN); width * height];
+    let salient_area_m2: f64 = labels
+        .par_chunks_mut(width)
+        .zip(normals_in_camera.par_chunks_mut(width))
+        .enumerate()
+        .map(|(v, (label_row, normal_row))| {
+            let mut area = 0.0;
+            for (u, (label, normal_out)) in label_row.iter_mut().zip(normal_row.iter_mut()).enumerate() {
+                let z = f64::from(depth.depth_m[v * width + u]);
+                if !z.is_finite() {
+                    continue;
+                }
+                let point = intrinsics.back_project(u as f64, v as f64, z);
+                // 6.2 DtFP.
+                if (point - fixation).norm_squared() > radius_sq {
+                    *label = SaliencyLabel::Distant;
+                    continue;
+                }
+                // 6.3 normals: window 2rf/Z, i.e. half window rf/Z, and half of that.
+                let half = (foot_radius_m * focal / z).round().max(2.0 * config.min_half_window_px as f64) as usize;
+                let half_fine = (half / 2).max(config.min_half_window_px);
+                let (Some(n), Some(n_fine)) = (
+                    integral.normal(u, v, half, &point, config.min_support_fraction),
+                    integral.normal(u, v, half_fine, &point, config.min_support_fraction),
+                ) else {
+                    *label = SaliencyLabel::NoNormal;
+                    continue;
+                };
+                *normal_out = n.cast::<f32>();
+                *label = if n.dot(&n_fine) < cos_don {
+                    SaliencyLabel::Irregular // 6.4 DoN
+                } else if -n.dot(&g) < cos_dong {
+                    SaliencyLabel::Steep // 6.5 DoNG
+                } else {
+                    let cos_view = (n.dot(&point) / point.norm()).abs().max(0.1);
+                    area += z * z * pixel_area_per_z2 / cos_view;
+                    SaliencyLabel::Salient
+                };
+            }
+            area
+        })
+        .sum();
+    Saliency { width, height, labels, normals_in_camera, fixation_in_camera: fixation, salient_area_m2 }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::acquire::gravity_from_vector;
+
+    /// Renders a depth image of an analytic surface by ray marching: `surface(p)` is a signed
+    /// height-like function that changes sign when the ray crosses the surface.
+    pub(crate) fn render(intrinsics: &Intrinsics, surface: impl Fn(&Vector3<f64>) -> f64 + Sync) -> DepthImage {
+        let mut depth = vec![f32::NAN; intrinsics.width * intrinsics.height];
+        depth.par_iter_mut().enumerate().for_each(|(i, d)| {
+            let (u, v) = ((i % intrinsics.width) as f64, (i / intrinsics.width) as f64);
+            let ray = intrinsics.back_project(u, v, 1.0);
+            let (mut t0, mut t1) = (0.2, 0.2);
+            let mut s0 = surface(&(ray * t0));
+            while t1 < 6.0 {
+                t1 = t0 + 0.01;
+                let s1 = surface(&(ray * t1));
+                if s0.signum() != s1.signum() {
+                    // Bisection to 1e-7 m.
+                    let (mut a, mut b) = (t0, t1);
+                    for _ in 0..40 {
+                        let m = 0.5 * (a + b);
+                        if surface(&(ray * m)).signum() == s0.signum() {
+                            a = m;
+                        } else {
+                            b = m;
+                        }
+                    }
+                    *d = (0.5 * (a + b)) as f32;
+                    return;
+                }
+                t0 = t1;
+                s0 = s1;
+            }
+        });
+        DepthImage::new(intrinsics.width, intrinsics.height, depth).unwrap_or_else(|_| unreachable!())
+    }
+
+    pub(crate) fn small_camera() -> Intrinsics {
+        Intrinsics::new(160, 120, 131.25, 131.25, 79.5, 59.5).unwrap()
+    }
+
+    /// Camera looking straight ahead (gravity +y) at 0.4 m above a floor, a wall 2 m ahead.
+    pub(crate) fn floor_and_wall(intrinsics: &Intrinsics) -> DepthImage {
+        render(intrinsics, |p| (0.4 - p.y).min(2.0 - p.z))
+    }
+
+    #[test]
+    fn integral_normals_match_analytic_plane_normals() {
+        let intrinsics = small_camera();
+        // Tilted plane n·p = 1.5 with n = normalize(0.2, -0.9, -0.4) (facing the camera).
+        let n_true = Vector3::new(0.2, -0.9, -0.4).normalize();
+        let depth = render(&intrinsics, |p| -1.5 - n_true.dot(p));
+        let integral = IntegralCloud::new(&depth, &intrinsics);
+        let mut checked = 0;
+        for v in (10..110).step_by(7) {
+            for u in (10..150).step_by(7) {
+                let Some(z) = depth.get(u, v) else { continue };
+                let p = intrinsics.back_project(u as f64, v as f64, f64::from(z));
+                // Only where the whole window sees the plane (it leaves the image at the horizon).
+                let Some(n) = integral.normal(u, v, 4, &p, 1.0) else { continue };
+                assert!(n.dot(&n_true) > (0.5f64).to_radians().cos(), "normal {n:?} at ({u},{v})");
+                checked += 1;
+            }
+        }
+        assert!(checked > 100);
+    }
+
+    #[test]
+    fn integral_normals_on_a_sphere_match_the_radial_direction() {
+        let intrinsics = small_camera();
+        let centre = Vector3::new(0.0, 0.0, 1.5);
+        let depth = render(&intrinsics, |p| (p - centre).norm() - 0.5);
+        let integral = IntegralCloud::new(&depth, &intrinsics);
+        for (u, v) in [(80, 60), (70, 50), (95, 66)] {
+            let z = depth.get(u, v).unwrap();
+            let p = intrinsics.back_project(u as f64, v as f64, f64::from(z));
+            let n_true = (p - centre).normalize();
+            let n = integral.normal(u, v, 2, &p, 0.5).unwrap();
+            assert!(n.dot(&n_true) > (3.0f64).to_radians().cos(), "({u},{v}): {n:?} vs {n_true:?}");
+        }
+    }
+
+    #[test]
+    fn saliency_keeps_ground_and_drops_the_wall() {
+        let intrinsics = small_camera();
+        let depth = floor_and_wall(&intrinsics);
+        let g = gravity_from_vector(Vector3::y()).unwrap();
+        let config = SaliencyConfig { fixation_radius_m: f64::INFINITY, ..Default::default() };
+        let saliency = hiking_saliency(&depth, &intrinsics, &g, 0.05, &config);
+        let mut floor = (0, 0);
+        let mut wall = (0, 0);
+        for (i, label) in saliency.labels.iter().enumerate() {
+            let Some(z) = depth.get(i % 160, i / 160) else { continue };
+            let p = intrinsics.back_project((i % 160) as f64, (i / 160) as f64, f64::from(z));
+            let salient = *label == SaliencyLabel::Salient;
+            // Well away from the crease (y = 0.4, z = 2) and the image border (normal windows).
+            let inside = (15..145).contains(&(i % 160)) && i / 160 < 105;
+            if inside && (p.y - 0.4).abs() < 1e-3 && p.z < 1.8 {
+                floor = (floor.0 + usize::from(salient), floor.1 + 1);
+            } else if (p.z - 2.0).abs() < 1e-3 && p.y < 0.2 {
+                wall = (wall.0 + usize::from(salient), wall.1 + 1);
+                assert_ne!(*label, SaliencyLabel::Salient, "wall pixel {i} salient");
+            }
+        }
+        assert!(floor.1 > 1000 && wall.1 > 1000);
+        assert!(floor.0 as f64 > 0.95 * floor.1 as f64, "floor salient {floor:?} labels {:?}", [0u8, 1, 2, 3, 4, 5].map(|l| saliency.labels.iter().filter(|x| **x as u8 == l).count()));
+        assert_eq!(wall.0, 0);
+        assert!(saliency.count(SaliencyLabel::Steep) > 1000);
+        // The crease itself is irregular (DoN) for some pixels.
+        assert!(saliency.count(SaliencyLabel::Irregular) > 0);
+        // Salient area ≈ visible floor area up to the crease region.
+        assert!(saliency.salient_area_m2 > 0.5, "area {}", saliency.salient_area_m2);
+    }
+
+    #[test]
+    fn dtfp_keeps_only_the_ball_around_the_fixation_point() {
+        let intrinsics = small_camera();
+        let depth = floor_and_wall(&intrinsics);
+        let g = gravity_from_vector(Vector3::y()).unwrap();
+        let config = SaliencyConfig { fixation_down_m: 0.4, fixation_forward_m: 1.3, fixation_radius_m: 0.25, ..Default::default() };
+        let saliency = hiking_saliency(&depth, &intrinsics, &g, 0.05, &config);
+        assert!((saliency.fixation_in_camera - Vector3::new(0.0, 0.4, 1.3)).norm() < 1e-12);
+        let mut salient = 0;
+        for i in saliency.salient_indices() {
+            let z = depth.depth_m[i];
+            let p = intrinsics.back_project((i % 160) as f64, (i / 160) as f64, f64::from(z));
+            assert!((p - saliency.fixation_in_camera).norm() <= 0.25 + 1e-9);
+            salient += 1;
+        }
+        assert!(salient > 200);
+        assert!(saliency.count(SaliencyLabel::Distant) > saliency.count(SaliencyLabel::Salient));
+    }
+}

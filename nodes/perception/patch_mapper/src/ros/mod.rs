@@ -1,0 +1,568 @@
+//! ROS 2 wiring of the patch_mapper node (`patch_mapper run`): subscribes the depth camera and IMU
+//! (sensor-data QoS), converts messages for the ROS-free [`Pipeline`], publishes PatchArray /
+//! MarkerArray / birds-eye PointCloud2 (reliable) and MapperStatus, and serves `/patch_mapper/reset`.
+//!
+//! Two threads. The ROS loop never blocks: it drains the subscriptions, converts and checks each
+//! message, forwards IMU samples, hands depth frames to the worker keep-latest (a frame still waiting
+//! when a newer one arrives is dropped and counted as skipped), serves reset, publishes the status and
+//! sleeps `poll_period_ms`. The worker runs the pipeline at the sensor rate and publishes its outputs.
+//! Every bad input (wrong encoding or size, NaN/zero depth, missing CameraInfo, IMU gaps, out-of-order
+//! or duplicate stamps) is counted, logged once per period, and skipped — the node keeps running.
+
+mod convert;
+mod publish;
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_mapping::mapper::MapperConfig;
+use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, MAP_FRAME};
+use patchwalk_fusion::tracking::TrackerConfig;
+use patchwalk_msgs::builtin_interfaces::msg::Time;
+use patchwalk_msgs::msg::{MapperStatus, PatchArray};
+use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
+use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
+use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
+use ros2_client::Publisher;
+
+/// Arguments of `patch_mapper run`.
+#[derive(clap::Args, Debug, Default)]
+pub struct RunArgs {
+    #[command(flatten)]
+    pub node: NodeArgs,
+}
+
+/// Top level of `config/patch_mapper.yaml`: the ROS wiring and the pipeline's three sections (each
+/// with its own `Default` = the paper's values; `mapper` = [`default_mapper_config`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PatchMapperConfig {
+    pub ros: MapperRosParams,
+    pub pipeline: PipelineConfig,
+    pub tracker: TrackerConfig,
+    /// Keys given here are laid over [`default_mapper_config`] (not over J's `MapperConfig::default()`),
+    /// so a partial `mapper:` section or a `--param mapper.x=..` keeps the node's other values.
+    #[serde(deserialize_with = "mapper_over_node_defaults")]
+    pub mapper: MapperConfig,
+}
+
+/// Deserialises a (partial) `mapper:` section on top of [`default_mapper_config`]; unknown keys are
+/// still rejected by `MapperConfig`'s `deny_unknown_fields`.
+fn mapper_over_node_defaults<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<MapperConfig, D::Error> {
+    use serde::de::Error as _;
+    use serde_yaml_ng::Value;
+    fn merge(base: &mut Value, over: Value) {
+        match (base, over) {
+            (Value::Mapping(base), Value::Mapping(over)) => {
+                for (key, value) in over {
+                    match base.get_mut(&key) {
+                        Some(slot) => merge(slot, value),
+                        None => {
+                            base.insert(key, value);
+                        }
+                    }
+                }
+            }
+            (slot, value) => *slot = value,
+        }
+    }
+    let given = Value::deserialize(deserializer)?;
+    let mut merged = serde_yaml_ng::to_value(default_mapper_config()).map_err(D::Error::custom)?;
+    merge(&mut merged, given);
+    serde_yaml_ng::from_value(merged).map_err(D::Error::custom)
+}
+
+impl Default for PatchMapperConfig {
+    fn default() -> Self {
+        Self {
+            ros: MapperRosParams::default(),
+            pipeline: PipelineConfig::default(),
+            tracker: TrackerConfig::default(),
+            mapper: default_mapper_config(),
+        }
+    }
+}
+
+/// ROS-level parameters of the node (names per names.md; topics may be remapped here).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapperRosParams {
+    /// Depth image input (16UC1 mm or 32FC1 m).
+    pub depth_topic: String,
+    /// Intrinsics of the depth image.
+    pub camera_info_topic: String,
+    /// IMU input.
+    pub imu_topic: String,
+    /// Period of /patch_mapper/status in s.
+    pub status_period_s: f64,
+    /// Sleep between two polls of the inputs in ms (bounds the added latency).
+    pub poll_period_ms: u64,
+    /// Minimum time between two identical warnings in s.
+    pub log_period_s: f64,
+    /// Publish the birds-eye raycast as PointCloud2 on /patch_mapper/birds_eye_cloud.
+    pub publish_birds_eye_cloud: bool,
+    /// Publish RViz markers on /patch_mapper/markers.
+    pub publish_markers: bool,
+}
+
+impl Default for MapperRosParams {
+    fn default() -> Self {
+        Self {
+            depth_topic: "/camera/depth/image_raw".into(),
+            camera_info_topic: "/camera/depth/camera_info".into(),
+            imu_topic: "/imu/data".into(),
+            status_period_s: 0.5,
+            poll_period_ms: 2,
+            log_period_s: 2.0,
+            publish_birds_eye_cloud: true,
+            publish_markers: true,
+        }
+    }
+}
+
+/// Output topic and service names (names.md).
+pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
+pub const MARKERS_TOPIC: &str = "/patch_mapper/markers";
+pub const BIRDS_EYE_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
+pub const STATUS_TOPIC: &str = "/patch_mapper/status";
+pub const RESET_SERVICE: &str = "/patch_mapper/reset";
+
+/// A checked depth frame on its way to the worker.
+struct DepthJob {
+    depth: DepthImage,
+    intrinsics: Intrinsics,
+    stamp: Time,
+    received: Instant,
+}
+
+/// What the ROS loop hands the worker.
+enum WorkerInput {
+    Imu { stamp: f64, acceleration_in_imu: Vector3<f64> },
+}
+
+/// Status shared by both threads (counters of MapperStatus, last error, timings).
+type SharedStatus = Arc<Mutex<MapperStatus>>;
+
+fn with_status(status: &SharedStatus, update: impl FnOnce(&mut MapperStatus)) {
+    if let Ok(mut status) = status.lock() {
+        update(&mut status);
+    }
+}
+
+/// What the ROS loop knows between messages.
+struct State {
+    status: SharedStatus,
+    intrinsics: Option<Intrinsics>,
+    jobs: Sender<DepthJob>,
+    /// The ROS loop's own end of the job queue, to replace a waiting frame by a newer one.
+    stale_jobs: Receiver<DepthJob>,
+    imu: Sender<WorkerInput>,
+}
+
+impl State {
+    fn new(status: SharedStatus, jobs: Sender<DepthJob>, stale_jobs: Receiver<DepthJob>, imu: Sender<WorkerInput>) -> Self {
+        Self { status, intrinsics: None, jobs, stale_jobs, imu }
+    }
+
+    fn count(&self, update: impl FnOnce(&mut MapperStatus)) {
+        with_status(&self.status, update);
+    }
+
+    /// A depth image arrived: stage i (conversion, intrinsics, size check) or a counted rejection;
+    /// accepted frames go to the worker, replacing a frame still waiting there.
+    fn on_depth(&mut self, msg: &Image, log: &mut RateLimitedLog) {
+        let received = Instant::now();
+        self.count(|s| s.frames_received += 1);
+        let depth = match convert::depth_image(msg) {
+            Ok(depth) => depth,
+            Err(e) => {
+                self.count(|s| s.frames_rejected += 1);
+                self.fail(log, "depth", format!("depth image rejected: {e}"));
+                return;
+            }
+        };
+        let Some(intrinsics) = self.intrinsics else {
+            self.count(|s| s.frames_skipped += 1);
+            self.fail(log, "no_camera_info", "depth frame skipped: no valid CameraInfo received yet".into());
+            return;
+        };
+        if (depth.width, depth.height) != (intrinsics.width, intrinsics.height) {
+            self.count(|s| s.frames_rejected += 1);
+            self.fail(
+                log,
+                "size",
+                format!(
+                    "depth image is {}x{} but CameraInfo says {}x{}",
+                    depth.width, depth.height, intrinsics.width, intrinsics.height
+                ),
+            );
+            return;
+        }
+        // An unset stamp (0) means "now" (publishers that do not stamp their images).
+        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
+        let job = DepthJob { depth, intrinsics, stamp, received };
+        if let Err(TrySendError::Full(job)) = self.jobs.try_send(job) {
+            // Keep-latest: the waiting frame is dropped for the newer one.
+            if self.stale_jobs.try_recv().is_ok() {
+                self.count(|s| s.frames_skipped += 1);
+                log.warn("busy", format_args!("pipeline busy: an older depth frame was dropped for a newer one"));
+            }
+            let _ = self.jobs.try_send(job);
+        }
+    }
+
+    fn on_camera_info(&mut self, msg: &CameraInfo, log: &mut RateLimitedLog) {
+        self.count(|s| s.camera_infos_received += 1);
+        match convert::intrinsics(msg) {
+            Ok(intrinsics) => self.intrinsics = Some(intrinsics),
+            Err(e) => self.fail(log, "camera_info", format!("CameraInfo rejected: {e}")),
+        }
+    }
+
+    fn on_imu(&mut self, msg: &Imu, log: &mut RateLimitedLog) {
+        self.count(|s| s.imu_received += 1);
+        let a = &msg.linear_acceleration;
+        let acceleration_in_imu = Vector3::new(a.x, a.y, a.z);
+        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
+        if !acceleration_in_imu.iter().all(|v| v.is_finite()) {
+            self.fail(log, "imu", format!("IMU sample rejected: non-finite acceleration {acceleration_in_imu:?}"));
+            return;
+        }
+        let _ = self.imu.send(WorkerInput::Imu { stamp: publish::seconds_from_time(&stamp), acceleration_in_imu });
+    }
+
+    fn fail(&mut self, log: &mut RateLimitedLog, key: &str, message: String) {
+        log.warn(key, format_args!("{message}"));
+        self.count(|s| s.last_error = message);
+    }
+}
+
+/// Publishers the worker owns.
+struct Outputs {
+    patches: Publisher<PatchArray>,
+    markers: Option<Publisher<MarkerArray>>,
+    birds_eye: Option<Publisher<PointCloud2>>,
+}
+
+/// The worker: builds the pipeline for the current intrinsics, runs it on each frame, publishes.
+struct Worker {
+    config: PatchMapperConfig,
+    pipeline: Option<Pipeline>,
+    recent_imu: VecDeque<(f64, Vector3<f64>)>,
+    status: SharedStatus,
+    outputs: Outputs,
+    log: RateLimitedLog,
+    dds_log: RateLimitedLog,
+    /// The last reset, to drop the frames that were on their way when it came.
+    last_reset: Option<ResetMark>,
+    /// Set by the reset service, taken by the worker.
+    reset_request: Arc<Mutex<Option<ResetMark>>>,
+}
+
+/// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
+/// [`STALE_FRAME_WINDOW_S`] before it, shows the world before the reset (e.g. before the robot was
+/// carried to another rock) and is dropped. Older stamps are a camera clock offset and are kept.
+#[derive(Debug, Clone, Copy)]
+struct ResetMark {
+    at: Instant,
+    stamp_s: f64,
+}
+
+const STALE_FRAME_WINDOW_S: f64 = 0.5;
+
+impl ResetMark {
+    fn now() -> Self {
+        Self { at: Instant::now(), stamp_s: publish::seconds_from_time(&node::now_stamp()) }
+    }
+
+    fn is_stale(&self, received: Instant, stamp_s: f64) -> bool {
+        received < self.at || (self.stamp_s - STALE_FRAME_WINDOW_S..self.stamp_s).contains(&stamp_s)
+    }
+}
+
+impl Worker {
+    fn run(mut self, jobs: Receiver<DepthJob>, inputs: Receiver<WorkerInput>, stop: Arc<AtomicBool>) {
+        while !stop.load(Ordering::Relaxed) {
+            let job = jobs.recv_timeout(Duration::from_millis(50));
+            if let Some(mark) = self.reset_request.lock().ok().and_then(|mut r| r.take()) {
+                if let Some(pipeline) = self.pipeline.as_mut() {
+                    pipeline.reset();
+                }
+                self.last_reset = Some(mark);
+                with_status(&self.status, |s| s.patches_in_map = 0);
+            }
+            self.take_inputs(&inputs);
+            if let Ok(job) = job {
+                self.process(job);
+            }
+        }
+    }
+
+    fn take_inputs(&mut self, inputs: &Receiver<WorkerInput>) {
+        for input in inputs.try_iter() {
+            let WorkerInput::Imu { stamp, acceleration_in_imu } = input;
+            // Kept for a pipeline built later (first CameraInfo, new intrinsics).
+            self.recent_imu.push_back((stamp, acceleration_in_imu));
+            while self.recent_imu.front().is_some_and(|(t, _)| *t < stamp - self.config.pipeline.imu_buffer_s) {
+                self.recent_imu.pop_front();
+            }
+            if let Some(pipeline) = self.pipeline.as_mut() {
+                if let Err(e) = pipeline.push_imu(stamp, acceleration_in_imu) {
+                    self.warn("imu", format!("IMU sample skipped: {e}"));
+                }
+            }
+        }
+    }
+
+    fn process(&mut self, job: DepthJob) {
+        if self.last_reset.is_some_and(|mark| mark.is_stale(job.received, publish::seconds_from_time(&job.stamp))) {
+            with_status(&self.status, |s| s.frames_skipped += 1);
+            tracing::debug!("depth frame from before the last reset dropped");
+            return;
+        }
+        if self.pipeline.as_ref().is_none_or(|p| *p.intrinsics() != job.intrinsics) {
+            let c = &self.config;
+            match Pipeline::new(c.pipeline.clone(), c.tracker.clone(), c.mapper.clone(), job.intrinsics) {
+                Ok(mut pipeline) => {
+                    for (stamp, acceleration_in_imu) in &self.recent_imu {
+                        // Rejected samples were already reported when they arrived.
+                        let _ = pipeline.push_imu(*stamp, *acceleration_in_imu);
+                    }
+                    tracing::info!(width = job.intrinsics.width, height = job.intrinsics.height, "pipeline (re)built for new intrinsics");
+                    self.pipeline = Some(pipeline);
+                }
+                Err(e) => {
+                    with_status(&self.status, |s| s.frames_skipped += 1);
+                    self.warn("pipeline", format!("depth frame skipped: cannot build the pipeline: {e}"));
+                    return;
+                }
+            }
+        }
+        let Some(pipeline) = self.pipeline.as_mut() else { return };
+        let output = match pipeline.process(&job.depth, publish::seconds_from_time(&job.stamp)) {
+            Ok(output) => output,
+            Err(e) => {
+                with_status(&self.status, |s| s.frames_skipped += 1);
+                self.warn("frame", format!("depth frame skipped: {e}"));
+                return;
+            }
+        };
+        if self.reset_request.lock().is_ok_and(|r| r.is_some()) {
+            // A reset came while this frame was processed: its map shows the world before it.
+            with_status(&self.status, |s| s.frames_skipped += 1);
+            return;
+        }
+        let map = pipeline.map();
+        let started = Instant::now();
+        let array = publish::patch_array(map, &output.map_from_camera, &job.stamp);
+        node::publish(&self.outputs.patches, PATCHES_TOPIC, array, &mut self.dds_log);
+        let latency_ms = job.received.elapsed().as_secs_f64() * 1e3;
+        if let Some(markers) = &self.outputs.markers {
+            node::publish(markers, MARKERS_TOPIC, publish::markers(map, &job.stamp), &mut self.dds_log);
+        }
+        if let Some(cloud) = &self.outputs.birds_eye {
+            let points = birds_eye_points_in_map(&output.birds_eye, &output.map_from_birds_eye);
+            node::publish(cloud, BIRDS_EYE_TOPIC, publish::point_cloud(&points, &job.stamp, MAP_FRAME), &mut self.dds_log);
+        }
+        let publish_ms = started.elapsed().as_secs_f64() * 1e3;
+        let patches = map.len();
+        with_status(&self.status, |s| {
+            s.frames_processed += 1;
+            s.patches_in_map = u32::try_from(patches).unwrap_or(u32::MAX);
+            let named = output.timings.named();
+            s.timing_names = named.iter().map(|(n, _)| n.to_string()).chain(["publish".into(), "depth_in_to_patches_out".into()]).collect();
+            s.timing_ms = named.iter().map(|(_, ms)| *ms).chain([publish_ms, latency_ms]).collect();
+        });
+    }
+
+    fn warn(&mut self, key: &str, message: String) {
+        self.log.warn(key, format_args!("{message}"));
+        with_status(&self.status, |s| s.last_error = message);
+    }
+}
+
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    node::init_tracing();
+    let config: PatchMapperConfig =
+        patchwalk_msgs::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+    let params = config.ros.clone();
+    let network = node::DdsNetwork::resolve(args.node.dds_network)?;
+    let shutdown = Shutdown::install()?;
+
+    let mut ros = RosNode::new("patch_mapper", network)?;
+    let depth_sub = ros.subscription::<Image>(&params.depth_topic, node::sensor_data_qos())?;
+    let info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
+    let imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
+    let patches_pub = ros.publisher::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
+    let markers_pub = ros.publisher::<MarkerArray>(MARKERS_TOPIC, node::reliable_qos())?;
+    let birds_eye_pub = ros.publisher::<PointCloud2>(BIRDS_EYE_TOPIC, node::reliable_qos())?;
+    let status_pub = ros.publisher::<MapperStatus>(STATUS_TOPIC, node::reliable_qos())?;
+    let reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+
+    let status_period = Duration::try_from_secs_f64(params.status_period_s)
+        .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
+    let log_period = Duration::try_from_secs_f64(params.log_period_s)
+        .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
+    let poll_period = Duration::from_millis(params.poll_period_ms);
+    // Check the pipeline sections now, so a bad config fails at start and not at the first frame.
+    Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), Intrinsics::primesense_default())
+        .context("invalid pipeline/tracker/mapper configuration")?;
+
+    let status: SharedStatus = Arc::default();
+    let (job_tx, job_rx) = crossbeam_channel::bounded::<DepthJob>(1);
+    let (input_tx, input_rx) = crossbeam_channel::unbounded::<WorkerInput>();
+    let reset: Arc<Mutex<Option<ResetMark>>> = Arc::default();
+    let stop = Arc::new(AtomicBool::new(false));
+    let worker = Worker {
+        config,
+        pipeline: None,
+        recent_imu: VecDeque::new(),
+        status: status.clone(),
+        outputs: Outputs {
+            patches: patches_pub,
+            markers: params.publish_markers.then_some(markers_pub),
+            birds_eye: params.publish_birds_eye_cloud.then_some(birds_eye_pub),
+        },
+        log: RateLimitedLog::new(log_period),
+        dds_log: RateLimitedLog::new(log_period),
+        last_reset: None,
+        reset_request: reset.clone(),
+    };
+    let worker_thread = {
+        let (jobs, stop) = (job_rx.clone(), stop.clone());
+        std::thread::Builder::new().name("pipeline".into()).spawn(move || worker.run(jobs, input_rx, stop))?
+    };
+
+    // Two logs so the middleware's and the messages' warnings are limited independently.
+    let mut dds_log = RateLimitedLog::new(log_period);
+    let mut log = RateLimitedLog::new(log_period);
+    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx);
+    let mut next_status = Instant::now();
+    tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
+
+    while !shutdown.requested() {
+        node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| {
+            state.on_camera_info(&msg, &mut log)
+        });
+        node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log));
+        node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log));
+        node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
+            if let Ok(mut mark) = reset.lock() {
+                *mark = Some(ResetMark::now());
+            }
+            let frames = status.lock().map(|mut s| {
+                s.last_error.clear();
+                s.frames_processed
+            });
+            let frames = frames.unwrap_or(0);
+            tracing::info!("reset: map cleared after {frames} processed frames");
+            TriggerResponse { success: true, message: format!("map cleared ({frames} frames processed so far)") }
+        });
+        let now = Instant::now();
+        if now >= next_status {
+            if let Ok(mut s) = status.lock() {
+                s.stamp = node::now_stamp();
+                node::publish(&status_pub, STATUS_TOPIC, s.clone(), &mut dds_log);
+            }
+            next_status = now + status_period;
+        }
+        if worker_thread.is_finished() {
+            anyhow::bail!("the pipeline thread ended unexpectedly");
+        }
+        std::thread::sleep(poll_period);
+    }
+    stop.store(true, Ordering::Relaxed);
+    if worker_thread.join().is_err() {
+        tracing::error!("the pipeline thread panicked");
+    }
+    tracing::info!("patch_mapper: shutting down");
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_config_file_equals_the_embedded_defaults() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/patch_mapper.yaml");
+        let from_file: PatchMapperConfig = patchwalk_msgs::params::load_config(Some(&path), &[]).unwrap();
+        assert_eq!(from_file, PatchMapperConfig::default());
+        let bad = patchwalk_msgs::params::load_config::<PatchMapperConfig>(Some(&path), &["mapper.no_such_key=1".into()]);
+        assert!(bad.unwrap_err().to_string().contains("no_such_key"));
+        // A partial mapper section keeps the node's birds-eye settings.
+        let partial: PatchMapperConfig = patchwalk_msgs::params::load_config(None, &["mapper.seeds.cells_per_side=16".into()]).unwrap();
+        assert_eq!(partial.mapper.seeds.cells_per_side, 16);
+        assert_eq!(partial.mapper.preprocess, default_mapper_config().preprocess);
+        assert_eq!(partial.mapper.saliency, default_mapper_config().saliency);
+    }
+
+    fn state() -> (State, Receiver<DepthJob>, Receiver<WorkerInput>) {
+        let (jobs, job_rx) = crossbeam_channel::bounded(1);
+        let (imu, imu_rx) = crossbeam_channel::unbounded();
+        (State::new(SharedStatus::default(), jobs, job_rx.clone(), imu), job_rx, imu_rx)
+    }
+
+    #[test]
+    fn frames_are_counted_by_outcome_and_the_latest_waits() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        let (mut state, jobs, _imu) = state();
+        let depth = Image {
+            encoding: "16UC1".into(),
+            width: 2,
+            height: 1,
+            step: 4,
+            data: vec![0xE8, 0x03, 0xE8, 0x03],
+            ..Default::default()
+        };
+        let status = |state: &State| state.status.lock().unwrap().clone();
+        state.on_depth(&depth, &mut log);
+        assert_eq!((status(&state).frames_received, status(&state).frames_skipped), (1, 1));
+        let mut info = CameraInfo { width: 2, height: 1, ..Default::default() };
+        info.k = [1.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        state.on_camera_info(&info, &mut log);
+        let mut first = depth.clone();
+        first.header.stamp = Time { sec: 1, nanosec: 0 };
+        state.on_depth(&first, &mut log);
+        assert_eq!(jobs.len(), 1);
+        // A second frame while the first still waits: the first is dropped (keep-latest).
+        let mut second = depth.clone();
+        second.header.stamp = Time { sec: 2, nanosec: 0 };
+        state.on_depth(&second, &mut log);
+        assert_eq!(jobs.len(), 1);
+        assert_eq!(jobs.try_recv().unwrap().stamp.sec, 2);
+        assert_eq!(status(&state).frames_skipped, 2);
+        let bad = Image { encoding: "rgb8".into(), ..depth.clone() };
+        state.on_depth(&bad, &mut log);
+        assert_eq!(status(&state).frames_rejected, 1);
+        assert!(status(&state).last_error.contains("rgb8"));
+        let wrong_size = Image { width: 1, step: 2, data: vec![0, 0], ..depth };
+        state.on_depth(&wrong_size, &mut log);
+        assert_eq!((status(&state).frames_received, status(&state).frames_rejected), (5, 2));
+    }
+
+    #[test]
+    fn imu_samples_are_forwarded_and_garbage_is_not() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        let (mut state, _jobs, imu) = state();
+        let mut msg = Imu::default();
+        msg.header.stamp = Time { sec: 3, nanosec: 500_000_000 };
+        msg.linear_acceleration.z = 9.81;
+        state.on_imu(&msg, &mut log);
+        let WorkerInput::Imu { stamp, acceleration_in_imu } = imu.try_recv().unwrap();
+        assert_eq!((stamp, acceleration_in_imu.z), (3.5, 9.81));
+        msg.linear_acceleration.x = f64::NAN;
+        state.on_imu(&msg, &mut log);
+        assert!(imu.try_recv().is_err());
+        assert_eq!(state.status.lock().unwrap().imu_received, 2);
+    }
+}

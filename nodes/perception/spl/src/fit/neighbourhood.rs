@@ -1,0 +1,113 @@
+//! J 3.2.1 step 13 for one neighbourhood: the surface fitted to nf points with the sensor's point
+//! covariances, the boundary moments over the whole neighbourhood, plane boundaries sized like every
+//! other type's (step 5). The mapper calls it for every seed; anything else that fits a patch "as
+//! the mapper does" (a training target picked by hand) calls it with the same configuration.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::fit::{fit_patch_with_boundary_points, FitConfig, FitError, FitRequest};
+use crate::patch::{BoundaryType, Patch, SurfaceType};
+use crate::sensor::{covariances_for, ErrorModel, SensorError};
+
+/// What [`fit_neighbourhood`] needs: the sensor's error model, the fit's settings, the boundary
+/// containment Γ and the plane sizing rule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NeighbourhoodFit {
+    /// Point covariances for the fit (J eq 2, Murray–Little with the Kinect values by default).
+    pub sensor: ErrorModel,
+    pub fit: FitConfig,
+    /// Γ: boundary containment probability (J 3.2.1 step 4 / IROS IV: 0.95).
+    pub containment: f64,
+    /// Size plane boundaries with J 3.2.1 step 5, `d_e = λ[√v_x √v_y]`, `λ = √2 erf⁻¹(Γ)`, instead
+    /// of IROS eq 30, `d = √(−2 ln(1 − Γ) v)`, which leaves a third of an r-ball's disc without data.
+    pub plane_boundary_j_step5: bool,
+}
+
+impl Default for NeighbourhoodFit {
+    fn default() -> Self {
+        Self { sensor: ErrorModel::default(), fit: FitConfig::default(), containment: 0.95, plane_boundary_j_step5: true }
+    }
+}
+
+/// Why a neighbourhood could not be fitted.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum NeighbourhoodFitError {
+    #[error("point covariances: {0}")]
+    Sensor(#[from] SensorError),
+    #[error("{0}")]
+    Fit(#[from] FitError),
+}
+
+/// `λ / √(−2 ln(1 − Γ))`: J 3.2.1 step 5 extents over IROS eq 30 extents for a plane.
+pub fn plane_boundary_factor(containment: f64) -> f64 {
+    let gamma = containment.clamp(1e-9, 1.0 - 1e-9);
+    let lambda = std::f64::consts::SQRT_2 * crate::fit::boundary::erf_inv(gamma);
+    lambda / (-2.0 * (1.0 - gamma).ln()).sqrt()
+}
+
+/// The patch of one neighbourhood: the surface fitted to `fit_points_in_camera` with the
+/// configured sensor covariances (points in the sensor frame, the sensor at its origin), the
+/// boundary moments over `boundary_points_in_camera`, plane boundaries sized by J 3.2.1 step 5 when
+/// configured.
+pub fn fit_neighbourhood(
+    fit_points_in_camera: &[Vector3<f64>],
+    boundary_points_in_camera: &[Vector3<f64>],
+    config: &NeighbourhoodFit,
+) -> Result<Patch, NeighbourhoodFitError> {
+    let covariances = covariances_for(fit_points_in_camera, &Vector3::zeros(), &config.sensor)?;
+    let request = FitRequest { containment: config.containment, ..FitRequest::default() };
+    let mut patch = fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)?;
+    if config.plane_boundary_j_step5 && patch.surface == SurfaceType::Plane {
+        rescale_boundary(&mut patch, plane_boundary_factor(config.containment));
+    }
+    Ok(patch)
+}
+
+/// Scales the boundary extents `d` of a patch (not a quad's angle) and their covariance rows/columns.
+fn rescale_boundary(patch: &mut Patch, factor: f64) {
+    let extents = match patch.boundary {
+        BoundaryType::Quadrilateral => 4,
+        _ => patch.boundary_params.len(),
+    };
+    for (i, d) in patch.boundary_params.iter_mut().enumerate().take(extents) {
+        *d *= factor;
+        if i < patch.covariance.nrows() {
+            patch.covariance.row_mut(i).scale_mut(factor);
+            patch.covariance.column_mut(i).scale_mut(factor);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plane_factor_is_j_step5_over_iros_eq30() {
+        // λ√v = 0.98 r for the uniform disc, IROS eq 30: 1.22 r.
+        assert!((plane_boundary_factor(0.95) - 1.96 / 2.4477).abs() < 1e-3);
+    }
+
+    #[test]
+    fn a_disc_of_points_gives_a_plane_sized_by_step5() {
+        let r = 0.05;
+        let mut points = Vec::new();
+        for i in -20..=20 {
+            for j in -20..=20 {
+                let (x, y) = (f64::from(i) * r / 20.0, f64::from(j) * r / 20.0);
+                if x * x + y * y <= r * r {
+                    points.push(Vector3::new(x, y, 1.0));
+                }
+            }
+        }
+        let config = NeighbourhoodFit { sensor: ErrorModel::Constant { sigma_m: 0.001 }, ..NeighbourhoodFit::default() };
+        let sized = fit_neighbourhood(&points, &points, &config).unwrap();
+        let iros = fit_neighbourhood(&points, &points, &NeighbourhoodFit { plane_boundary_j_step5: false, ..config }).unwrap();
+        assert_eq!(sized.surface, SurfaceType::Plane);
+        let ratio = sized.boundary_params[0] / iros.boundary_params[0];
+        assert!((ratio - plane_boundary_factor(0.95)).abs() < 1e-9, "{ratio}");
+        assert!((sized.boundary_params[0] - r).abs() < 0.1 * r, "{sized:?}");
+    }
+}

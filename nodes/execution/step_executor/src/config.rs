@@ -133,27 +133,13 @@ impl Default for BusConfig {
             port: PathBuf::from("/dev/ttyUSB0"),
             baud: 1_000_000,
             return_delay_us: 0,
-            expected_model: crate::mx28::MODEL_NUMBER,
+            expected_model: patchwalk_dynamixel::mx28::MODEL_NUMBER,
             response_timeout_ms: 34.0,
         }
     }
 }
 
-/// The RPBP leg joints in keyframe order, DARwIn-OP ID order (right before left, hip to ankle).
-pub const DEFAULT_JOINTS: [&str; 12] = [
-    "r_hip_yaw",
-    "l_hip_yaw",
-    "r_hip_roll",
-    "l_hip_roll",
-    "r_hip_pitch",
-    "l_hip_pitch",
-    "r_knee",
-    "l_knee",
-    "r_ankle_pitch",
-    "l_ankle_pitch",
-    "r_ankle_roll",
-    "l_ankle_roll",
-];
+pub use patchwalk_robot_model::DEFAULT_JOINTS;
 
 impl Default for StepExecutorConfig {
     fn default() -> Self {
@@ -225,7 +211,7 @@ impl StepExecutorConfig {
                 return Err(ConfigError::Invalid(format!("servos[{i}].zero_offset: not finite")));
             }
         }
-        if crate::mx28::baud_register(self.bus.baud).is_none() {
+        if patchwalk_dynamixel::mx28::baud_register(self.bus.baud).is_none() {
             return Err(ConfigError::Invalid(format!("bus.baud: {} is not an MX-28 baud rate", self.bus.baud)));
         }
         if !(self.bus.response_timeout_ms.is_finite() && (1.0..=10_000.0).contains(&self.bus.response_timeout_ms)) {
@@ -268,7 +254,7 @@ mod tests {
 
     #[test]
     fn shipped_config_file_is_valid_and_equals_defaults() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/step_executor.yaml");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/step_executor.yaml");
         let config = StepExecutorConfig::load(&path).unwrap();
         assert_eq!(config, StepExecutorConfig::default());
     }

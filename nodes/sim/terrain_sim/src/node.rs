@@ -21,7 +21,7 @@ use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, RegionOfInterest};
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
 use ros2_client::{MessageTypeName, Publisher, Subscription};
-use step_executor::kinematics::{positions_by_name, RobotModel};
+use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use terrain_sim::config::SimConfig;
 use terrain_sim::imu::ImuSample;
 use terrain_sim::motion::StanceTracker;
@@ -279,7 +279,7 @@ fn load_robot(config: &SimConfig, config_path: Option<&Path>) -> Option<Robot> {
     match RobotModel::from_file(&path) {
         Ok(model) => {
             // Start from zero joint angles (the lookdown pose of the URDF) until a joint state arrives.
-            let positions = step_executor::config::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
+            let positions = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
             Some(Robot { model, positions })
         }
         Err(e) => {
@@ -297,7 +297,7 @@ fn resolve_path(path: &Path, config_path: Option<&Path>) -> PathBuf {
     }
     let candidates = [
         config_path.and_then(Path::parent).and_then(Path::parent).map(|root| root.join(path)),
-        Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(path)),
+        Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..").join(path)),
     ];
     candidates.into_iter().flatten().find(|p| p.exists()).unwrap_or_else(|| path.to_path_buf())
 }
@@ -425,14 +425,14 @@ mod tests {
 
     #[test]
     fn joint_states_move_the_camera_with_the_stance_foot_planted() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../urdf/rpbp.urdf");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../urdf/rpbp.urdf");
         let model = RobotModel::from_file(&path).unwrap();
-        let positions = step_executor::config::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
+        let positions = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
         let mut robot = Robot { model, positions };
         let sim = Simulator::new(SimConfig::default()).unwrap();
         let pose = Mutex::new(RobotPose { rock: 0, world_from_station: sim.world_from_station, stance: None, base_from_camera: sim.base_from_camera });
         let mut log = RateLimitedLog::default();
-        let names: Vec<String> = step_executor::config::DEFAULT_JOINTS.iter().map(|j| (*j).to_string()).collect();
+        let names: Vec<String> = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| (*j).to_string()).collect();
         let zero = JointState { name: names.clone(), position: vec![0.0; 12], ..JointState::default() };
         follow_joint_state(&mut robot, &zero, &pose, &mut log);
         let camera_at_zero = lock(&pose).world_from_camera(&sim, 0.0);

@@ -95,7 +95,7 @@ mod tests {
 
     #[test]
     fn shipped_config_parses() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../config/terrain_sim.yaml");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/terrain_sim.yaml");
         let config = SimConfig::load(&path).unwrap();
         assert_eq!(config.camera.width, 640);
         assert_eq!(config.imu.rate_hz, 100.0);

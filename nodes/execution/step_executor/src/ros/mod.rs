@@ -341,7 +341,7 @@ mod tests {
     /// An executor on the real config and URDF with no servo bus.
     fn without_bus() -> (Executor, tempfile::TempDir) {
         let dir = tempfile::tempdir().unwrap();
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
         let mut config: ExecutorFileView = patchwalk_msgs::params::load_config(Some(&root.join("config/step_executor.yaml")), &[]).unwrap();
         config.urdf_path = root.join("urdf/rpbp.urdf");
         config.library_path = dir.path().join("motions.yaml");

@@ -13,16 +13,16 @@ use patchwalk_spl::transform::transform_patch;
 
 use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
-use crate::kinematics::{positions_by_name, RobotModel};
+use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use crate::library::{Keyframe, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
 use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
-use crate::servo_bus::dynamixel::DynamixelBus;
-use crate::servo_bus::ServoBus;
+use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
+use patchwalk_dynamixel::servo_bus::ServoBus;
 
 /// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
-const BUILT_IN_URDF: &str = include_str!("../../../urdf/rpbp.urdf");
+const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
 
 /// Coarse state for the status message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,7 +96,7 @@ pub struct Runtime {
 #[derive(Debug, thiserror::Error)]
 pub enum RuntimeError {
     #[error("robot model: {0}")]
-    Model(#[from] crate::kinematics::KinematicsError),
+    Model(#[from] patchwalk_robot_model::kinematics::KinematicsError),
     #[error("joint {0:?} of the servo config has no position limits in the URDF")]
     NoLimits(String),
 }
@@ -483,11 +483,11 @@ impl Runtime {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::servo_bus::mock::MockBus;
+    use patchwalk_dynamixel::servo_bus::mock::MockBus;
     use std::time::{Duration, Instant};
 
     fn config(dir: &std::path::Path) -> StepExecutorConfig {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
         let mut config = StepExecutorConfig::load(&root.join("config/step_executor.yaml")).unwrap();
         config.urdf_path = root.join("urdf/rpbp.urdf");
         config.library_path = dir.join("motions.yaml");

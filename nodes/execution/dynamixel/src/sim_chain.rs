@@ -365,7 +365,7 @@ fn write_all(master: &OwnedFd, mut bytes: &[u8]) {
 fn serve(master: OwnedFd, shared: Arc<Shared>, config: SimConfig) {
     // Real servos answer from their own MCU whatever the host's load: the master's answer budget must
     // not trip because this thread waited for a CPU.
-    crate::executor::raise_thread_priority();
+    crate::priority::raise_thread_priority();
     let mut parser = PacketParser::new();
     let mut buffer = [0u8; 1024];
     let mut last = Instant::now();

@@ -19,10 +19,10 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::config::ServoConfig;
-use crate::kinematics::JointLimits;
+use patchwalk_robot_model::kinematics::JointLimits;
 use crate::library::{Keyframe, Motion};
-use crate::mx28;
-use crate::servo_bus::{self, BusError, ServoBus};
+use patchwalk_dynamixel::mx28;
+use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 
 /// Playback configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -381,7 +381,7 @@ impl Player {
 mod tests {
     use super::*;
     use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
-    use crate::servo_bus::mock::MockBus;
+    use patchwalk_dynamixel::servo_bus::mock::MockBus;
 
     fn joints(n: u8) -> Vec<JointSpec> {
         (1..=n)

@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 
-use step_executor::sim_chain::{SimChain, SimConfig};
+use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 
 /// Arguments of `step_executor sim-bus`.
 #[derive(clap::Args, Debug)]

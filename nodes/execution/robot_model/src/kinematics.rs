@@ -190,19 +190,19 @@ mod tests {
     use super::*;
 
     fn rpbp() -> RobotModel {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../urdf/rpbp.urdf");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../urdf/rpbp.urdf");
         RobotModel::from_file(&path).unwrap()
     }
 
     fn zeros() -> HashMap<String, f64> {
-        crate::config::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect()
+        crate::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect()
     }
 
     #[test]
     fn rpbp_loads_with_twelve_limited_joints() {
         let model = rpbp();
         assert_eq!(model.root(), "base_link");
-        for joint in crate::config::DEFAULT_JOINTS {
+        for joint in crate::DEFAULT_JOINTS {
             let limits = model.joint_limits(joint).unwrap().unwrap();
             assert!(limits.lower < limits.upper, "{joint}");
             assert!(limits.lower > -std::f64::consts::PI && limits.upper < std::f64::consts::PI, "{joint}");

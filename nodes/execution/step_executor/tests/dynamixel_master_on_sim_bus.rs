@@ -5,14 +5,14 @@
 use std::time::{Duration, Instant};
 
 use step_executor::config::{ServoConfig, DEFAULT_JOINTS};
-use step_executor::kinematics::JointLimits;
+use patchwalk_robot_model::kinematics::JointLimits;
 use step_executor::library::{Keyframe, Motion};
-use step_executor::mx28;
+use patchwalk_dynamixel::mx28;
 use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use step_executor::player::{JointSpec, Player, PlayerConfig, PlayerEvent, PlayerState};
-use step_executor::servo_bus::dynamixel::DynamixelBus;
-use step_executor::servo_bus::{self, BusError, ServoBus};
-use step_executor::sim_chain::{SimChain, SimConfig};
+use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
+use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
+use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 
 const ANSWER_BUDGET: Duration = Duration::from_millis(300);
 

@@ -9,13 +9,14 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use patchwalk_dynamixel::priority::raise_thread_priority;
 use crossbeam_channel::{Receiver, Sender};
 
 use crate::config::BusConfig;
 use crate::library::Motion;
-use crate::mx28;
+use patchwalk_dynamixel::mx28;
 use crate::player::{Player, PlayerEvent, PlayerState};
-use crate::servo_bus::{self, BusError, ServoBus};
+use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 
 /// Errors of executor commands.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -65,16 +66,6 @@ pub struct Executor {
     estop: Arc<AtomicBool>,
     shutdown: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
-}
-
-/// Best effort: run the calling thread at nice -15 (control loops and the simulated servo chain are
-/// latency-critical). Without the privilege the thread keeps its priority; nothing else changes.
-pub fn raise_thread_priority() {
-    // SAFETY: two syscalls on the calling thread with plain integer arguments; no memory is shared.
-    unsafe {
-        let tid = nix::libc::gettid();
-        let _ = nix::libc::setpriority(nix::libc::PRIO_PROCESS, tid as nix::libc::id_t, -15);
-    }
 }
 
 /// Start-up sequence: ping every servo (model check), torque off, write the Return Delay Time.
@@ -248,11 +239,11 @@ fn handle(command: Command, bus: &mut dyn ServoBus, player: &mut Player, torque:
 mod tests {
     use super::*;
     use crate::config::ServoConfig;
-    use crate::kinematics::JointLimits;
+    use patchwalk_robot_model::kinematics::JointLimits;
     use crate::library::Keyframe;
     use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
     use crate::player::{JointSpec, PlayerConfig};
-    use crate::servo_bus::mock::MockBus;
+    use patchwalk_dynamixel::servo_bus::mock::MockBus;
 
     fn player(n: u8) -> Player {
         let joints = (1..=n)

@@ -11,15 +11,15 @@ use anyhow::Context as _;
 
 use step_executor::config::{StepExecutorConfig, DEFAULT_JOINTS};
 use step_executor::executor::{initialise_bus, Executor};
-use step_executor::kinematics::RobotModel;
+use patchwalk_robot_model::kinematics::RobotModel;
 use step_executor::library::{Keyframe, Motion};
 use step_executor::matcher::{Matcher, MatcherConfig};
-use step_executor::mx28;
+use patchwalk_dynamixel::mx28;
 use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use step_executor::player::{JointSpec, Player, PlayerEvent};
-use step_executor::servo_bus::dynamixel::DynamixelBus;
-use step_executor::servo_bus::{self};
-use step_executor::sim_chain::{SimChain, SimConfig};
+use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
+use patchwalk_dynamixel::servo_bus::{self};
+use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 
 /// Small deterministic generator (xorshift64*), seeded.
 struct Rng(u64);

@@ -1,5 +1,4 @@
-//! Rust side of the `patchwalk_msgs` ROS 2 interface package, and the ROS 2 plumbing shared by the
-//! patchwalk nodes.
+//! Rust side of the `patchwalk_msgs` ROS 2 interface package.
 //!
 //! - [`msg`], [`srv`]: our interfaces. The `.msg`/`.srv` files next to this crate are the single source
 //!   of truth; the structs mirror them field by field (the CDR wire format is positional) and
@@ -8,16 +7,10 @@
 //!   [`visualization_msgs`]: the standard ROS 2 Jazzy types, re-exported from
 //!   `ros2-interfaces-jazzy-serde`.
 //! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`).
-//! - [`node`]: participant on `ROS_DOMAIN_ID` (loopback by default), QoS presets, typed endpoints,
-//!   shutdown on SIGINT/SIGTERM, tracing. [`params`]: YAML parameters with `--param` overrides.
-//! - [`process`]: process CPU time for the benchmarks.
 
 pub mod interface;
 pub mod msg;
-pub mod node;
-pub mod params;
 pub mod srv;
-pub mod process;
 
 pub use ros2_interfaces_jazzy_serde::{
     builtin_interfaces, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs,

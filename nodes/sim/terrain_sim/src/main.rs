@@ -78,7 +78,7 @@ fn main() -> std::process::ExitCode {
 }
 
 fn load(args: &ConfigArgs) -> anyhow::Result<SimConfig> {
-    Ok(patchwalk_msgs::params::load_config(args.config.as_deref(), &args.params)?)
+    Ok(patchwalk_ros::params::load_config(args.config.as_deref(), &args.params)?)
 }
 
 fn record(args: RecordArgs) -> anyhow::Result<()> {

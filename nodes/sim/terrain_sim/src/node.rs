@@ -17,7 +17,7 @@ use nalgebra::{Isometry3, UnitQuaternion};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::{Quaternion as QuaternionMsg, Vector3 as Vector3Msg};
-use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, RegionOfInterest};
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
 use ros2_client::{MessageTypeName, Publisher, Subscription};
@@ -78,7 +78,7 @@ impl Robot {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
-    let config: SimConfig = patchwalk_msgs::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+    let config: SimConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     let sim = Arc::new(Simulator::new(config.clone())?);
     let mut robot = load_robot(&config, args.node.config.as_deref());
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 
 use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
-use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
@@ -258,7 +258,7 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
-    let config: ExecutorFileView = patchwalk_msgs::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+    let config: ExecutorFileView = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     config.validate()?;
     let params = config.ros.clone();
     let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
@@ -342,7 +342,7 @@ mod tests {
     fn without_bus() -> (Executor, tempfile::TempDir) {
         let dir = tempfile::tempdir().unwrap();
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
-        let mut config: ExecutorFileView = patchwalk_msgs::params::load_config(Some(&root.join("config/step_executor.yaml")), &[]).unwrap();
+        let mut config: ExecutorFileView = patchwalk_ros::params::load_config(Some(&root.join("config/step_executor.yaml")), &[]).unwrap();
         config.urdf_path = root.join("urdf/rpbp.urdf");
         config.library_path = dir.path().join("motions.yaml");
         let (runtime, _) = Runtime::with_bus(config, || Err("no bus in this test".into())).unwrap();
@@ -409,10 +409,10 @@ mod tests {
     fn config_file_view_is_the_library_config() {
         let mut file = tempfile::NamedTempFile::new().unwrap();
         std::io::Write::write_all(&mut file, b"bus:\n  baud: 57600\nros:\n  status_rate_hz: 2.0\n").unwrap();
-        let view: ExecutorFileView = patchwalk_msgs::params::load_config(Some(file.path()), &[]).unwrap();
+        let view: ExecutorFileView = patchwalk_ros::params::load_config(Some(file.path()), &[]).unwrap();
         assert_eq!(view.ros.status_rate_hz, 2.0);
         assert_eq!(view.bus.baud, 57600);
-        let err = patchwalk_msgs::params::load_config::<ExecutorFileView>(None, &["ros.status_rate=1".into()]);
+        let err = patchwalk_ros::params::load_config::<ExecutorFileView>(None, &["ros.status_rate=1".into()]);
         assert!(err.unwrap_err().to_string().contains("status_rate"));
         assert!(period(0.0, "x").is_err());
     }

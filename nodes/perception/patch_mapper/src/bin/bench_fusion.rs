@@ -9,7 +9,7 @@
 //! (`RAYON_NUM_THREADS=2` to pin the thread count; `BENCH_VOXELS_MM=5` for one voxel size;
 //! `BENCH_FULL_RAYCAST=0` to skip the 640×480 real-camera raycast, which is not part of the loop).
 
-use patchwalk_msgs::process::process_cpu_seconds;
+use patchwalk_ros::process::process_cpu_seconds;
 use std::time::Instant;
 
 use anyhow::Context;

@@ -72,7 +72,7 @@ struct MapLine {
 }
 
 pub fn run(args: ReplayArgs) -> Result<()> {
-    let config: PatchMapperConfig = patchwalk_msgs::params::load_config(args.config.as_deref(), &args.params)?;
+    let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.config.as_deref(), &args.params)?;
     let dataset = Dataset::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
     let mut pipeline = Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), dataset.intrinsics)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;

@@ -28,7 +28,7 @@ use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config
 use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
-use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
 use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
@@ -393,7 +393,7 @@ impl Worker {
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
     let config: PatchMapperConfig =
-        patchwalk_msgs::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+        patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     let params = config.ros.clone();
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
@@ -495,12 +495,12 @@ mod tests {
     #[test]
     fn shipped_config_file_equals_the_embedded_defaults() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/patch_mapper.yaml");
-        let from_file: PatchMapperConfig = patchwalk_msgs::params::load_config(Some(&path), &[]).unwrap();
+        let from_file: PatchMapperConfig = patchwalk_ros::params::load_config(Some(&path), &[]).unwrap();
         assert_eq!(from_file, PatchMapperConfig::default());
-        let bad = patchwalk_msgs::params::load_config::<PatchMapperConfig>(Some(&path), &["mapper.no_such_key=1".into()]);
+        let bad = patchwalk_ros::params::load_config::<PatchMapperConfig>(Some(&path), &["mapper.no_such_key=1".into()]);
         assert!(bad.unwrap_err().to_string().contains("no_such_key"));
         // A partial mapper section keeps the node's birds-eye settings.
-        let partial: PatchMapperConfig = patchwalk_msgs::params::load_config(None, &["mapper.seeds.cells_per_side=16".into()]).unwrap();
+        let partial: PatchMapperConfig = patchwalk_ros::params::load_config(None, &["mapper.seeds.cells_per_side=16".into()]).unwrap();
         assert_eq!(partial.mapper.seeds.cells_per_side, 16);
         assert_eq!(partial.mapper.preprocess, default_mapper_config().preprocess);
         assert_eq!(partial.mapper.saliency, default_mapper_config().saliency);

@@ -4,7 +4,7 @@
 //! `cargo run --release -p terrain_sim --bin bench_render -- [frames per rock] [--sway] [--no-noise] [--no-shadow] [--reuse]`
 //! (threads: `RAYON_NUM_THREADS`, default = all cores).
 
-use patchwalk_msgs::process::process_cpu_seconds;
+use patchwalk_ros::process::process_cpu_seconds;
 use std::time::Instant;
 
 use terrain_sim::config::SimConfig;

@@ -18,8 +18,8 @@ use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscri
 use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
 use ros2_client::{MessageInfo, Name, NodeName, NodeOptions};
 
-use crate::builtin_interfaces::msg::Time;
-use crate::interface::{RosMessage, RosService};
+use patchwalk_msgs::builtin_interfaces::msg::Time;
+use patchwalk_msgs::interface::{RosMessage, RosService};
 
 /// Environment variable selecting the DDS network (`loopback` or `all`); `--dds-network` overrides it.
 pub const DDS_NETWORK_ENV: &str = "PATCHWALK_DDS_NETWORK";

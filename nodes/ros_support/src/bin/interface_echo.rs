@@ -5,14 +5,14 @@
 //! populated message, compare what comes back field by field (the CDR format is positional, so a
 //! mismatch shows as changed values). Used by tests/test_interfaces.py; also handy on a new setup.
 //!
-//! Options: the common node options (`--dds-network`, see `patchwalk_msgs::node::NodeArgs`).
+//! Options: the common node options (`--dds-network`, see `patchwalk_ros::node::NodeArgs`).
 
 use std::time::Duration;
 
 use clap::Parser;
 use patchwalk_msgs::interface::RosMessage;
 use patchwalk_msgs::msg::{ExecutorStatus, MapperStatus, MotionSummary, Patch, PatchArray};
-use patchwalk_msgs::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use ros2_client::{Publisher, Subscription};
 
 #[derive(Parser)]

@@ -1,0 +1,14 @@
+//! The ROS 2 plumbing shared by the patchwalk nodes (over ros2-client/rustdds, no ROS install):
+//!
+//! - [`node`]: the participant on `ROS_DOMAIN_ID` (loopback only by default), QoS presets, typed
+//!   endpoints, the non-blocking `drain`/`serve`/`publish` helpers, shutdown on SIGINT/SIGTERM,
+//!   tracing, and [`node::RateLimitedLog`] for bad input that must not flood the log.
+//! - [`params`]: YAML configuration files with `--param key=value` overrides, unknown keys named.
+//! - [`process`]: process CPU time for the benchmarks.
+//!
+//! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
+//! against other ROS 2 implementations.
+
+pub mod node;
+pub mod params;
+pub mod process;

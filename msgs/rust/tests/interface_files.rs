@@ -180,8 +180,7 @@ struct Definitions {
 
 impl Definitions {
     fn load() -> Definitions {
-        let mut texts: HashMap<String, String> =
-            STANDARD.iter().map(|(name, text)| (name.to_string(), text.to_string())).collect();
+        let mut texts: HashMap<String, String> = STANDARD.iter().map(|(name, text)| (name.to_string(), text.to_string())).collect();
         let dir = package_dir().join("msg");
         for entry in std::fs::read_dir(&dir).expect("msg/ exists") {
             let path = entry.expect("readable msg/ entry").path();
@@ -328,9 +327,8 @@ fn services_match_their_srv_files() {
 fn every_interface_file_is_checked_and_built() {
     // A new .msg/.srv must be added to CMakeLists.txt and to the two tests above.
     let cmake = std::fs::read_to_string(package_dir().join("CMakeLists.txt")).expect("CMakeLists.txt");
-    let this = std::fs::read_to_string(file!()).unwrap_or_else(|_| {
-        std::fs::read_to_string(package_dir().join("rust/tests/interface_files.rs")).expect("this test file")
-    });
+    let this = std::fs::read_to_string(file!())
+        .unwrap_or_else(|_| std::fs::read_to_string(package_dir().join("rust/tests/interface_files.rs")).expect("this test file"));
     for dir in ["msg", "srv"] {
         for entry in std::fs::read_dir(package_dir().join(dir)).expect("interface dir") {
             let path = entry.expect("entry").path();

@@ -98,10 +98,7 @@ pub fn ros_domain_id() -> Result<u16, NodeError> {
 /// Sensor-data QoS (REP-2003 / rclcpp `SensorDataQoS`, depth 5 per names.md): best effort, volatile,
 /// keep last 5 — a late depth frame is worth less than the next one.
 pub fn sensor_data_qos() -> QosProfile {
-    QosProfile::subscription_default()
-        .reliability_best_effort()
-        .durability(Durability::Volatile)
-        .history(History::KeepLast { depth: 5 })
+    QosProfile::subscription_default().reliability_best_effort().durability(Durability::Volatile).history(History::KeepLast { depth: 5 })
 }
 
 /// Reliable QoS for outputs (PatchArray, markers, status, joint states): reliable, volatile, keep last 10
@@ -149,16 +146,12 @@ impl RosNode {
         if network == DdsNetwork::Loopback {
             builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
         }
-        let participant = builder
-            .build()
-            .map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
-        let context = Context::from_domain_participant(participant)
-            .map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
+        let participant = builder.build().map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
+        let context =
+            Context::from_domain_participant(participant).map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
         let node_err = |e: String| NodeError::Node { name: name.to_string(), reason: e };
         let node_name = NodeName::new("/", name).map_err(|e| node_err(format!("{e:?}")))?;
-        let mut node = context
-            .new_node(node_name, NodeOptions::new().enable_rosout(true))
-            .map_err(|e| node_err(format!("{e:?}")))?;
+        let mut node = context.new_node(node_name, NodeOptions::new().enable_rosout(true)).map_err(|e| node_err(format!("{e:?}")))?;
         let spinner = node.spinner().map_err(|e| node_err(format!("{e:?}")))?;
         let spinner = std::thread::Builder::new()
             .name(format!("{name}-spinner"))
@@ -241,13 +234,7 @@ impl Drop for RosNode {
 
 /// Take up to `max` pending messages from `sub` and hand each to `handle`. Undecodable samples are
 /// logged (rate-limited through `log`) and skipped; returns how many messages were handled.
-pub fn drain<M>(
-    sub: &Subscription<M>,
-    topic: &str,
-    max: usize,
-    log: &mut RateLimitedLog,
-    mut handle: impl FnMut(M, MessageInfo),
-) -> usize
+pub fn drain<M>(sub: &Subscription<M>, topic: &str, max: usize, log: &mut RateLimitedLog, mut handle: impl FnMut(M, MessageInfo)) -> usize
 where
     M: serde::de::DeserializeOwned + 'static,
 {
@@ -269,12 +256,7 @@ where
 
 /// Answer every pending request of `server` with `handle`; a failed receive or send is logged, never
 /// fatal. Returns how many requests were answered.
-pub fn serve<Req, Resp>(
-    server: &Server<Req, Resp>,
-    name: &str,
-    log: &mut RateLimitedLog,
-    mut handle: impl FnMut(Req) -> Resp,
-) -> usize
+pub fn serve<Req, Resp>(server: &Server<Req, Resp>, name: &str, log: &mut RateLimitedLog, mut handle: impl FnMut(Req) -> Resp) -> usize
 where
     Req: ros2_client::Message + Clone + 'static,
     Resp: ros2_client::Message + 'static,
@@ -288,8 +270,8 @@ where
                 match server.send_response(request_id, response) {
                     Ok(()) => answered += 1,
                     Err(e) => {
-                log.warn(name, format_args!("{name}: cannot send the response: {e:?}"));
-            }
+                        log.warn(name, format_args!("{name}: cannot send the response: {e:?}"));
+                    }
                 }
             }
             Ok(None) => break,
@@ -318,10 +300,7 @@ pub fn publish<M: serde::Serialize>(publisher: &Publisher<M>, topic: &str, msg: 
 /// Wall-clock stamp as `builtin_interfaces/Time`.
 pub fn now_stamp() -> Time {
     let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
-    Time {
-        sec: i32::try_from(since_epoch.as_secs()).unwrap_or(i32::MAX),
-        nanosec: since_epoch.subsec_nanos(),
-    }
+    Time { sec: i32::try_from(since_epoch.as_secs()).unwrap_or(i32::MAX), nanosec: since_epoch.subsec_nanos() }
 }
 
 /// Set by SIGINT or SIGTERM; a second signal while shutting down exits at once (code 1).
@@ -358,10 +337,11 @@ pub const DEFAULT_LOG_FILTER: &str = "info,rustdds=error,rustdds::network::udp_l
 /// Logs to stderr through `tracing`; `RUST_LOG` overrides the default filter. The `log` records of
 /// ros2-client and RustDDS are forwarded (filtered by [`DEFAULT_LOG_FILTER`]).
 pub fn init_tracing() {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     // Ignore the error of a second initialisation (tests, embedded use).
-    let _ = tracing_subscriber::fmt().with_env_filter(filter)
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .try_init();
@@ -423,8 +403,7 @@ mod tests {
         assert_eq!(name.unwrap(), "rt/camera/depth/image_raw");
         let name = ros_name("/joint_states").map(|n| n.to_dds_name("rt", &NodeName::new("/", "x").unwrap(), ""));
         assert_eq!(name.unwrap(), "rt/joint_states");
-        let name = ros_name("/step_executor/list_motions")
-            .map(|n| n.to_dds_name("rq", &NodeName::new("/", "x").unwrap(), "Request"));
+        let name = ros_name("/step_executor/list_motions").map(|n| n.to_dds_name("rq", &NodeName::new("/", "x").unwrap(), "Request"));
         assert_eq!(name.unwrap(), "rq/step_executor/list_motionsRequest");
     }
 

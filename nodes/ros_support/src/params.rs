@@ -42,15 +42,14 @@ pub fn load_config<T: DeserializeOwned>(path: Option<&Path>, overrides: &[String
         None => format!("embedded defaults with {} override(s)", overrides.len()),
     };
     // Through text so the deserializer's errors carry the dotted path of the offending key.
-    let merged = serde_yaml_ng::to_string(&Value::Mapping(root))
-        .map_err(|source| ParamError::Invalid { origin: origin.clone(), source })?;
+    let merged =
+        serde_yaml_ng::to_string(&Value::Mapping(root)).map_err(|source| ParamError::Invalid { origin: origin.clone(), source })?;
     serde_yaml_ng::from_str(&merged).map_err(|source| ParamError::Invalid { origin, source })
 }
 
 fn read_mapping(path: &Path) -> Result<Mapping, ParamError> {
     let text = std::fs::read_to_string(path).map_err(|source| ParamError::Read { path: path.to_path_buf(), source })?;
-    let value: Value =
-        serde_yaml_ng::from_str(&text).map_err(|source| ParamError::Yaml { path: path.to_path_buf(), source })?;
+    let value: Value = serde_yaml_ng::from_str(&text).map_err(|source| ParamError::Yaml { path: path.to_path_buf(), source })?;
     match value {
         Value::Mapping(mapping) => Ok(mapping),
         // An empty file (or one with only comments) means "all defaults".
@@ -67,17 +66,14 @@ fn apply_override(root: &mut Mapping, text: &str) -> Result<(), ParamError> {
     if key.is_empty() || key.split('.').any(|part| part.trim().is_empty()) {
         return Err(bad());
     }
-    let value: Value = serde_yaml_ng::from_str(value)
-        .map_err(|source| ParamError::BadOverrideValue { text: text.to_string(), source })?;
+    let value: Value = serde_yaml_ng::from_str(value).map_err(|source| ParamError::BadOverrideValue { text: text.to_string(), source })?;
     let parts: Vec<&str> = key.split('.').map(str::trim).collect();
     let Some((last, sections)) = parts.split_last() else {
         return Err(bad());
     };
     let mut current = root;
     for section in sections {
-        let entry = current
-            .entry(Value::String((*section).to_string()))
-            .or_insert_with(|| Value::Mapping(Mapping::new()));
+        let entry = current.entry(Value::String((*section).to_string())).or_insert_with(|| Value::Mapping(Mapping::new()));
         if entry.is_null() {
             *entry = Value::Mapping(Mapping::new());
         }
@@ -150,10 +146,7 @@ mod tests {
     fn malformed_overrides_and_files_are_errors() {
         assert!(matches!(load_config::<Config>(None, &["novalue".into()]), Err(ParamError::BadOverride { .. })));
         assert!(matches!(load_config::<Config>(None, &["a..b=1".into()]), Err(ParamError::BadOverride { .. })));
-        assert!(matches!(
-            load_config::<Config>(None, &["enabled=1".into(), "enabled.x=2".into()]),
-            Err(ParamError::NotASection { .. })
-        ));
+        assert!(matches!(load_config::<Config>(None, &["enabled=1".into(), "enabled.x=2".into()]), Err(ParamError::NotASection { .. })));
         let f = file("- a\n- b\n");
         assert!(matches!(load_config::<Config>(Some(f.path()), &[]), Err(ParamError::NotAMapping { .. })));
         let f = file("inner: [\n");

@@ -69,8 +69,7 @@ fn unit_axis(xyz: [f64; 3], joint: &str) -> Result<Unit<Vector3<f64>>, Kinematic
 impl RobotModel {
     /// Load from a URDF file.
     pub fn from_file(path: &Path) -> Result<Self, KinematicsError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| KinematicsError::Urdf(format!("{}: {e}", path.display())))?;
+        let text = std::fs::read_to_string(path).map_err(|e| KinematicsError::Urdf(format!("{}: {e}", path.display())))?;
         Self::from_urdf_str(&text)
     }
 
@@ -97,12 +96,7 @@ impl RobotModel {
                 return Err(KinematicsError::Urdf(format!("link {:?} has two parent joints", joint.child.link)));
             }
         }
-        let roots: Vec<&str> = robot
-            .links
-            .iter()
-            .map(|l| l.name.as_str())
-            .filter(|name| !joint_of_child.contains_key(*name))
-            .collect();
+        let roots: Vec<&str> = robot.links.iter().map(|l| l.name.as_str()).filter(|name| !joint_of_child.contains_key(*name)).collect();
         let root = match roots.as_slice() {
             [root] => (*root).to_string(),
             _ => return Err(KinematicsError::Urdf(format!("expected exactly one root link, found {roots:?}"))),
@@ -117,11 +111,8 @@ impl RobotModel {
 
     /// Limits of a movable joint (None for continuous/fixed joints).
     pub fn joint_limits(&self, joint: &str) -> Result<Option<JointLimits>, KinematicsError> {
-        let model = self
-            .joint_of_child
-            .values()
-            .find(|j| j.name == joint)
-            .ok_or_else(|| KinematicsError::UnknownJoint(joint.to_string()))?;
+        let model =
+            self.joint_of_child.values().find(|j| j.name == joint).ok_or_else(|| KinematicsError::UnknownJoint(joint.to_string()))?;
         Ok(match &model.motion {
             Motion::Fixed => None,
             Motion::Revolute { limits, .. } | Motion::Prismatic { limits, .. } => *limits,
@@ -137,10 +128,7 @@ impl RobotModel {
         let mut current = link;
         let mut steps = 0usize;
         while current != self.root {
-            let joint = self
-                .joint_of_child
-                .get(current)
-                .ok_or_else(|| KinematicsError::UnknownLink(current.to_string()))?;
+            let joint = self.joint_of_child.get(current).ok_or_else(|| KinematicsError::UnknownLink(current.to_string()))?;
             let joint_from_child = match &joint.motion {
                 Motion::Fixed => Isometry3::identity(),
                 Motion::Revolute { axis, .. } => {
@@ -174,10 +162,7 @@ impl RobotModel {
 }
 
 fn joint_position(positions: &HashMap<String, f64>, joint: &str) -> Result<f64, KinematicsError> {
-    positions
-        .get(joint)
-        .copied()
-        .ok_or_else(|| KinematicsError::MissingJointPosition { joint: joint.to_string(), given: positions.len() })
+    positions.get(joint).copied().ok_or_else(|| KinematicsError::MissingJointPosition { joint: joint.to_string(), given: positions.len() })
 }
 
 /// Joint positions by name from parallel name/value slices.
@@ -245,10 +230,7 @@ mod tests {
     fn errors_are_typed() {
         let model = rpbp();
         assert!(matches!(model.base_from_foot("nope", &zeros()), Err(KinematicsError::UnknownLink(_))));
-        assert!(matches!(
-            model.base_from_foot("left_foot", &HashMap::new()),
-            Err(KinematicsError::MissingJointPosition { .. })
-        ));
+        assert!(matches!(model.base_from_foot("left_foot", &HashMap::new()), Err(KinematicsError::MissingJointPosition { .. })));
         assert!(matches!(RobotModel::from_urdf_str("<robot"), Err(KinematicsError::Urdf(_))));
     }
 }

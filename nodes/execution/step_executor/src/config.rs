@@ -164,16 +164,15 @@ impl Default for StepExecutorConfig {
 impl StepExecutorConfig {
     /// Parse from YAML text and validate.
     pub fn from_yaml(text: &str, path: &Path) -> Result<Self, ConfigError> {
-        let config: Self = serde_yaml_ng::from_str(text)
-            .map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
+        let config: Self =
+            serde_yaml_ng::from_str(text).map_err(|e| ConfigError::Parse { path: path.to_path_buf(), message: e.to_string() })?;
         config.validate()?;
         Ok(config)
     }
 
     /// Load from a file and validate.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
         Self::from_yaml(&text, path)
     }
 

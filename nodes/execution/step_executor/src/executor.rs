@@ -9,13 +9,13 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use patchwalk_dynamixel::priority::raise_thread_priority;
 use crossbeam_channel::{Receiver, Sender};
+use patchwalk_dynamixel::priority::raise_thread_priority;
 
 use crate::config::BusConfig;
 use crate::library::Motion;
-use patchwalk_dynamixel::mx28;
 use crate::player::{Player, PlayerEvent, PlayerState};
+use patchwalk_dynamixel::mx28;
 use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 
 /// Errors of executor commands.
@@ -239,11 +239,11 @@ fn handle(command: Command, bus: &mut dyn ServoBus, player: &mut Player, torque:
 mod tests {
     use super::*;
     use crate::config::ServoConfig;
-    use patchwalk_robot_model::kinematics::JointLimits;
     use crate::library::Keyframe;
     use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
     use crate::player::{JointSpec, PlayerConfig};
     use patchwalk_dynamixel::servo_bus::mock::MockBus;
+    use patchwalk_robot_model::kinematics::JointLimits;
 
     fn player(n: u8) -> Player {
         let joints = (1..=n)
@@ -282,7 +282,14 @@ mod tests {
         assert_eq!(executor.positions().unwrap(), vec![0.0; 3]);
         let motion = Motion {
             name: "m".into(),
-            patch: PatchGeometry { surface: SurfaceType::Plane, boundary: BoundaryType::Circle, d: vec![0.02], k: vec![], r: [0.0; 3], c: [0.0; 3] },
+            patch: PatchGeometry {
+                surface: SurfaceType::Plane,
+                boundary: BoundaryType::Circle,
+                d: vec![0.02],
+                k: vec![],
+                r: [0.0; 3],
+                c: [0.0; 3],
+            },
             keyframes: vec![Keyframe { positions: vec![0.5; 3], move_s: 2.0, pause_s: 0.0 }],
         };
         executor.play(motion.clone()).unwrap();

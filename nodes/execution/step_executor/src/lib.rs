@@ -6,9 +6,9 @@
 //! `patchwalk_robot_model`.
 
 pub mod config;
+pub mod executor;
 pub mod library;
 pub mod matcher;
 pub mod patch;
 pub mod player;
-pub mod executor;
 pub mod runtime;

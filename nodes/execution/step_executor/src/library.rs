@@ -172,9 +172,8 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "library path has no file name"))?;
+    let file_name =
+        path.file_name().ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "library path has no file name"))?;
     let mut temp_name = std::ffi::OsString::from(".");
     temp_name.push(file_name);
     temp_name.push(format!(".tmp-{}", std::process::id()));
@@ -209,10 +208,8 @@ fn parse_library(text: &str, expected_joints: &[String]) -> Result<LibraryFile, 
     if joints != expected_joints {
         return Err(("joints".into(), format!("file joint order {joints:?} differs from the configured {expected_joints:?}")));
     }
-    let entries = root
-        .get("motions")
-        .and_then(Value::as_sequence)
-        .ok_or_else(|| ("motions".to_string(), "missing or not a list".to_string()))?;
+    let entries =
+        root.get("motions").and_then(Value::as_sequence).ok_or_else(|| ("motions".to_string(), "missing or not a list".to_string()))?;
     let mut motions: Vec<Motion> = Vec::with_capacity(entries.len());
     for (i, entry) in entries.iter().enumerate() {
         let motion = parse_motion(entry, i, joints.len())?;
@@ -275,7 +272,10 @@ fn validate_motion(motion: &Motion, joint_count: usize) -> Result<(), (String, S
     }
     for (j, frame) in motion.keyframes.iter().enumerate() {
         if frame.positions.len() != joint_count {
-            return Err((format!("keyframes[{j}].positions"), format!("expected {joint_count} joint positions, got {}", frame.positions.len())));
+            return Err((
+                format!("keyframes[{j}].positions"),
+                format!("expected {joint_count} joint positions, got {}", frame.positions.len()),
+            ));
         }
         if frame.positions.iter().any(|p| !p.is_finite()) {
             return Err((format!("keyframes[{j}].positions"), "values must be finite".into()));

@@ -19,10 +19,10 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 use crate::config::ServoConfig;
-use patchwalk_robot_model::kinematics::JointLimits;
 use crate::library::{Keyframe, Motion};
 use patchwalk_dynamixel::mx28;
 use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
+use patchwalk_robot_model::kinematics::JointLimits;
 
 /// Playback configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -97,7 +97,9 @@ impl std::fmt::Display for Fault {
 #[derive(Debug, Clone, PartialEq)]
 pub enum PlayerState {
     Idle,
-    Playing { name: String },
+    Playing {
+        name: String,
+    },
     /// Stopped by e-stop; holding the measured positions.
     Stopped,
     /// Stopped by a bus fault; holding the last measured positions.
@@ -395,7 +397,14 @@ mod tests {
     fn motion(frames: Vec<Keyframe>) -> Motion {
         Motion {
             name: "step".into(),
-            patch: PatchGeometry { surface: SurfaceType::Plane, boundary: BoundaryType::Circle, d: vec![0.02], k: vec![], r: [0.0; 3], c: [0.1, 0.0, -0.28] },
+            patch: PatchGeometry {
+                surface: SurfaceType::Plane,
+                boundary: BoundaryType::Circle,
+                d: vec![0.02],
+                k: vec![],
+                r: [0.0; 3],
+                c: [0.1, 0.0, -0.28],
+            },
             keyframes: frames,
         }
     }

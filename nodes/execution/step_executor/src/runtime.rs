@@ -13,13 +13,13 @@ use patchwalk_spl::transform::transform_patch;
 
 use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
-use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use crate::library::{Keyframe, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
 use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::ServoBus;
+use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 
 /// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
 const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
@@ -283,7 +283,10 @@ impl Runtime {
         let positions = self.bus()?.positions().map_err(|e| e.to_string())?;
         for (spec, q) in self.joint_specs.iter().zip(&positions) {
             if *q < spec.limits.lower || *q > spec.limits.upper {
-                return Err(format!("{} at {q:.3} rad is outside its limits [{:.3}, {:.3}]", spec.servo.joint, spec.limits.lower, spec.limits.upper));
+                return Err(format!(
+                    "{} at {q:.3} rad is outside its limits [{:.3}, {:.3}]",
+                    spec.servo.joint, spec.limits.lower, spec.limits.upper
+                ));
             }
         }
         self.recorded.push(Keyframe { positions: positions.clone(), move_s, pause_s });
@@ -341,7 +344,8 @@ impl Runtime {
         );
         let points_in_camera: Vec<Vector3<f64>> = points.iter().map(|p| (map_from_camera.inverse() * Point3::from(*p)).coords).collect();
         let nf = config.fit_points.clamp(1, points_in_camera.len());
-        let fit_points: Vec<Vector3<f64>> = (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
+        let fit_points: Vec<Vector3<f64>> =
+            (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
         let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
         let fitted = transform_patch(&fitted_in_camera, &map_from_camera).ok_or("fit: the patch could not be moved to the map frame")?;
         let patch = PatchGeometry {
@@ -428,7 +432,11 @@ impl Runtime {
     /// Clear a latched e-stop. Does not arm: automatic execution needs a separate `arm`.
     pub fn reset_estop(&mut self) -> String {
         let was = std::mem::replace(&mut self.estopped, false);
-        if was { "e-stop cleared; disarmed".into() } else { "not e-stopped; disarmed".into() }
+        if was {
+            "e-stop cleared; disarmed".into()
+        } else {
+            "not e-stopped; disarmed".into()
+        }
     }
 
     /// Arm/disarm automatic execution. Arming is refused while an e-stop is latched.
@@ -511,7 +519,8 @@ mod tests {
         let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no bus".into())).unwrap();
         assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no patch map"));
         // Any map frame: here the map is 1 m to the side and turned 30° about its up axis.
-        let map_from_camera = Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::z() * 0.5) * runtime.base_from_camera().unwrap().inverse();
+        let map_from_camera =
+            Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::z() * 0.5) * runtime.base_from_camera().unwrap().inverse();
         runtime.on_patch_map(&[], &map_from_camera).unwrap();
         assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no birds-eye cloud"));
         let base_from_map = runtime.base_from_camera().unwrap() * map_from_camera.inverse();

@@ -1,18 +1,19 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)] // an integration test
 //! The real Protocol 2.0 master (`dynamixel2` through `DynamixelBus`) against the simulated MX-28
 //! chain on a pty: ping, sync write, sync read, and injected faults (CRC error, timeout, hardware
 //! error) surfacing as typed `BusError`s; then the player driving 12 servos end to end.
 
 use std::time::{Duration, Instant};
 
-use step_executor::config::{ServoConfig, DEFAULT_JOINTS};
-use patchwalk_robot_model::kinematics::JointLimits;
-use step_executor::library::{Keyframe, Motion};
 use patchwalk_dynamixel::mx28;
-use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
-use step_executor::player::{JointSpec, Player, PlayerConfig, PlayerEvent, PlayerState};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
+use patchwalk_robot_model::kinematics::JointLimits;
+use step_executor::config::{ServoConfig, DEFAULT_JOINTS};
+use step_executor::library::{Keyframe, Motion};
+use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
+use step_executor::player::{JointSpec, Player, PlayerConfig, PlayerEvent, PlayerState};
 
 const ANSWER_BUDGET: Duration = Duration::from_millis(300);
 
@@ -155,7 +156,14 @@ fn joint_specs() -> Vec<JointSpec> {
 fn step_motion() -> Motion {
     Motion {
         name: "rock1".into(),
-        patch: PatchGeometry { surface: SurfaceType::Plane, boundary: BoundaryType::Circle, d: vec![0.02], k: vec![], r: [0.0; 3], c: [0.1, 0.0, -0.29] },
+        patch: PatchGeometry {
+            surface: SurfaceType::Plane,
+            boundary: BoundaryType::Circle,
+            d: vec![0.02],
+            k: vec![],
+            r: [0.0; 3],
+            c: [0.1, 0.0, -0.29],
+        },
         keyframes: vec![
             Keyframe { positions: vec![0.2; 12], move_s: 0.16, pause_s: 0.04 },
             Keyframe { positions: vec![-0.1; 12], move_s: 0.16, pause_s: 0.0 },

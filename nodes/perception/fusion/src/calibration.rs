@@ -11,8 +11,8 @@ use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 
 use crate::camera::{DepthImage, Intrinsics};
-use patchwalk_spl::geometry::nearest_rotation;
 use crate::dataset::{Dataset, DatasetError};
+use patchwalk_spl::geometry::nearest_rotation;
 
 /// Errors of the calibration.
 #[derive(Debug, thiserror::Error)]
@@ -137,8 +137,7 @@ pub fn dominant_plane(depth: &DepthImage, intrinsics: &Intrinsics, config: &Cali
         }
     }
     let (normal, offset, _) = best?;
-    let inliers: Vec<Vector3<f64>> =
-        points.iter().copied().filter(|p| (normal.dot(p) - offset).abs() < config.plane_inlier_m).collect();
+    let inliers: Vec<Vector3<f64>> = points.iter().copied().filter(|p| (normal.dot(p) - offset).abs() < config.plane_inlier_m).collect();
     if inliers.len() < 3 {
         return None;
     }

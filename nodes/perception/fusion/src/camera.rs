@@ -89,10 +89,7 @@ impl Intrinsics {
         if point_in_camera.z <= 0.0 || !point_in_camera.z.is_finite() {
             return None;
         }
-        Some((
-            self.fx * point_in_camera.x / point_in_camera.z + self.cx,
-            self.fy * point_in_camera.y / point_in_camera.z + self.cy,
-        ))
+        Some((self.fx * point_in_camera.x / point_in_camera.z + self.cx, self.fy * point_in_camera.y / point_in_camera.z + self.cy))
     }
 
     /// Nearest pixel `(column, row)` inside the image for a projected point, if any.
@@ -135,10 +132,7 @@ impl DepthImage {
         if !(metres_per_unit.is_finite() && metres_per_unit > 0.0) {
             return Err(CameraError::InvalidIntrinsics(format!("depth scale {metres_per_unit} must be positive")));
         }
-        let depth_m = raw
-            .iter()
-            .map(|&value| if value == 0 { f32::NAN } else { (f64::from(value) * metres_per_unit) as f32 })
-            .collect();
+        let depth_m = raw.iter().map(|&value| if value == 0 { f32::NAN } else { (f64::from(value) * metres_per_unit) as f32 }).collect();
         Ok(Self { width, height, depth_m })
     }
 

@@ -111,10 +111,7 @@ impl Dataset {
     /// Mean accelerometer reading (m/s², IMU frame) within `half_window` seconds of `timestamp`.
     pub fn mean_acceleration_near(&self, timestamp: f64, half_window: f64) -> Option<Vector3<f64>> {
         let start = self.accelerometer.partition_point(|s| s.timestamp < timestamp - half_window);
-        let samples: Vec<_> = self.accelerometer[start..]
-            .iter()
-            .take_while(|s| s.timestamp <= timestamp + half_window)
-            .collect();
+        let samples: Vec<_> = self.accelerometer[start..].iter().take_while(|s| s.timestamp <= timestamp + half_window).collect();
         if samples.is_empty() {
             return None;
         }
@@ -148,8 +145,7 @@ pub fn load_depth_png(path: &Path, metres_per_unit: f64) -> Result<DepthImage, D
     let mut buffer = vec![0u8; width * height * 2];
     reader.next_frame(&mut buffer).map_err(|e| png_error(e.to_string()))?;
     let raw: Vec<u16> = buffer.chunks_exact(2).map(|b| u16::from_be_bytes([b[0], b[1]])).collect();
-    DepthImage::from_u16(width, height, &raw, metres_per_unit)
-        .map_err(|source| DatasetError::Camera { path: path.to_path_buf(), source })
+    DepthImage::from_u16(width, height, &raw, metres_per_unit).map_err(|source| DatasetError::Camera { path: path.to_path_buf(), source })
 }
 
 /// Writes metric depth as a 16-bit PNG (`metres_per_unit` per count; NaN → 0).
@@ -191,10 +187,7 @@ pub fn write_tum_poses(path: &Path, poses: &[StampedPose]) -> Result<(), Dataset
     for pose in poses {
         let t = pose.world_from_camera.translation.vector;
         let q = pose.world_from_camera.rotation;
-        text.push_str(&format!(
-            "{:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n",
-            pose.timestamp, t.x, t.y, t.z, q.i, q.j, q.k, q.w
-        ));
+        text.push_str(&format!("{:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6} {:.6}\n", pose.timestamp, t.x, t.y, t.z, q.i, q.j, q.k, q.w));
     }
     std::fs::write(path, text).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })
 }
@@ -253,8 +246,8 @@ pub fn read_intrinsics_json(path: &Path) -> Result<(Intrinsics, Option<f64>), Da
             _ => return Err(parse("needs \"intrinsic_matrix\" or \"fx\",\"fy\",\"cx\",\"cy\"".into())),
         }
     };
-    let intrinsics = Intrinsics::new(width, height, fx, fy, cx, cy)
-        .map_err(|source| DatasetError::Camera { path: path.to_path_buf(), source })?;
+    let intrinsics =
+        Intrinsics::new(width, height, fx, fy, cx, cy).map_err(|source| DatasetError::Camera { path: path.to_path_buf(), source })?;
     Ok((intrinsics, number("depth_scale")))
 }
 
@@ -262,10 +255,7 @@ pub fn read_intrinsics_json(path: &Path) -> Result<(Intrinsics, Option<f64>), Da
 pub fn read_opencv_ir_intrinsics(path: &Path, width: usize, height: usize) -> Result<Intrinsics, DatasetError> {
     let text = std::fs::read_to_string(path).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })?;
     let parse = |reason: &str| DatasetError::Parse { path: path.to_path_buf(), line: 0, reason: reason.into() };
-    let section = text
-        .split("<IR_intrinsic_params")
-        .nth(1)
-        .ok_or_else(|| parse("no <IR_intrinsic_params> element"))?;
+    let section = text.split("<IR_intrinsic_params").nth(1).ok_or_else(|| parse("no <IR_intrinsic_params> element"))?;
     let data = section
         .split("<data>")
         .nth(1)

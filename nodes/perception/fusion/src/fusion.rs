@@ -97,10 +97,7 @@ impl TsdfConfig {
         positive("max_weight", self.max_weight)?;
         positive("max_depth_m", self.max_depth_m)?;
         if !(self.min_depth_m.is_finite() && self.min_depth_m >= 0.0 && self.min_depth_m < self.max_depth_m) {
-            return Err(FusionError::InvalidConfig(format!(
-                "depth range [{}, {}] is empty",
-                self.min_depth_m, self.max_depth_m
-            )));
+            return Err(FusionError::InvalidConfig(format!("depth range [{}, {}] is empty", self.min_depth_m, self.max_depth_m)));
         }
         let blocks = (self.size_m / (self.voxel_size_m * BLOCK_EDGE as f32)).ceil();
         if blocks > 1024.0 {
@@ -669,11 +666,8 @@ pub(crate) mod tests {
 
     pub(crate) fn looking_down_pose(position: Vector3<f64>) -> Isometry3<f64> {
         // Camera z along volume +y (down), x along volume x.
-        let rotation = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[
-            Vector3::x(),
-            -Vector3::z(),
-            Vector3::y(),
-        ]));
+        let rotation =
+            nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::from_columns(&[Vector3::x(), -Vector3::z(), Vector3::y()]));
         Isometry3::from_parts(Translation3::from(position), UnitQuaternion::from_rotation_matrix(&rotation))
     }
 

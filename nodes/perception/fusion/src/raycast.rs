@@ -166,8 +166,7 @@ pub fn raycast_guided(
     // The finer image must be an integer multiple of the raycast resolution.
     let fine = hint.and_then(|h| h.fine).and_then(|fine| {
         let factor = fine.width / intrinsics.width.max(1);
-        (factor >= 1 && fine.width == factor * intrinsics.width && fine.height == factor * intrinsics.height)
-            .then_some((fine, factor))
+        (factor >= 1 && fine.width == factor * intrinsics.width && fine.height == factor * intrinsics.height).then_some((fine, factor))
     });
     let mu = volume.truncation();
     let inv_voxel = 1.0 / volume.voxel_size();

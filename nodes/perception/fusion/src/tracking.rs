@@ -294,8 +294,7 @@ impl Tracker {
             .into_iter()
             .find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height)
             .map(|image| RayHint { depth: image, fine: Some(depth) });
-        self.model =
-            Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
+        self.model = Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
         timings.raycast_ms = elapsed_ms(started);
 
         Ok(FrameReport {

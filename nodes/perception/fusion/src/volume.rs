@@ -167,8 +167,7 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
                     (c[2] as usize * BLOCK_EDGE + z) as f32 + 0.5,
                 );
                 let voxel_old = (old_from_new * Point3::from(voxel_new * voxel)).coords / voxel;
-                let Some((_, weight)) = old.voxel(floor_i(voxel_old.x), floor_i(voxel_old.y), floor_i(voxel_old.z))
-                else {
+                let Some((_, weight)) = old.voxel(floor_i(voxel_old.x), floor_i(voxel_old.y), floor_i(voxel_old.z)) else {
                     continue;
                 };
                 if weight <= 0.0 {

@@ -135,10 +135,7 @@ pub fn gravity_from_accelerometer(
 
 /// J step 2 from an absolute IMU orientation `world_from_imu` (world z up, REP-103): gravity in the
 /// world is −ẑ, so `ĝ_camera = camera_from_imu · imu_from_world · (0, 0, −1)`.
-pub fn gravity_from_orientation(
-    world_from_imu: &UnitQuaternion<f64>,
-    camera_from_imu: &Rotation3<f64>,
-) -> Unit<Vector3<f64>> {
+pub fn gravity_from_orientation(world_from_imu: &UnitQuaternion<f64>, camera_from_imu: &Rotation3<f64>) -> Unit<Vector3<f64>> {
     let down_in_imu = world_from_imu.inverse() * Vector3::new(0.0, 0.0, -1.0);
     Unit::new_normalize(camera_from_imu * down_in_imu)
 }
@@ -163,18 +160,8 @@ pub fn map_from_camera_from_gravity(gravity_in_camera: &Unit<Vector3<f64>>) -> I
 /// Fallback gravity: the normal of the dominant plane of the cloud (RANSAC on a subsample, then a
 /// least-squares refit on the inliers), oriented away from the camera (the camera sees the top of
 /// the floor, so down points from the camera towards the plane). Deterministic for a given `seed`.
-pub fn gravity_from_dominant_plane(
-    cloud: &OrganizedCloud,
-    inlier_distance_m: f64,
-    seed: u64,
-) -> Result<Unit<Vector3<f64>>, AcquireError> {
-    let valid: Vec<Vector3<f64>> = cloud
-        .points_in_camera
-        .iter()
-        .step_by(7)
-        .filter(|p| p.z.is_finite())
-        .map(|p| p.cast::<f64>())
-        .collect();
+pub fn gravity_from_dominant_plane(cloud: &OrganizedCloud, inlier_distance_m: f64, seed: u64) -> Result<Unit<Vector3<f64>>, AcquireError> {
+    let valid: Vec<Vector3<f64>> = cloud.points_in_camera.iter().step_by(7).filter(|p| p.z.is_finite()).map(|p| p.cast::<f64>()).collect();
     if valid.len() < 50 {
         return Err(AcquireError::NoPlane(format!("only {} valid sample points", valid.len())));
     }

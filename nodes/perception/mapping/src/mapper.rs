@@ -16,17 +16,17 @@ use rand::{rngs::StdRng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
-use patchwalk_fusion::camera::{DepthImage, Intrinsics};
-use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
-use patchwalk_spl::fit::FitConfig;
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
-use patchwalk_spl::patch::Patch;
 use crate::patch_map::{PatchMap, VolumeGrid};
-use patchwalk_spl::transform::transform_patch;
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
 use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
 use crate::seeds::{select_seeds, Seed, SeedConfig};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
+use patchwalk_spl::fit::FitConfig;
+use patchwalk_spl::patch::Patch;
 use patchwalk_spl::sensor::ErrorModel;
+use patchwalk_spl::transform::transform_patch;
 use patchwalk_spl::validate::{validate_patch, ValidateConfig, Validation};
 
 /// Configuration of the whole mapper; every default is J's value (see each stage's struct).
@@ -329,9 +329,8 @@ impl Mapper {
         let target_patches =
             (config.coverage_fraction * saliency.salient_area_m2 / (std::f64::consts::PI * config.foot_radius_m.powi(2))).ceil() as usize;
         // An infinite (or huge) tm means no time limit.
-        let deadline = std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0)
-            .ok()
-            .and_then(|limit| start.checked_add(limit));
+        let deadline =
+            std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0).ok().and_then(|limit| start.checked_add(limit));
         let (mut outcomes, stop, [neighbourhood_cpu_ms, fit_validate_cpu_ms, validate_cpu_ms]) =
             fit_seeds(&seeds, &cloud, input.intrinsics, config, target_patches, deadline, self.frames);
         let t_fit = Instant::now();
@@ -364,7 +363,12 @@ impl Mapper {
 impl MapperConfig {
     /// The part of the configuration that step 13 (the fit of one neighbourhood) uses.
     pub fn neighbourhood_fit(&self) -> NeighbourhoodFit {
-        NeighbourhoodFit { sensor: self.sensor, fit: self.fit, containment: self.containment, plane_boundary_j_step5: self.plane_boundary_j_step5 }
+        NeighbourhoodFit {
+            sensor: self.sensor,
+            fit: self.fit,
+            containment: self.containment,
+            plane_boundary_j_step5: self.plane_boundary_j_step5,
+        }
     }
 }
 
@@ -493,7 +497,8 @@ fn process_seed(
     let validation_points = gather(cloud, &uniform_subset(&mut rng, scratch, config.neighbourhood.validation_points));
     let t1 = Instant::now();
     cpu_ms[0] += (t1 - t0).as_secs_f64() * 1e3;
-    let mut outcome = SeedOutcome { seed: *seed, neighbourhood_size, patch_in_camera: None, validation: None, verdict: Verdict::TooFewPoints };
+    let mut outcome =
+        SeedOutcome { seed: *seed, neighbourhood_size, patch_in_camera: None, validation: None, verdict: Verdict::TooFewPoints };
     if neighbourhood_size < config.neighbourhood.min_points.max(1) {
         return outcome;
     }
@@ -525,10 +530,10 @@ fn process_seed(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
     use crate::acquire::{gravity_from_dominant_plane, gravity_from_vector};
-    use patchwalk_fusion::dataset::{test_data_dir, Dataset};
     use crate::saliency::tests::render;
+    use patchwalk_fusion::dataset::{test_data_dir, Dataset};
+    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
 
     /// No tm / ν / DtFP limits. The coverage test is switched off (T_p = N_p): with J's
     /// thresholds it tolerates only ~±2 % error in the boundary size of a perfectly sampled disc
@@ -554,9 +559,15 @@ mod tests {
             }
         }
         let coverage_passes = |d: f64| {
-            let patch =
-                Patch::new(SurfaceType::Plane, BoundaryType::Ellipse, vec![d, d], nalgebra::Vector2::zeros(), Vector3::zeros(), Vector3::z())
-                    .unwrap();
+            let patch = Patch::new(
+                SurfaceType::Plane,
+                BoundaryType::Ellipse,
+                vec![d, d],
+                nalgebra::Vector2::zeros(),
+                Vector3::zeros(),
+                Vector3::z(),
+            )
+            .unwrap();
             validate_patch(&patch, &points, &ValidateConfig::default()).coverage.passed
         };
         assert!(coverage_passes(0.05) && coverage_passes(0.051));

@@ -93,10 +93,8 @@ pub fn uniform_subset<R: Rng + ?Sized>(rng: &mut R, indices: &[u32], count: usiz
     if indices.len() <= count {
         return indices.to_vec();
     }
-    let mut picked: Vec<u32> = rand::seq::index::sample(rng, indices.len(), count)
-        .into_iter()
-        .filter_map(|i| indices.get(i).copied())
-        .collect();
+    let mut picked: Vec<u32> =
+        rand::seq::index::sample(rng, indices.len(), count).into_iter().filter_map(|i| indices.get(i).copied()).collect();
     picked.sort_unstable();
     picked
 }

@@ -10,8 +10,8 @@
 
 use nalgebra::{Isometry3, Vector3};
 
-use patchwalk_spl::transform::transform_patch;
 use patchwalk_spl::patch::Patch;
+use patchwalk_spl::transform::transform_patch;
 
 /// A cell of the Vg × Vg grid on the volume xz-plane: `(ix, iz)`.
 pub type Cell = (usize, usize);
@@ -254,8 +254,8 @@ pub struct MapStats {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
     use nalgebra::{Translation3, UnitQuaternion, Vector2};
+    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
 
     fn grid() -> VolumeGrid {
         VolumeGrid { volume_from_map: Isometry3::identity(), edge_m: 1.6, cells_per_side: 8 }

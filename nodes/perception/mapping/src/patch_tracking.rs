@@ -76,7 +76,11 @@ pub fn track_patches(map: &mut PatchMap, report: &FrameReport, tracker: &Tracker
 
 /// Where the surface seen by a birds-eye view lies under a point given in the map frame: the
 /// raycast surface point (map frame) at the pixel the point projects to, if any.
-pub fn birds_eye_surface_under(tracker: &Tracker, view: &patchwalk_fusion::raycast::BirdsEyeView, point_in_map: &Vector3<f64>) -> Option<Vector3<f64>> {
+pub fn birds_eye_surface_under(
+    tracker: &Tracker,
+    view: &patchwalk_fusion::raycast::BirdsEyeView,
+    point_in_map: &Vector3<f64>,
+) -> Option<Vector3<f64>> {
     let map_from_birds_eye = tracker.map_from_birds_eye(view);
     let point_in_birds_eye = map_from_birds_eye.inverse() * Point3::from(*point_in_map);
     let (u, v) = view.intrinsics.pixel_of(&point_in_birds_eye.coords)?;
@@ -88,13 +92,13 @@ pub fn birds_eye_surface_under(tracker: &Tracker, view: &patchwalk_fusion::rayca
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2};
     use patchwalk_fusion::camera::{DepthImage, Intrinsics};
     use patchwalk_fusion::fusion::TsdfConfig;
-    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
-    use patchwalk_spl::transform::transform_patch;
     use patchwalk_fusion::tracking::{Frame, TrackerConfig};
     use patchwalk_fusion::volume::MovingVolumeConfig;
-    use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector2};
+    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+    use patchwalk_spl::transform::transform_patch;
 
     /// Rocky terrain height (world z up): Gaussian bumps on a 0.3 m lattice with pseudo-random
     /// amplitudes, plus gentle ridges (so ICP is constrained in every direction).
@@ -190,7 +194,9 @@ mod tests {
             let world_from_camera = camera_pose(k);
             let depth = render(&intrinsics, &world_from_camera);
             let gravity_in_camera = world_from_camera.rotation.inverse() * -Vector3::z();
-            let report = tracker.process(Frame { depth: &depth, gravity_in_camera: Some(gravity_in_camera), external_map_from_camera: None }).unwrap();
+            let report = tracker
+                .process(Frame { depth: &depth, gravity_in_camera: Some(gravity_in_camera), external_map_from_camera: None })
+                .unwrap();
             assert!(matches!(report.status, TrackingStatus::Initialized | TrackingStatus::Tracked), "frame {k}: {:?}", report.status);
             if k == 0 {
                 map_from_world = report.map_from_camera * world_from_camera.inverse();
@@ -211,7 +217,9 @@ mod tests {
                     for j in 1..=4 {
                         let (cx, cy, _) = bump(i, j, 0.3);
                         let centre = Vector3::new(cx, cy, height(cx, cy));
-                        let patch = Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.04], Vector2::zeros(), Vector3::zeros(), centre).unwrap();
+                        let patch =
+                            Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.04], Vector2::zeros(), Vector3::zeros(), centre)
+                                .unwrap();
                         let in_map = transform_patch(&patch, &map_from_world).unwrap();
                         let id = map.insert(in_map, k as f64);
                         patches_in_world.push((id, centre));
@@ -254,7 +262,10 @@ mod tests {
         let forward = Vector3::new(forward.x, forward.y, 0.0).normalize();
         for offset in [-0.5, -0.1, 0.3] {
             let centre = camera + forward * offset - Vector3::z() * 0.2;
-            map.insert(Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.03], Vector2::zeros(), Vector3::zeros(), centre).unwrap(), 0.0);
+            map.insert(
+                Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.03], Vector2::zeros(), Vector3::zeros(), centre).unwrap(),
+                0.0,
+            );
         }
         let config = PatchTrackingConfig { drop_behind_camera_m: Some(0.3), ..PatchTrackingConfig::default() };
         let update = track_patches(&mut map, &report, &tracker, &config);

@@ -26,12 +26,12 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 
 use crate::acquire::{gravity_from_accelerometer, AcquireError};
-use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
 use crate::patch_map::{PatchMap, VolumeGrid};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::raycast::BirdsEyeView;
-use patchwalk_spl::sensor::ErrorModel;
 use patchwalk_fusion::tracking::{FrameReport, Tracker, TrackerConfig, TrackingError, TrackingStatus};
+use patchwalk_spl::sensor::ErrorModel;
 
 /// Name of the gravity-aligned output frame (names.md).
 pub const MAP_FRAME: &str = "map";
@@ -194,7 +194,12 @@ pub struct Pipeline {
 impl Pipeline {
     /// A pipeline for depth images of `intrinsics`. `mapper.volume_edge_m` must equal the TSDF edge
     /// (both are Vs, J 4.3 / J 5.2).
-    pub fn new(config: PipelineConfig, tracker: TrackerConfig, mapper: MapperConfig, intrinsics: Intrinsics) -> Result<Self, PipelineError> {
+    pub fn new(
+        config: PipelineConfig,
+        tracker: TrackerConfig,
+        mapper: MapperConfig,
+        intrinsics: Intrinsics,
+    ) -> Result<Self, PipelineError> {
         if !(0.0..=1.0).contains(&config.min_valid_fraction) || !(config.imu_buffer_s.is_finite() && config.imu_buffer_s > 0.0) {
             return Err(PipelineError::Config("min_valid_fraction must be in [0, 1] and imu_buffer_s positive".into()));
         }
@@ -393,7 +398,8 @@ mod tests {
     /// TUM fr1_xyz: the Kinect is about 1 m from the desk, so a 2.56 m volume at 1 cm voxels; the
     /// desk fills the view, so the fixation ball is disabled.
     fn tum_pipeline(dataset: &Dataset) -> Pipeline {
-        let tracker = TrackerConfig { tsdf: TsdfConfig { voxel_size_m: 0.01, size_m: 2.56, ..TsdfConfig::default() }, ..TrackerConfig::default() };
+        let tracker =
+            TrackerConfig { tsdf: TsdfConfig { voxel_size_m: 0.01, size_m: 2.56, ..TsdfConfig::default() }, ..TrackerConfig::default() };
         let mut mapper = MapperConfig { volume_edge_m: 2.56, time_limit_ms: f64::INFINITY, ..MapperConfig::default() };
         mapper.preprocess.median_downsample = false;
         mapper.saliency.fixation_radius_m = f64::INFINITY;
@@ -494,7 +500,13 @@ mod tests {
             // Accelerometer at rest measures "up"; camera_from_imu is the identity by default.
             pipeline.push_imu(t - 0.005, -down * 9.81).unwrap();
             let output = pipeline.process(&depth, t).unwrap();
-            eprintln!("frame {frame}: {:?} {:?} birds-eye {} map {}", output.tracking, output.mapped, output.birds_eye.depth.valid_count(), pipeline.map().len());
+            eprintln!(
+                "frame {frame}: {:?} {:?} birds-eye {} map {}",
+                output.tracking,
+                output.mapped,
+                output.birds_eye.depth.valid_count(),
+                pipeline.map().len()
+            );
             summary.add(&output.mapped);
             last = Some(output);
         }

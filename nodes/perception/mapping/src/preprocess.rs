@@ -179,7 +179,9 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
                     continue;
                 }
                 for (du, &ws) in weights.iter().enumerate() {
-                    let (Some(taps), Some(centre), Some(quarter_inv)) = (src_row.get(du..du + width), centre.get(..width), quarter_inv.get(..width)) else {
+                    let (Some(taps), Some(centre), Some(quarter_inv)) =
+                        (src_row.get(du..du + width), centre.get(..width), quarter_inv.get(..width))
+                    else {
                         continue;
                     };
                     let (sum_w, sum_wz) = (&mut sum_w[..width], &mut sum_wz[..width]);

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Vector2, Vector3};
 
-use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use crate::mapper::{SeedOutcome, Verdict};
-use patchwalk_spl::patch::Patch;
 use crate::saliency::{Saliency, SaliencyLabel};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_spl::patch::Patch;
 
 /// Errors writing pictures.
 #[derive(Debug, thiserror::Error)]
@@ -211,8 +211,15 @@ mod tests {
     #[test]
     fn patch_outline_projects_around_its_centre_and_png_round_trips() {
         let intrinsics = Intrinsics::primesense_default();
-        let patch = Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.05], nalgebra::Vector2::zeros(), Vector3::zeros(), Vector3::new(0.0, 0.0, 1.0))
-            .unwrap();
+        let patch = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.05],
+            nalgebra::Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::new(0.0, 0.0, 1.0),
+        )
+        .unwrap();
         let outline = projected_outline(&patch, &intrinsics);
         assert_eq!(outline.len(), 64);
         for p in &outline {

@@ -355,7 +355,11 @@ pub(crate) mod tests {
             }
         }
         assert!(floor.1 > 1000 && wall.1 > 1000);
-        assert!(floor.0 as f64 > 0.95 * floor.1 as f64, "floor salient {floor:?} labels {:?}", [0u8, 1, 2, 3, 4, 5].map(|l| saliency.labels.iter().filter(|x| **x as u8 == l).count()));
+        assert!(
+            floor.0 as f64 > 0.95 * floor.1 as f64,
+            "floor salient {floor:?} labels {:?}",
+            [0u8, 1, 2, 3, 4, 5].map(|l| saliency.labels.iter().filter(|x| **x as u8 == l).count())
+        );
         assert_eq!(wall.0, 0);
         assert!(saliency.count(SaliencyLabel::Steep) > 1000);
         // The crease itself is irregular (DoN) for some pixels.

@@ -6,9 +6,9 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{rngs::StdRng, SeedableRng};
 
-use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use crate::patch_map::{Cell, VolumeGrid};
 use crate::saliency::Saliency;
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 
 /// Configuration of stage iii (J 4.3, J 6.1.2).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -140,11 +140,21 @@ mod tests {
         };
         assert!(seeds.windows(2).all(|w| distance(w[0].cell) <= distance(w[1].cell)));
         // ns caps the total and keeps the nearest cells.
-        let capped = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &SeedConfig { max_seeds: 3, ..config.clone() }, 0);
+        let capped = select_seeds(
+            &saliency,
+            &depth,
+            &intrinsics,
+            &grid,
+            &volume_from_camera,
+            &[],
+            &SeedConfig { max_seeds: 3, ..config.clone() },
+            0,
+        );
         assert_eq!(capped.len(), 3);
         assert_eq!(capped.iter().map(|s| s.cell).collect::<Vec<_>>(), seeds[..3].iter().map(|s| s.cell).collect::<Vec<_>>());
         // ng = 3 gives up to 3 per cell.
-        let three = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &SeedConfig { per_cell: 3, ..config.clone() }, 0);
+        let three =
+            select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &SeedConfig { per_cell: 3, ..config.clone() }, 0);
         assert!(three.len() > 2 * seeds.len());
         // Deterministic for the same frame, different for another frame.
         let again = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &config, 0);

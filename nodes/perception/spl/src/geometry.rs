@@ -508,10 +508,7 @@ mod tests {
             .iter()
             .enumerate()
             .map(|(j, l)| ChainLink {
-                pose: Pose::new(
-                    Vector3::new(p[6 * j], p[6 * j + 1], p[6 * j + 2]),
-                    Vector3::new(p[6 * j + 3], p[6 * j + 4], p[6 * j + 5]),
-                ),
+                pose: Pose::new(Vector3::new(p[6 * j], p[6 * j + 1], p[6 * j + 2]), Vector3::new(p[6 * j + 3], p[6 * j + 4], p[6 * j + 5])),
                 inverted: l.inverted,
             })
             .collect()

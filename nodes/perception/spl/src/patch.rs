@@ -100,8 +100,7 @@ impl SurfaceType {
 
 impl BoundaryType {
     /// All boundary types in their fixed order.
-    pub const ALL: [BoundaryType; 4] =
-        [BoundaryType::Ellipse, BoundaryType::Circle, BoundaryType::Rectangle, BoundaryType::Quadrilateral];
+    pub const ALL: [BoundaryType; 4] = [BoundaryType::Ellipse, BoundaryType::Circle, BoundaryType::Rectangle, BoundaryType::Quadrilateral];
 
     /// JSON/CLI name.
     pub fn name(self) -> &'static str {
@@ -203,11 +202,7 @@ impl Patch {
             return Err(PatchError::InvalidCombination { surface, boundary });
         }
         if boundary_params.len() != boundary.num_params() {
-            return Err(PatchError::WrongLength {
-                what: "boundary_params",
-                expected: boundary.num_params(),
-                got: boundary_params.len(),
-            });
+            return Err(PatchError::WrongLength { what: "boundary_params", expected: boundary.num_params(), got: boundary_params.len() });
         }
         let all_finite = boundary_params.iter().chain(curvatures.iter()).chain(rotation.iter()).chain(center.iter()).all(|v| v.is_finite());
         if !all_finite {
@@ -524,7 +519,9 @@ impl PatchShape {
                             perps[i] = Vector2::new(d.y, -d.x);
                             lengths[i] = perps[i].norm();
                         }
-                        let half = vertices.iter().fold(Vector2::<f64>::zeros(), |acc, p| Vector2::new(acc.x.max(p.x.abs()), acc.y.max(p.y.abs())));
+                        let half = vertices
+                            .iter()
+                            .fold(Vector2::<f64>::zeros(), |acc, p| Vector2::new(acc.x.max(p.x.abs()), acc.y.max(p.y.abs())));
                         BoundaryShape::Polygon { quad, vertices, perps, lengths, half }
                     }
                     None => BoundaryShape::Invalid { quad },
@@ -586,7 +583,12 @@ impl PatchShape {
     /// the first step that would leave the boundary on, projected Gauss–Newton as without `hessian`
     /// (whose fixed point on the boundary depends on the step's metric).
     #[inline(always)]
-    fn closest_with(&self, q_l: &Vector3<f64>, hessian: Option<Vector2<f64>>, height: impl Fn(&Vector2<f64>) -> Option<(f64, Vector2<f64>)>) -> Vector3<f64> {
+    fn closest_with(
+        &self,
+        q_l: &Vector3<f64>,
+        hessian: Option<Vector2<f64>>,
+        height: impl Fn(&Vector2<f64>) -> Option<(f64, Vector2<f64>)>,
+    ) -> Vector3<f64> {
         let q_xy = q_l.xy();
         let mut u = self.project_to_boundary(&q_xy);
         let mut hessian = hessian;
@@ -597,7 +599,8 @@ impl PatchShape {
             let e_xy = u - q_xy;
             let e_z = z - q_l.z;
             let jte = e_xy + g * e_z;
-            let newton = hessian.and_then(|h| newton_step(&g, e_z, &h, &jte)).map(|step| u - step).filter(|next| self.boundary_value(next) < 0.0);
+            let newton =
+                hessian.and_then(|h| newton_step(&g, e_z, &h, &jte)).map(|step| u - step).filter(|next| self.boundary_value(next) < 0.0);
             let next = match newton {
                 Some(next) => next,
                 None => {
@@ -865,7 +868,15 @@ mod tests {
             let back = Patch::from_params(s, b, p.params().as_slice()).unwrap();
             assert_eq!(back, p);
         }
-        assert!(Patch::new(SurfaceType::Sphere, BoundaryType::Rectangle, vec![1.0, 1.0], Vector2::zeros(), Vector3::zeros(), Vector3::zeros()).is_err());
+        assert!(Patch::new(
+            SurfaceType::Sphere,
+            BoundaryType::Rectangle,
+            vec![1.0, 1.0],
+            Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::zeros()
+        )
+        .is_err());
     }
 
     #[test]
@@ -887,7 +898,13 @@ mod tests {
     fn newton_closest_point_matches_gauss_newton() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         for (s, b) in all_types() {
-            if !matches!(s, SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid | SurfaceType::CylindricParaboloid | SurfaceType::CircularParaboloid) {
+            if !matches!(
+                s,
+                SurfaceType::EllipticParaboloid
+                    | SurfaceType::HyperbolicParaboloid
+                    | SurfaceType::CylindricParaboloid
+                    | SurfaceType::CircularParaboloid
+            ) {
                 continue;
             }
             let shape = example(s, b).shape();
@@ -920,7 +937,8 @@ mod tests {
             }
         }
         // Beyond the boundary of a plane: distance to the rim.
-        let plane = Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.1], Vector2::zeros(), Vector3::zeros(), Vector3::zeros()).unwrap();
+        let plane =
+            Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.1], Vector2::zeros(), Vector3::zeros(), Vector3::zeros()).unwrap();
         assert!((plane.distance(&Vector3::new(0.13, 0.0, 0.04)) - 0.05).abs() < 1e-9);
     }
 
@@ -930,9 +948,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(9);
         let h = q.boundary_half_extents();
         let n = 200_000;
-        let inside = (0..n)
-            .filter(|_| q.contains_uv(&Vector2::new(rng.random_range(-h.x..h.x), rng.random_range(-h.y..h.y))))
-            .count();
+        let inside = (0..n).filter(|_| q.contains_uv(&Vector2::new(rng.random_range(-h.x..h.x), rng.random_range(-h.y..h.y)))).count();
         let mc = inside as f64 / n as f64 * 4.0 * h.x * h.y;
         assert!((mc - q.boundary_area()).abs() / q.boundary_area() < 0.01);
     }

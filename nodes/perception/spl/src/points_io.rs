@@ -75,7 +75,10 @@ pub fn parse_csv(text: &str) -> Result<PointSet, PointsError> {
         }
         match columns {
             Some(c) if c != values.len() && !points.is_empty() => {
-                return Err(PointsError::Csv { line: i + 1, message: format!("expected {c} values like the previous lines, got {}", values.len()) })
+                return Err(PointsError::Csv {
+                    line: i + 1,
+                    message: format!("expected {c} values like the previous lines, got {}", values.len()),
+                })
             }
             _ => columns = Some(values.len()),
         }
@@ -199,7 +202,8 @@ pub fn parse_ply(bytes: &[u8]) -> Result<PointSet, PointsError> {
                 let mut vals = Vec::with_capacity(props.len());
                 for (t, _) in &props {
                     let s = type_size(t).unwrap_or(0);
-                    let value = body.get(off..).and_then(|b| read_scalar(b, t, format)).ok_or_else(|| PointsError::Ply("file truncated".into()))?;
+                    let value =
+                        body.get(off..).and_then(|b| read_scalar(b, t, format)).ok_or_else(|| PointsError::Ply("file truncated".into()))?;
                     vals.push(value);
                     off += s;
                 }
@@ -215,7 +219,8 @@ pub fn parse_ply(bytes: &[u8]) -> Result<PointSet, PointsError> {
     }
     let get = |r: &Vec<f64>, i: usize| r.get(i).copied().unwrap_or(f64::NAN);
     let points = rows.iter().map(|r| Vector3::new(get(r, ix), get(r, iy), get(r, iz))).collect();
-    let covariances = cov_idx.map(|idx| rows.iter().map(|r| covariance_from(&idx.iter().map(|&i| get(r, i)).collect::<Vec<_>>())).collect());
+    let covariances =
+        cov_idx.map(|idx| rows.iter().map(|r| covariance_from(&idx.iter().map(|&i| get(r, i)).collect::<Vec<_>>())).collect());
     Ok(PointSet { points, covariances })
 }
 
@@ -243,7 +248,9 @@ mod tests {
         let ascii = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n0 0 1 255\n0.5 0.25 2 0\n";
         let p = parse_ply(ascii).unwrap();
         assert_eq!(p.points, vec![Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.5, 0.25, 2.0)]);
-        let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty float z\nend_header\n".to_vec();
+        let mut bin =
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty float z\nend_header\n"
+                .to_vec();
         for (x, y, z) in [(1.0f64, 2.0f64, 3.0f32), (-1.0, 0.5, 0.25)] {
             bin.extend(x.to_le_bytes());
             bin.extend(y.to_le_bytes());

@@ -124,7 +124,11 @@ pub fn murray_little(point_in_sensor: &Vector3<f64>, p: &StereoErrorParams) -> R
 
 /// Covariances for points given in any frame whose axes are those of the sensor, with the sensor at
 /// `sensor_origin` (e.g. camera-frame points with origin 0).
-pub fn covariances_for(points: &[Vector3<f64>], sensor_origin: &Vector3<f64>, model: &ErrorModel) -> Result<Vec<Matrix3<f64>>, SensorError> {
+pub fn covariances_for(
+    points: &[Vector3<f64>],
+    sensor_origin: &Vector3<f64>,
+    model: &ErrorModel,
+) -> Result<Vec<Matrix3<f64>>, SensorError> {
     points.iter().map(|q| model.covariance(&(q - sensor_origin))).collect()
 }
 

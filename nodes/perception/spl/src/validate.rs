@@ -157,9 +157,7 @@ fn residual_local(query: &PatchQuery, local: &[Vector3<f64>]) -> f64 {
 pub fn principal_curvature_range(patch: &Patch) -> (f64, f64) {
     let k = patch.curvatures;
     match patch.surface {
-        crate::patch::SurfaceType::CylindricParaboloid | crate::patch::SurfaceType::CircularCylinder => {
-            (k.y.min(0.0), k.y.max(0.0))
-        }
+        crate::patch::SurfaceType::CylindricParaboloid | crate::patch::SurfaceType::CircularCylinder => (k.y.min(0.0), k.y.max(0.0)),
         _ => (k.x.min(k.y), k.x.max(k.y)),
     }
 }
@@ -300,7 +298,8 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     fn disk(r: f64) -> Patch {
-        Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![r], Vector2::zeros(), Vector3::zeros(), Vector3::new(0.0, 0.0, 1.0)).unwrap()
+        Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![r], Vector2::zeros(), Vector3::zeros(), Vector3::new(0.0, 0.0, 1.0))
+            .unwrap()
     }
 
     fn dense_disk(rng: &mut rand::rngs::StdRng, r: f64, n: usize) -> Vec<Vector3<f64>> {
@@ -309,7 +308,23 @@ mod tests {
 
     #[test]
     fn floor_to_i64_matches_the_cast_of_floor() {
-        for x in [0.0, -0.0, 0.5, -0.5, 1.0, -1.0, 2.999_999, -2.000_001, 1e300, -1e300, f64::INFINITY, f64::NEG_INFINITY, f64::NAN, 4.5e15 + 0.5, -4.5e15 - 0.5] {
+        for x in [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            2.999_999,
+            -2.000_001,
+            1e300,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            4.5e15 + 0.5,
+            -4.5e15 - 0.5,
+        ] {
             assert_eq!(floor_to_i64(x), x.floor() as i64, "{x}");
         }
     }
@@ -354,7 +369,15 @@ mod tests {
 
     #[test]
     fn too_curved_bump_fails_curvature() {
-        let bump = Patch::new(SurfaceType::CircularParaboloid, BoundaryType::Circle, vec![0.05], Vector2::new(-25.0, -25.0), Vector3::zeros(), Vector3::zeros()).unwrap();
+        let bump = Patch::new(
+            SurfaceType::CircularParaboloid,
+            BoundaryType::Circle,
+            vec![0.05],
+            Vector2::new(-25.0, -25.0),
+            Vector3::zeros(),
+            Vector3::zeros(),
+        )
+        .unwrap();
         let mut rng = rand::rngs::StdRng::seed_from_u64(4);
         let pts = bump.sample_points(&mut rng, 2000);
         let v = validate_patch(&bump, &pts, &ValidateConfig::default());

@@ -197,7 +197,13 @@ impl DepthCamera {
     /// `cache` the ray casting is reused: the pointing error is applied to the cached pixel-centre
     /// depths to first order (`z + ∂z/∂u·δu + ∂z/∂v·δv`), which costs a fraction of a full cast.
     /// A static robot in the lookdown pose renders ≈ 3× faster this way.
-    pub fn render_reusing(&self, scene: &Scene, world_from_camera: &Isometry3<f64>, noise_seed: u64, cache: &mut Option<RenderCache>) -> DepthImage {
+    pub fn render_reusing(
+        &self,
+        scene: &Scene,
+        world_from_camera: &Isometry3<f64>,
+        noise_seed: u64,
+        cache: &mut Option<RenderCache>,
+    ) -> DepthImage {
         if !self.config.noise.enabled {
             return self.render(scene, world_from_camera, noise_seed);
         }
@@ -326,9 +332,8 @@ impl DepthCamera {
             if blockers.peek().is_some() {
                 let point_in_world = ray.at(z) + hit.normal * 1e-6;
                 let to_projector = Ray { origin: point_in_world, direction: setup.projector_in_world - point_in_world };
-                let shadowed = blockers.any(|(i, _)| {
-                    scene.rocks.get(*i).is_some_and(|rock| rock.intersect_world(&to_projector).is_some_and(|h| h.t < 1.0))
-                });
+                let shadowed = blockers
+                    .any(|(i, _)| scene.rocks.get(*i).is_some_and(|rock| rock.intersect_world(&to_projector).is_some_and(|h| h.t < 1.0)));
                 if shadowed {
                     return f32::NAN;
                 }
@@ -370,7 +375,13 @@ impl DepthCamera {
     /// `viewpoint_in_camera` (the camera itself or the projector) with the camera's intrinsics and
     /// orientation; `None` if it is entirely behind (or, with `clip`, outside the image); the whole
     /// plane if it straddles the image plane.
-    fn project_bounds(&self, rock: &crate::scene::Rock, world_from_camera: &Isometry3<f64>, viewpoint_in_camera: &Vector3<f64>, clip: bool) -> Option<PixelRect> {
+    fn project_bounds(
+        &self,
+        rock: &crate::scene::Rock,
+        world_from_camera: &Isometry3<f64>,
+        viewpoint_in_camera: &Vector3<f64>,
+        clip: bool,
+    ) -> Option<PixelRect> {
         let [min, max] = rock.bounds_in_rock;
         let camera_from_rock = world_from_camera.inverse() * rock.world_from_rock;
         let k = &self.intrinsics;
@@ -477,9 +488,11 @@ fn normal_table() -> &'static [f64] {
 /// Inverse of the standard normal CDF for p in (0, 1) (Acklam's rational approximation, relative
 /// error < 1.2e-9).
 fn inverse_normal_cdf(p: f64) -> f64 {
-    const A: [f64; 6] = [-3.969683028665376e1, 2.209460984245205e2, -2.759285104469687e2, 1.38357751867269e2, -3.066479806614716e1, 2.506628277459239];
+    const A: [f64; 6] =
+        [-3.969683028665376e1, 2.209460984245205e2, -2.759285104469687e2, 1.38357751867269e2, -3.066479806614716e1, 2.506628277459239];
     const B: [f64; 5] = [-5.447609879822406e1, 1.615858368580409e2, -1.556989798598866e2, 6.680131188771972e1, -1.328068155288572e1];
-    const C: [f64; 6] = [-7.784894002430293e-3, -3.223964580411365e-1, -2.400758277161838, -2.549732539343734, 4.374664141464968, 2.938163982698783];
+    const C: [f64; 6] =
+        [-7.784894002430293e-3, -3.223964580411365e-1, -2.400758277161838, -2.549732539343734, 4.374664141464968, 2.938163982698783];
     const D: [f64; 4] = [7.784695709041462e-3, 3.224671290700398e-1, 2.445134137142996, 3.754408661907416];
     let tail = |q: f64| {
         (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5]) / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
@@ -514,11 +527,7 @@ fn at_depth_edge(depth: &[f32], width: usize, height: usize, u: usize, v: usize,
         (v > 0).then(|| (v - 1) * width + u),
         (v + 1 < height).then(|| (v + 1) * width + u),
     ];
-    neighbours
-        .into_iter()
-        .flatten()
-        .filter_map(|i| depth.get(i).copied())
-        .any(|n| n.is_finite() && (n - z).abs() > ratio * z)
+    neighbours.into_iter().flatten().filter_map(|i| depth.get(i).copied()).any(|n| n.is_finite() && (n - z).abs() > ratio * z)
 }
 
 /// Image gradients (m/px) of a depth image: central differences, one-sided next to invalid pixels
@@ -552,11 +561,7 @@ fn depth_gradients(depth: &[f32], width: usize, height: usize, ratio: f32) -> (V
 
 /// Depth in 16-bit millimetres (0 = no data), the `16UC1` encoding of `sensor_msgs/Image`.
 pub fn to_millimetres(image: &DepthImage) -> Vec<u16> {
-    image
-        .depth_m
-        .iter()
-        .map(|&d| if d.is_finite() { (f64::from(d) * 1000.0).round().clamp(0.0, 65535.0) as u16 } else { 0 })
-        .collect()
+    image.depth_m.iter().map(|&d| if d.is_finite() { (f64::from(d) * 1000.0).round().clamp(0.0, 65535.0) as u16 } else { 0 }).collect()
 }
 
 #[cfg(test)]
@@ -616,10 +621,7 @@ mod tests {
         let scene = Scene::new(&config, 0).unwrap();
         let centre = scene.rocks[0].world_from_rock.translation.vector + Vector3::new(0.0, 0.0, r);
         let h = 0.9;
-        let pose = Isometry3::from_parts(
-            nalgebra::Translation3::new(centre.x, centre.y, h),
-            looking_down(h).rotation,
-        );
+        let pose = Isometry3::from_parts(nalgebra::Translation3::new(centre.x, centre.y, h), looking_down(h).rotation);
         let camera = DepthCamera::new(noiseless()).unwrap();
         let image = camera.render(&scene, &pose, 0);
         // Centre pixel: top of the sphere.
@@ -664,7 +666,11 @@ mod tests {
     fn quantised_output_is_millimetres() {
         let camera = DepthCamera::new(CameraConfig::default()).unwrap();
         let image = camera.render(&empty_scene(), &looking_down(0.7), 3);
-        assert!(image.depth_m.iter().filter(|z| z.is_finite()).all(|&z| ((f64::from(z) * 1000.0).round() - f64::from(z) * 1000.0).abs() < 1e-3));
+        assert!(image
+            .depth_m
+            .iter()
+            .filter(|z| z.is_finite())
+            .all(|&z| ((f64::from(z) * 1000.0).round() - f64::from(z) * 1000.0).abs() < 1e-3));
         let mm = to_millimetres(&image);
         assert!(mm.iter().all(|&d| d == 0 || (680..=720).contains(&d)));
     }

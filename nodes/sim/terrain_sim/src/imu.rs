@@ -162,9 +162,8 @@ mod tests {
         let base_from_camera = base_from_camera_lookdown(&config);
         let imu = Imu::new(ImuConfig::default()).unwrap();
         let station = Isometry3::identity();
-        let samples: Vec<ImuSample> = (0..200)
-            .map(|i| imu.sample(|t| motion.world_from_camera(&station, &base_from_camera, t), i as f64 * 0.01, i))
-            .collect();
+        let samples: Vec<ImuSample> =
+            (0..200).map(|i| imu.sample(|t| motion.world_from_camera(&station, &base_from_camera, t), i as f64 * 0.01, i)).collect();
         let mean_norm = samples.iter().map(|s| s.linear_acceleration_in_imu.norm()).sum::<f64>() / 200.0;
         assert!((mean_norm - 9.81).abs() < 0.1, "{mean_norm}");
         let max_gyro = samples.iter().map(|s| s.angular_velocity_in_imu.norm()).fold(0.0, f64::max);

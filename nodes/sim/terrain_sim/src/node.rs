@@ -17,11 +17,11 @@ use nalgebra::{Isometry3, UnitQuaternion};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::{Quaternion as QuaternionMsg, Vector3 as Vector3Msg};
-use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, RegionOfInterest};
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
-use ros2_client::{MessageTypeName, Publisher, Subscription};
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use ros2_client::{MessageTypeName, Publisher, Subscription};
 use terrain_sim::config::SimConfig;
 use terrain_sim::imu::ImuSample;
 use terrain_sim::motion::StanceTracker;
@@ -318,16 +318,18 @@ fn std_msgs_publisher<M: ros2_client::Message>(ros: &mut RosNode, topic: &str, t
 }
 
 /// Subscription to a `std_msgs` type, reliable.
-fn std_msgs_subscription<M: ros2_client::Message + 'static>(ros: &mut RosNode, topic: &str, type_name: &str) -> anyhow::Result<Subscription<M>> {
+fn std_msgs_subscription<M: ros2_client::Message + 'static>(
+    ros: &mut RosNode,
+    topic: &str,
+    type_name: &str,
+) -> anyhow::Result<Subscription<M>> {
     let name = node::ros_name(topic)?;
     let qos = node::reliable_qos();
     let ros_node = ros.node_mut().context("node is shutting down")?;
     let dds_topic = ros_node
         .create_topic(&name, MessageTypeName::new("std_msgs", type_name), &qos)
         .map_err(|e| anyhow::anyhow!("cannot create topic {topic}: {e:?}"))?;
-    ros_node
-        .create_subscription(&dds_topic, Some(qos))
-        .map_err(|e| anyhow::anyhow!("cannot create subscription {topic}: {e:?}"))
+    ros_node.create_subscription(&dds_topic, Some(qos)).map_err(|e| anyhow::anyhow!("cannot create subscription {topic}: {e:?}"))
 }
 
 // ---- message conversion -------------------------------------------------------------------------
@@ -430,7 +432,12 @@ mod tests {
         let positions = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
         let mut robot = Robot { model, positions };
         let sim = Simulator::new(SimConfig::default()).unwrap();
-        let pose = Mutex::new(RobotPose { rock: 0, world_from_station: sim.world_from_station, stance: None, base_from_camera: sim.base_from_camera });
+        let pose = Mutex::new(RobotPose {
+            rock: 0,
+            world_from_station: sim.world_from_station,
+            stance: None,
+            base_from_camera: sim.base_from_camera,
+        });
         let mut log = RateLimitedLog::default();
         let names: Vec<String> = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| (*j).to_string()).collect();
         let zero = JointState { name: names.clone(), position: vec![0.0; 12], ..JointState::default() };
@@ -456,7 +463,12 @@ mod tests {
         }
         follow_joint_state(&mut robot, &bent, &pose, &mut log);
         let camera_bent = lock(&pose).world_from_camera(&sim, 0.0);
-        assert!(camera_bent.translation.z < camera_at_zero.translation.z - 0.005, "{} vs {}", camera_bent.translation.z, camera_at_zero.translation.z);
+        assert!(
+            camera_bent.translation.z < camera_at_zero.translation.z - 0.005,
+            "{} vs {}",
+            camera_bent.translation.z,
+            camera_at_zero.translation.z
+        );
         // Malformed joint states are ignored.
         let bad = JointState { name: names, position: vec![0.0; 3], ..JointState::default() };
         follow_joint_state(&mut robot, &bad, &pose, &mut log);

@@ -159,13 +159,8 @@ mod tests {
         let loaded = dataset.load_depth(2).unwrap();
         let rendered = sim.depth_frame(2).depth;
         assert_eq!(loaded.valid_count(), rendered.valid_count());
-        let max_error = loaded
-            .depth_m
-            .iter()
-            .zip(&rendered.depth_m)
-            .filter(|(a, _)| a.is_finite())
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0f32, f32::max);
+        let max_error =
+            loaded.depth_m.iter().zip(&rendered.depth_m).filter(|(a, _)| a.is_finite()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(max_error < 1e-4, "{max_error}");
         // Ground truth and accelerometer match the simulator.
         let pose = dataset.groundtruth_near(dataset.frames[1].timestamp, 1e-3).unwrap();

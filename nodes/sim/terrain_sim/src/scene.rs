@@ -211,15 +211,11 @@ impl RockShape {
                     }
                 }
                 // Side wall x² + y² = r², 0 ≤ z ≤ top.
-                let t_side = first_root(
-                    d.x * d.x + d.y * d.y,
-                    2.0 * (o.x * d.x + o.y * d.y),
-                    o.x * o.x + o.y * o.y - radius_m * radius_m,
-                    |t| {
+                let t_side =
+                    first_root(d.x * d.x + d.y * d.y, 2.0 * (o.x * d.x + o.y * d.y), o.x * o.x + o.y * o.y - radius_m * radius_m, |t| {
                         let p = ray.at(t);
                         p.z >= 0.0 && p.z <= top_z(&p)
-                    },
-                );
+                    });
                 if let Some(t) = t_side {
                     if best.is_none_or(|hit| t < hit.t) {
                         let p = ray.at(t);
@@ -235,12 +231,10 @@ impl RockShape {
                 let mut best: Option<Hit> = None;
                 // Side y² + (z − z_axis)² = r², |x| ≤ l/2.
                 let oz = o.z - axis_z;
-                let t_side = first_root(
-                    d.y * d.y + d.z * d.z,
-                    2.0 * (o.y * d.y + oz * d.z),
-                    o.y * o.y + oz * oz - radius_m * radius_m,
-                    |t| ray.at(t).x.abs() <= half,
-                );
+                let t_side =
+                    first_root(d.y * d.y + d.z * d.z, 2.0 * (o.y * d.y + oz * d.z), o.y * o.y + oz * oz - radius_m * radius_m, |t| {
+                        ray.at(t).x.abs() <= half
+                    });
                 if let Some(t) = t_side {
                     let p = ray.at(t);
                     best = Some(Hit { t, normal: Vector3::new(0.0, p.y, p.z - axis_z) / radius_m });
@@ -263,16 +257,15 @@ impl RockShape {
 
     /// Foothold geometry in the rock frame (the `*_in_world` fields hold rock-frame values here).
     fn local_foothold(&self) -> Foothold {
-        let foothold = |top: Vector3<f64>, normal: Vector3<f64>, direction_x: Vector3<f64>, k: [f64; 2], kind: &'static str, radius: f64| {
-            Foothold {
+        let foothold =
+            |top: Vector3<f64>, normal: Vector3<f64>, direction_x: Vector3<f64>, k: [f64; 2], kind: &'static str, radius: f64| Foothold {
                 top_in_world: top,
                 normal_in_world: normal,
                 direction_x_in_world: direction_x,
                 curvatures_per_m: k,
                 surface_type: kind,
                 top_radius_m: radius,
-            }
-        };
+            };
         let up = Vector3::z();
         match *self {
             RockShape::EllipsoidCap { semi_axes_m: [a, b, c], centre_z_m } => {
@@ -481,11 +474,8 @@ impl Scene {
             shapes.push((format!("untrained {}", i + 1), shape, false, yaw));
         }
         for &index in &config.twins_of_training {
-            let (_, shape, _, yaw) = shapes
-                .get(index)
-                .filter(|entry| entry.2)
-                .cloned()
-                .ok_or(SceneError::NoSuchRock { index, count: training.len() })?;
+            let (_, shape, _, yaw) =
+                shapes.get(index).filter(|entry| entry.2).cloned().ok_or(SceneError::NoSuchRock { index, count: training.len() })?;
             shapes.push((format!("twin of rock {}", index + 1), shape, false, yaw));
         }
         let mut rocks = Vec::with_capacity(shapes.len());
@@ -499,10 +489,7 @@ impl Scene {
 
     /// `world_from_base` of the station in front of rock `index`.
     pub fn station(&self, index: usize) -> Result<Isometry3<f64>, SceneError> {
-        self.rocks
-            .get(index)
-            .map(|rock| rock.world_from_station)
-            .ok_or(SceneError::NoSuchRock { index, count: self.rocks.len() })
+        self.rocks.get(index).map(|rock| rock.world_from_station).ok_or(SceneError::NoSuchRock { index, count: self.rocks.len() })
     }
 
     /// Nearest hit of a world ray among table/floor and the rocks for which `consider(i)` is true.

@@ -84,7 +84,13 @@ impl Simulator {
 
     /// [`render_at`](Self::render_at) reusing the ray casting while the pose stays the same
     /// (see `DepthCamera::render_reusing`).
-    pub fn render_at_reusing(&self, timestamp: f64, world_from_camera: &Isometry3<f64>, index: u64, cache: &mut Option<RenderCache>) -> DepthFrame {
+    pub fn render_at_reusing(
+        &self,
+        timestamp: f64,
+        world_from_camera: &Isometry3<f64>,
+        index: u64,
+        cache: &mut Option<RenderCache>,
+    ) -> DepthFrame {
         let depth = self.camera.render_reusing(&self.scene, world_from_camera, mix(self.config.seed, index), cache);
         DepthFrame { timestamp, depth, world_from_camera: *world_from_camera }
     }

@@ -52,7 +52,9 @@ fn read_error(id: u8, error: ReadError) -> BusError {
     match error {
         ReadError::Io(e) if e.kind() == std::io::ErrorKind::TimedOut => BusError::Timeout { id },
         ReadError::Io(e) => BusError::Io(e.to_string()),
-        ReadError::BufferFull(e) => BusError::Protocol { id, detail: format!("read buffer too small ({} > {})", e.required_size, e.total_size) },
+        ReadError::BufferFull(e) => {
+            BusError::Protocol { id, detail: format!("read buffer too small ({} > {})", e.required_size, e.total_size) }
+        }
         ReadError::InvalidMessage(InvalidMessage::InvalidChecksum(_)) => BusError::Checksum { id },
         ReadError::InvalidMessage(other) => BusError::Protocol { id, detail: format!("{other:?}") },
         ReadError::MotorError(e) => BusError::Status { id, code: e.error_number() },
@@ -61,7 +63,9 @@ fn read_error(id: u8, error: ReadError) -> BusError {
 
 fn write_error(error: WriteError) -> BusError {
     match error {
-        WriteError::BufferTooSmall(e) => BusError::InvalidRequest(format!("write buffer too small ({} > {})", e.required_size, e.total_size)),
+        WriteError::BufferTooSmall(e) => {
+            BusError::InvalidRequest(format!("write buffer too small ({} > {})", e.required_size, e.total_size))
+        }
         WriteError::DiscardBuffer(e) | WriteError::Write(e) => BusError::Io(e.to_string()),
     }
 }
@@ -97,7 +101,10 @@ impl DynamixelBus {
                 return Err(BusError::Protocol { id, detail: format!("answer from servo {}", response.packet_id()) });
             }
             if response.parameters().len() != expected {
-                return Err(BusError::Protocol { id, detail: format!("{} parameter bytes instead of {expected}", response.parameters().len()) });
+                return Err(BusError::Protocol {
+                    id,
+                    detail: format!("{} parameter bytes instead of {expected}", response.parameters().len()),
+                });
             }
             Ok((response.parameters().to_vec(), response.alert()))
         })
@@ -136,7 +143,8 @@ impl ServoBus for DynamixelBus {
             // dynamixel2 asserts on this; reject it as a typed error first.
             return Err(BusError::InvalidRequest(format!("servo {id}: {} bytes for a {count}-byte sync write", bytes.len())));
         }
-        let entries: Vec<SyncWriteData<&[u8]>> = data.iter().map(|(id, bytes)| SyncWriteData { motor_id: *id, data: bytes.as_slice() }).collect();
+        let entries: Vec<SyncWriteData<&[u8]>> =
+            data.iter().map(|(id, bytes)| SyncWriteData { motor_id: *id, data: bytes.as_slice() }).collect();
         self.guarded(|bus| bus.sync_write(address, count, &entries).map_err(write_error))
     }
 
@@ -162,9 +170,14 @@ impl ServoBus for DynamixelBus {
                     Err(e) => (id, Err(read_error(id, e))),
                     Ok(response) if response.parameters().len() != usize::from(count) => (
                         response.packet_id(),
-                        Err(BusError::Protocol { id: response.packet_id(), detail: format!("{} bytes instead of {count}", response.parameters().len()) }),
+                        Err(BusError::Protocol {
+                            id: response.packet_id(),
+                            detail: format!("{} bytes instead of {count}", response.parameters().len()),
+                        }),
                     ),
-                    Ok(response) => (response.packet_id(), Ok(SyncReadData { data: response.parameters().to_vec(), alert: response.alert() })),
+                    Ok(response) => {
+                        (response.packet_id(), Ok(SyncReadData { data: response.parameters().to_vec(), alert: response.alert() }))
+                    }
                 };
                 // Servos answer in the requested order: an answer from a later servo means the ones
                 // in between are missing.
@@ -173,7 +186,9 @@ impl ServoBus for DynamixelBus {
                         results.extend(rest.iter().take(skipped).map(|&id| (id, Err(BusError::Timeout { id }))));
                         results.push((from, result));
                     }
-                    None => results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") })))),
+                    None => {
+                        results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") }))))
+                    }
                 }
             }
             Ok(results)

@@ -40,10 +40,8 @@ pub struct MockBus {
 impl MockBus {
     /// Servos `ids` at the centre position, torque off.
     pub fn new(ids: &[u8]) -> Self {
-        let servos = ids
-            .iter()
-            .map(|&id| (id, MockServo { goal: 2048, present: 2048, torque: false, hardware_error: 0, silent: false }))
-            .collect();
+        let servos =
+            ids.iter().map(|&id| (id, MockServo { goal: 2048, present: 2048, torque: false, hardware_error: 0, silent: false })).collect();
         Self { state: Arc::new(Mutex::new(MockState { servos, ..Default::default() })) }
     }
 

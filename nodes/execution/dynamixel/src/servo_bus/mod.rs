@@ -143,11 +143,7 @@ pub fn read_present_positions(bus: &mut dyn ServoBus, ids: &[u8]) -> Result<Vec<
     }
     if first_error.is_none() {
         if let Some(&id) = alerted.first() {
-            let bits = bus
-                .read(id, mx28::HARDWARE_ERROR_STATUS, 1)
-                .ok()
-                .and_then(|data| data.first().copied())
-                .unwrap_or(0);
+            let bits = bus.read(id, mx28::HARDWARE_ERROR_STATUS, 1).ok().and_then(|data| data.first().copied()).unwrap_or(0);
             first_error = Some(BusError::Hardware { id, bits });
         }
     }

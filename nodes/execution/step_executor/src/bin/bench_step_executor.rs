@@ -9,17 +9,17 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 
-use step_executor::config::{StepExecutorConfig, DEFAULT_JOINTS};
-use step_executor::executor::{initialise_bus, Executor};
-use patchwalk_robot_model::kinematics::RobotModel;
-use step_executor::library::{Keyframe, Motion};
-use step_executor::matcher::{Matcher, MatcherConfig};
 use patchwalk_dynamixel::mx28;
-use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
-use step_executor::player::{JointSpec, Player, PlayerEvent};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::{self};
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
+use patchwalk_robot_model::kinematics::RobotModel;
+use step_executor::config::{StepExecutorConfig, DEFAULT_JOINTS};
+use step_executor::executor::{initialise_bus, Executor};
+use step_executor::library::{Keyframe, Motion};
+use step_executor::matcher::{Matcher, MatcherConfig};
+use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
+use step_executor::player::{JointSpec, Player, PlayerEvent};
 
 /// Small deterministic generator (xorshift64*), seeded.
 struct Rng(u64);
@@ -153,7 +153,14 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyh
     // Ankle/knee-safe small amplitude inside every joint's limits.
     let motion = Motion {
         name: "bench".into(),
-        patch: PatchGeometry { surface: SurfaceType::Plane, boundary: BoundaryType::Circle, d: vec![0.02], k: vec![], r: [0.0; 3], c: [0.1, 0.0, -0.29] },
+        patch: PatchGeometry {
+            surface: SurfaceType::Plane,
+            boundary: BoundaryType::Circle,
+            d: vec![0.02],
+            k: vec![],
+            r: [0.0; 3],
+            c: [0.1, 0.0, -0.29],
+        },
         keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
     };
     // Let the loop learn the present pose, then play ~4.8 s.

@@ -37,16 +37,9 @@ pub struct SimBusArgs {
 }
 
 pub fn run(args: SimBusArgs) -> anyhow::Result<()> {
-    let return_delay_register = u8::try_from(args.return_delay_us / 2)
-        .ok()
-        .filter(|r| *r <= 254)
-        .context("--return-delay-us must be at most 508")?;
-    let config = SimConfig {
-        ids: (1..=args.servos).collect(),
-        baud: args.baud,
-        simulate_wire_time: args.wire_time,
-        return_delay_register,
-    };
+    let return_delay_register =
+        u8::try_from(args.return_delay_us / 2).ok().filter(|r| *r <= 254).context("--return-delay-us must be at most 508")?;
+    let config = SimConfig { ids: (1..=args.servos).collect(), baud: args.baud, simulate_wire_time: args.wire_time, return_delay_register };
     let chain = Arc::new(SimChain::spawn(config).context("starting the simulated servo chain")?);
     if let Some(link) = &args.link {
         let _ = std::fs::remove_file(link);

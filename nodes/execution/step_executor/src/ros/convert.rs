@@ -32,15 +32,10 @@ pub fn pose_from_isometry(iso: &Isometry3<f64>) -> Pose {
 /// Patch message → library patch (validated).
 pub fn patch_from_msg(msg: &Patch) -> Result<PatchGeometry, String> {
     let surface = SurfaceType::from_u8(msg.surface).ok_or_else(|| format!("patch {}: unknown surface type {}", msg.id, msg.surface))?;
-    let boundary = BoundaryType::from_u8(msg.boundary).ok_or_else(|| format!("patch {}: unknown boundary type {}", msg.id, msg.boundary))?;
-    let patch = PatchGeometry {
-        surface,
-        boundary,
-        d: msg.boundary_params.clone(),
-        k: msg.curvatures.clone(),
-        r: msg.rotation,
-        c: msg.center,
-    };
+    let boundary =
+        BoundaryType::from_u8(msg.boundary).ok_or_else(|| format!("patch {}: unknown boundary type {}", msg.id, msg.boundary))?;
+    let patch =
+        PatchGeometry { surface, boundary, d: msg.boundary_params.clone(), k: msg.curvatures.clone(), r: msg.rotation, c: msg.center };
     patch.validate().map_err(|e| format!("patch {}: {e}", msg.id))?;
     Ok(patch)
 }

@@ -15,10 +15,10 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 
 use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
-use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use step_executor::runtime::{RunState, Runtime};
 
 /// Arguments of `step_executor run`.
@@ -51,7 +51,6 @@ pub const RESET_ESTOP: &str = "/step_executor/reset_estop";
 
 /// Poll period of the loop in ms.
 const POLL_PERIOD_MS: u64 = 2;
-
 
 /// Node state and the service handlers (delegating to the library's [`Runtime`]).
 struct Executor {
@@ -91,7 +90,9 @@ impl Executor {
         match self.runtime.on_patch_map(&patches, &map_from_camera) {
             Ok(report) => match (&report.best, report.near_misses.first()) {
                 (Some(best), _) => tracing::debug!(?best, "patch map matched"),
-                (None, Some(miss)) => tracing::debug!("no match; nearest: map patch {} vs trained {}: {}", miss.map_index, miss.trained_index, miss.reason),
+                (None, Some(miss)) => {
+                    tracing::debug!("no match; nearest: map patch {} vs trained {}: {}", miss.map_index, miss.trained_index, miss.reason)
+                }
                 (None, None) => {}
             },
             Err(e) => {
@@ -181,7 +182,13 @@ impl Executor {
             .runtime
             .list_motions()
             .into_iter()
-            .map(|m| MotionSummary { name: m.name, surface: m.surface, boundary: m.boundary, keyframe_count: m.keyframe_count, duration: m.duration })
+            .map(|m| MotionSummary {
+                name: m.name,
+                surface: m.surface,
+                boundary: m.boundary,
+                keyframe_count: m.keyframe_count,
+                duration: m.duration,
+            })
             .collect();
         srv::ListMotionsResponse { success: true, message: format!("{} motions", motions.len()), motions }
     }

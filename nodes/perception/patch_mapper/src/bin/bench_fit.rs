@@ -7,8 +7,12 @@
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Matrix3, Vector3};
-use patchwalk_spl::fit::simulate::{chi2_95, error_on_manifold, mahalanobis, random_visible_patch as random_patch, sample_sensor, truth_params, SceneConfig};
-use patchwalk_spl::fit::{fit_patch, fit_patch_with_boundary_points, BoundaryRequest, FitError, FitConfig, FitRequest, SurfaceRequest, WeightDerivative};
+use patchwalk_spl::fit::simulate::{
+    chi2_95, error_on_manifold, mahalanobis, random_visible_patch as random_patch, sample_sensor, truth_params, SceneConfig,
+};
+use patchwalk_spl::fit::{
+    fit_patch, fit_patch_with_boundary_points, BoundaryRequest, FitConfig, FitError, FitRequest, SurfaceRequest, WeightDerivative,
+};
 use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 use patchwalk_spl::sensor::{ErrorModel, StereoErrorParams};
 use patchwalk_spl::validate::{validate_patch, ValidateConfig};
@@ -51,7 +55,16 @@ struct Args {
 }
 
 fn parse_args() -> Result<Args> {
-    let mut args = Args { trials: 1000, points: 150, seed: 1, accuracy: true, speed: true, noise_scale: 1.0, boundary_points: BoundaryPoints::Count(0), fit: FitConfig::default() };
+    let mut args = Args {
+        trials: 1000,
+        points: 150,
+        seed: 1,
+        accuracy: true,
+        speed: true,
+        noise_scale: 1.0,
+        boundary_points: BoundaryPoints::Count(0),
+        fit: FitConfig::default(),
+    };
     let mut it = std::env::args().skip(1);
     while let Some(a) = it.next() {
         match a.as_str() {
@@ -95,7 +108,11 @@ fn quantile(v: &mut [f64], q: f64) -> f64 {
 /// The Kinect Murray–Little model with σp and σd multiplied by `scale`.
 fn kinect_scaled(scale: f64) -> ErrorModel {
     let p = StereoErrorParams::default();
-    ErrorModel::MurrayLittle(StereoErrorParams { sigma_pointing_px: p.sigma_pointing_px * scale, sigma_disparity_px: p.sigma_disparity_px * scale, ..p })
+    ErrorModel::MurrayLittle(StereoErrorParams {
+        sigma_pointing_px: p.sigma_pointing_px * scale,
+        sigma_disparity_px: p.sigma_disparity_px * scale,
+        ..p
+    })
 }
 
 /// How many points the boundary moments are taken over.
@@ -208,7 +225,8 @@ fn accuracy(args: &Args) {
             let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
             let data = Sample::draw(&mut rng, &truth, args, &model);
             let (pts, covs) = (&data.fit_points, &data.covariances);
-            let request = FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
+            let request =
+                FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
             let Ok(fit) = data.fit(&request, &cfg) else {
                 fails += 1;
                 continue;
@@ -270,7 +288,11 @@ fn accuracy(args: &Args) {
             }
         }
         if debug {
-            let z: Vec<String> = z2.iter().take(b.num_params() + s.num_curvatures() + 6).map(|v| format!("{:.2}", (v / counted.max(1) as f64).sqrt())).collect();
+            let z: Vec<String> = z2
+                .iter()
+                .take(b.num_params() + s.num_curvatures() + 6)
+                .map(|v| format!("{:.2}", (v / counted.max(1) as f64).sqrt()))
+                .collect();
             println!("  rms z per param {:?}; fit χ² above the truth's in {worse} trials", z);
         }
         all_in.0 += inside;
@@ -338,7 +360,8 @@ fn accuracy(args: &Args) {
                 t[idx][1] += 1;
             }
         }
-        let rate = |x: [usize; 2]| if x[1] == 0 { "   -  ".to_string() } else { format!("{:5.1}% ({})", 100.0 * x[0] as f64 / x[1] as f64, x[1]) };
+        let rate =
+            |x: [usize; 2]| if x[1] == 0 { "   -  ".to_string() } else { format!("{:5.1}% ({})", 100.0 * x[0] as f64 / x[1] as f64, x[1]) };
         println!("{:<24} {} | {} | {} | {}  {:?}", s.name(), rate(t[0]), rate(t[1]), rate(t[2]), rate(t[3]), counts);
         for i in 0..4 {
             tally[i][0] += t[i][0];

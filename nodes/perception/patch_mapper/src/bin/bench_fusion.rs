@@ -38,7 +38,6 @@ fn report(name: &str, values: &mut [f64]) {
     );
 }
 
-
 fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
     let root = args.next().map(Into::into).unwrap_or_else(|| test_data_dir().join("tum_fr1_xyz"));
@@ -55,7 +54,9 @@ fn main() -> anyhow::Result<()> {
         rayon::current_num_threads()
     );
     let voxels: Vec<f32> = match std::env::var("BENCH_VOXELS_MM") {
-        Ok(text) => text.split(',').map(|v| v.parse::<f32>().map(|mm| mm * 1e-3)).collect::<Result<_, _>>().context("BENCH_VOXELS_MM=5,10")?,
+        Ok(text) => {
+            text.split(',').map(|v| v.parse::<f32>().map(|mm| mm * 1e-3)).collect::<Result<_, _>>().context("BENCH_VOXELS_MM=5,10")?
+        }
         Err(_) => vec![0.005, 0.01],
     };
     let full_raycast_enabled = std::env::var("BENCH_FULL_RAYCAST").map_or(true, |v| v != "0");

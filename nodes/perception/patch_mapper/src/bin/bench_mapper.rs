@@ -6,8 +6,8 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use patchwalk_mapping::acquire::{gravity_from_dominant_plane, organized_cloud};
 use patchwalk_fusion::dataset::{test_data_dir, Dataset};
+use patchwalk_mapping::acquire::{gravity_from_dominant_plane, organized_cloud};
 use patchwalk_mapping::mapper::{default_volume_from_map, single_frame_volume_from_camera, FrameInput, Mapper, MapperConfig};
 use patchwalk_mapping::preprocess::{bilateral_filter, median_downsample_2x2, preprocess, remove_background};
 use patchwalk_mapping::saliency::hiking_saliency;
@@ -25,13 +25,8 @@ fn time<T>(f: impl FnOnce() -> T) -> (T, f64) {
 }
 
 fn main() -> Result<()> {
-    let repeats: usize = std::env::args()
-        .skip_while(|a| a != "--repeats")
-        .nth(1)
-        .map(|s| s.parse())
-        .transpose()
-        .context("--repeats N")?
-        .unwrap_or(30);
+    let repeats: usize =
+        std::env::args().skip_while(|a| a != "--repeats").nth(1).map(|s| s.parse()).transpose().context("--repeats N")?.unwrap_or(30);
     println!("threads: {}", rayon::current_num_threads());
     let dataset = Dataset::open(&test_data_dir().join("tum_fr1_xyz"))?;
     let depths: Vec<_> = (0..dataset.frames.len().min(10)).map(|i| dataset.load_depth(i)).collect::<Result<_, _>>()?;
@@ -51,7 +46,8 @@ fn main() -> Result<()> {
         let pre = pre?;
         preprocessing.push(t_pre);
         cloud_ms.push(time(|| organized_cloud(&pre.filtered, &intrinsics)).1);
-        let (_, t_sal) = time(|| hiking_saliency(&pre.auxiliary, &pre.auxiliary_intrinsics, &gravity, config.foot_radius_m, &config.saliency));
+        let (_, t_sal) =
+            time(|| hiking_saliency(&pre.auxiliary, &pre.auxiliary_intrinsics, &gravity, config.foot_radius_m, &config.saliency));
         saliency_ms.push(t_sal);
         pre_sal.push(t_pre + t_sal);
     }
@@ -66,7 +62,8 @@ fn main() -> Result<()> {
     stats("preprocess + saliency", pre_sal);
 
     // Stages iv–v throughput: many seeds per frame (ng = 8 per cell, ns = 512, no DtFP, no limits).
-    let mut config = MapperConfig { time_limit_ms: f64::INFINITY, coverage_fraction: f64::INFINITY, volume_edge_m: 3.0, ..Default::default() };
+    let mut config =
+        MapperConfig { time_limit_ms: f64::INFINITY, coverage_fraction: f64::INFINITY, volume_edge_m: 3.0, ..Default::default() };
     config.saliency.fixation_radius_m = f64::INFINITY;
     config.seeds.per_cell = 8;
     config.seeds.max_seeds = 512;

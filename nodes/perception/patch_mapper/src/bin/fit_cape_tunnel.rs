@@ -46,10 +46,7 @@ fn window(depth: &[u16], width: usize, (u0, v0, u1, v1): (usize, usize, usize, u
 fn main() -> Result<()> {
     let path = std::env::args().nth(1).unwrap_or_else(|| "tests/data/cape_tunnel/depth_0.png".into());
     let (w, _h, depth) = load_depth(&path)?;
-    let cases = [
-        ("wall (u 20-180, v 150-330)", (20, 150, 180, 330)),
-        ("floor (u 440-620, v 380-470)", (440, 380, 620, 470)),
-    ];
+    let cases = [("wall (u 20-180, v 150-330)", (20, 150, 180, 330)), ("floor (u 440-620, v 380-470)", (440, 380, 620, 470))];
     let model = ErrorModel::default();
     for (name, win) in cases {
         // Dense points for validation, a 150-point subsample for the fit (the mapper's nf).

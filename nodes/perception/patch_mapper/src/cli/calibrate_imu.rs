@@ -25,7 +25,8 @@ pub struct CalibrateImuArgs {
 
 pub fn run(args: CalibrateImuArgs) -> anyhow::Result<()> {
     let dataset = Dataset::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
-    let config = CalibrationConfig { frame_stride: args.frame_stride.max(1), plane_inlier_m: args.plane_inlier_m, ..CalibrationConfig::default() };
+    let config =
+        CalibrationConfig { frame_stride: args.frame_stride.max(1), plane_inlier_m: args.plane_inlier_m, ..CalibrationConfig::default() };
     let calibration = calibrate_dataset(&dataset, &config)?;
     let q = calibration.camera_from_imu;
     let matrix = q.to_rotation_matrix().into_inner();

@@ -38,7 +38,8 @@ pub struct FitArgs {
 }
 
 fn parse_vec3(s: &str) -> Result<Vector3<f64>, String> {
-    let v: Vec<f64> = s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("expected x,y,z: {e}"))?;
+    let v: Vec<f64> =
+        s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("expected x,y,z: {e}"))?;
     match v.as_slice() {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vector3::new(*x, *y, *z)),
         _ => Err(format!("expected three finite numbers x,y,z, got '{s}'")),
@@ -77,7 +78,9 @@ pub fn run(args: FitArgs) -> Result<()> {
     };
     let boundary = match &args.boundary {
         None => BoundaryRequest::Auto,
-        Some(b) => BoundaryRequest::Exactly(BoundaryType::from_name(b).with_context(|| format!("unknown boundary '{b}' (ellipse|circle|rect|quad)"))?),
+        Some(b) => BoundaryRequest::Exactly(
+            BoundaryType::from_name(b).with_context(|| format!("unknown boundary '{b}' (ellipse|circle|rect|quad)"))?,
+        ),
     };
     let request = FitRequest { surface: surface_request(&args.surface)?, boundary, containment: args.containment, viewpoint: origin };
     let start = Instant::now();

@@ -13,14 +13,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Matrix3, Unit, Vector3};
-use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_dominant_plane, gravity_from_vector, organized_cloud};
 use patchwalk_fusion::dataset::Dataset;
+use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_dominant_plane, gravity_from_vector, organized_cloud};
 use patchwalk_mapping::mapper::{
     default_volume_from_map, single_frame_volume_from_camera, FrameInput, FrameResult, FrameSummary, Mapper, MapperConfig, StageTimings,
     Verdict,
 };
-use patchwalk_spl::patch::PatchJson;
 use patchwalk_mapping::render::{render_patches, render_saliency};
+use patchwalk_spl::patch::PatchJson;
 use serde::Serialize;
 
 /// Arguments of `patch_mapper map`.
@@ -61,7 +61,8 @@ pub struct MapArgs {
 }
 
 fn parse_vec3(s: &str) -> Result<Vector3<f64>, String> {
-    let v: Vec<f64> = s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("expected x,y,z: {e}"))?;
+    let v: Vec<f64> =
+        s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("expected x,y,z: {e}"))?;
     match v.as_slice() {
         [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vector3::new(*x, *y, *z)),
         _ => Err(format!("expected three finite numbers x,y,z, got '{s}'")),
@@ -123,7 +124,8 @@ pub fn run(args: MapArgs) -> Result<()> {
     }
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let jsonl_path = args.out.join("patches.jsonl");
-    let mut jsonl = std::io::BufWriter::new(std::fs::File::create(&jsonl_path).with_context(|| format!("creating {}", jsonl_path.display()))?);
+    let mut jsonl =
+        std::io::BufWriter::new(std::fs::File::create(&jsonl_path).with_context(|| format!("creating {}", jsonl_path.display()))?);
     let camera_from_imu = config.acquire.camera_from_imu()?;
     let imu_configured = camera_from_imu.matrix() != &Matrix3::identity();
     let source = match (args.gravity.is_some(), args.gravity_source.as_str()) {
@@ -157,7 +159,8 @@ pub fn run(args: MapArgs) -> Result<()> {
         })?;
         write_patches(&mut jsonl, index, frame.timestamp, &result)?;
         if !args.no_pictures {
-            render_patches(&depth, &dataset.intrinsics, &result.outcomes).save_png(&args.out.join(format!("frame_{index:05}_patches.png")))?;
+            render_patches(&depth, &dataset.intrinsics, &result.outcomes)
+                .save_png(&args.out.join(format!("frame_{index:05}_patches.png")))?;
             render_saliency(&result.saliency).save_png(&args.out.join(format!("frame_{index:05}_saliency.png")))?;
         }
         let summary = result.summary();
@@ -172,7 +175,11 @@ pub fn run(args: MapArgs) -> Result<()> {
     }
     jsonl.flush()?;
     print_table(&args, source, &rows);
-    println!("patches: {}   pictures: {}", jsonl_path.display(), if args.no_pictures { "none".to_string() } else { args.out.display().to_string() });
+    println!(
+        "patches: {}   pictures: {}",
+        jsonl_path.display(),
+        if args.no_pictures { "none".to_string() } else { args.out.display().to_string() }
+    );
     Ok(())
 }
 

@@ -2,5 +2,5 @@
 pub mod calibrate_imu;
 pub mod fit;
 pub mod map;
-pub mod track;
 pub mod replay;
+pub mod track;

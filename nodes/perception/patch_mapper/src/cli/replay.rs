@@ -14,10 +14,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
 use patchwalk_fusion::dataset::{write_tum_poses, Dataset, StampedPose};
 use patchwalk_mapping::mapper::{FrameSummary, Verdict};
-use patchwalk_spl::patch::PatchJson;
-use patchwalk_spl::transform::transform_patch;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
 use patchwalk_mapping::render::render_patches;
+use patchwalk_spl::patch::PatchJson;
+use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
 use crate::ros::PatchMapperConfig;
@@ -77,10 +77,14 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     let mut pipeline = Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), dataset.intrinsics)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let seeds_path = args.out.join("seeds.jsonl");
-    let mut seeds_out = std::io::BufWriter::new(std::fs::File::create(&seeds_path).with_context(|| format!("creating {}", seeds_path.display()))?);
+    let mut seeds_out =
+        std::io::BufWriter::new(std::fs::File::create(&seeds_path).with_context(|| format!("creating {}", seeds_path.display()))?);
     let count = dataset.frames.len().min(args.max_frames.unwrap_or(usize::MAX));
     let bar = ProgressBar::new(count as u64);
-    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed_precise} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed_precise} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
     let mut next_imu = 0;
     let mut world_from_map: Option<Isometry3<f64>> = None;
     let mut trajectory = Vec::new();
@@ -107,13 +111,16 @@ pub fn run(args: ReplayArgs) -> Result<()> {
             }
         };
         if world_from_map.is_none() {
-            world_from_map = dataset.groundtruth_near(frame.timestamp, 0.02).map(|gt| gt.world_from_camera * output.map_from_camera.inverse());
+            world_from_map =
+                dataset.groundtruth_near(frame.timestamp, 0.02).map(|gt| gt.world_from_camera * output.map_from_camera.inverse());
         }
         trajectory.push(StampedPose { timestamp: frame.timestamp, world_from_camera: output.map_from_camera });
         summary.add(&output.mapped);
         total_ms.push(output.timings.total_ms);
         for outcome in &output.seeds {
-            let Some(patch) = outcome.patch_in_camera.as_ref().and_then(|p| transform_patch(p, &output.map_from_birds_eye)) else { continue };
+            let Some(patch) = outcome.patch_in_camera.as_ref().and_then(|p| transform_patch(p, &output.map_from_birds_eye)) else {
+                continue;
+            };
             let center_in_world = world_from_map.map(|w| (w * nalgebra::Point3::from(patch.center)).coords.into());
             let line = SeedLine {
                 frame: index,
@@ -149,7 +156,8 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     seeds_out.flush()?;
     write_tum_poses(&args.out.join("trajectory.txt"), &trajectory)?;
     let map_path = args.out.join("patches.jsonl");
-    let mut map_out = std::io::BufWriter::new(std::fs::File::create(&map_path).with_context(|| format!("creating {}", map_path.display()))?);
+    let mut map_out =
+        std::io::BufWriter::new(std::fs::File::create(&map_path).with_context(|| format!("creating {}", map_path.display()))?);
     for mapped in pipeline.map().patches() {
         let line = MapLine {
             id: mapped.id,

@@ -71,7 +71,12 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
         }
         None => {
             let mut config = TrackerConfig {
-                tsdf: TsdfConfig { voxel_size_m: args.voxel_size, size_m: args.volume_size, max_depth_m: args.max_depth, ..TsdfConfig::default() },
+                tsdf: TsdfConfig {
+                    voxel_size_m: args.voxel_size,
+                    size_m: args.volume_size,
+                    max_depth_m: args.max_depth,
+                    ..TsdfConfig::default()
+                },
                 ..TrackerConfig::default()
             };
             config.moving_volume.enabled = !args.fixed_volume;

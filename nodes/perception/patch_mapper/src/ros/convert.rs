@@ -87,7 +87,11 @@ pub fn depth_image(msg: &Image) -> Result<DepthImage, ImageError> {
                 .flat_map(|row| row.chunks_exact(2))
                 .map(|b| {
                     let bytes = [b[0], b[1]];
-                    if big_endian { u16::from_be_bytes(bytes) } else { u16::from_le_bytes(bytes) }
+                    if big_endian {
+                        u16::from_be_bytes(bytes)
+                    } else {
+                        u16::from_le_bytes(bytes)
+                    }
                 })
                 .collect();
             Ok(DepthImage::from_u16(w, h, &raw, 0.001)?)
@@ -97,7 +101,11 @@ pub fn depth_image(msg: &Image) -> Result<DepthImage, ImageError> {
                 .flat_map(|row| row.chunks_exact(4))
                 .map(|b| {
                     let bytes = [b[0], b[1], b[2], b[3]];
-                    if big_endian { f32::from_be_bytes(bytes) } else { f32::from_le_bytes(bytes) }
+                    if big_endian {
+                        f32::from_be_bytes(bytes)
+                    } else {
+                        f32::from_le_bytes(bytes)
+                    }
                 })
                 .collect();
             Ok(DepthImage::new(w, h, depth_m)?)

@@ -23,15 +23,15 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_mapping::mapper::MapperConfig;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, MAP_FRAME};
-use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
-use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
 use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
+use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use ros2_client::Publisher;
 
 /// Arguments of `patch_mapper run`.
@@ -200,10 +200,7 @@ impl State {
             self.fail(
                 log,
                 "size",
-                format!(
-                    "depth image is {}x{} but CameraInfo says {}x{}",
-                    depth.width, depth.height, intrinsics.width, intrinsics.height
-                ),
+                format!("depth image is {}x{} but CameraInfo says {}x{}", depth.width, depth.height, intrinsics.width, intrinsics.height),
             );
             return;
         }
@@ -392,8 +389,7 @@ impl Worker {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
-    let config: PatchMapperConfig =
-        patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+    let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     let params = config.ros.clone();
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
@@ -450,9 +446,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
 
     while !shutdown.requested() {
-        node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| {
-            state.on_camera_info(&msg, &mut log)
-        });
+        node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log));
         node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log));
         node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log));
         node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
@@ -516,14 +510,8 @@ mod tests {
     fn frames_are_counted_by_outcome_and_the_latest_waits() {
         let mut log = RateLimitedLog::new(Duration::from_secs(3600));
         let (mut state, jobs, _imu) = state();
-        let depth = Image {
-            encoding: "16UC1".into(),
-            width: 2,
-            height: 1,
-            step: 4,
-            data: vec![0xE8, 0x03, 0xE8, 0x03],
-            ..Default::default()
-        };
+        let depth =
+            Image { encoding: "16UC1".into(), width: 2, height: 1, step: 4, data: vec![0xE8, 0x03, 0xE8, 0x03], ..Default::default() };
         let status = |state: &State| state.status.lock().unwrap().clone();
         state.on_depth(&depth, &mut log);
         assert_eq!((status(&state).frames_received, status(&state).frames_skipped), (1, 1));

@@ -4,7 +4,6 @@
 
 use nalgebra::{Isometry3, Point3, Vector2};
 
-use patchwalk_spl::patch::Patch;
 use patchwalk_mapping::patch_map::PatchMap;
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::{Point, Pose, Quaternion, Vector3};
@@ -12,6 +11,7 @@ use patchwalk_msgs::msg;
 use patchwalk_msgs::sensor_msgs::msg::{PointCloud2, PointField};
 use patchwalk_msgs::std_msgs::msg::{ColorRGBA, Header};
 use patchwalk_msgs::visualization_msgs::msg::{Marker, MarkerArray};
+use patchwalk_spl::patch::Patch;
 
 /// Seconds since the epoch -> `builtin_interfaces/Time` (saturating; non-finite -> 0).
 pub fn time_from_seconds(seconds: f64) -> Time {
@@ -32,10 +32,7 @@ pub fn seconds_from_time(time: &Time) -> f64 {
 pub fn pose_from_isometry(isometry: &Isometry3<f64>) -> Pose {
     let t = isometry.translation.vector;
     let q = isometry.rotation.coords; // (i, j, k, w)
-    Pose {
-        position: Point { x: t.x, y: t.y, z: t.z },
-        orientation: Quaternion { x: q.x, y: q.y, z: q.z, w: q.w },
-    }
+    Pose { position: Point { x: t.x, y: t.y, z: t.z }, orientation: Quaternion { x: q.x, y: q.y, z: q.z, w: q.w } }
 }
 
 /// One patch of the map -> `patchwalk_msgs/Patch` (covariance row-major p × p over [d, k, r, c]).
@@ -117,8 +114,7 @@ pub fn markers(map: &PatchMap, stamp: &Time) -> MarkerArray {
     let identity = Pose { orientation: Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 }, ..Default::default() };
     for mapped in map.patches() {
         let patch = &mapped.patch;
-        let outline: Vec<nalgebra::Vector3<f64>> =
-            outline_uv(patch, 24).iter().filter_map(|uv| patch.explicit_world(uv)).collect();
+        let outline: Vec<nalgebra::Vector3<f64>> = outline_uv(patch, 24).iter().filter_map(|uv| patch.explicit_world(uv)).collect();
         let Some(centre) = patch.explicit_world(&Vector2::zeros()) else { continue };
         let id = i32::try_from(mapped.id % (i32::MAX as u64 / 2)).unwrap_or(0) * 2;
         let mut surface = Vec::with_capacity(outline.len() * 3);
@@ -173,12 +169,11 @@ pub fn point_cloud(points: &[Point3<f32>], stamp: &Time, frame_id: &str) -> Poin
 mod tests {
     use super::*;
     use nalgebra::{DMatrix, Vector3 as V3};
-    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
     use patchwalk_mapping::patch_map::VolumeGrid;
+    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
 
     fn plane_patch() -> Patch {
-        let mut patch =
-            Patch::from_params(SurfaceType::Plane, BoundaryType::Circle, &[0.05, 0.0, 0.0, 1.0, 2.0, 3.0]).unwrap();
+        let mut patch = Patch::from_params(SurfaceType::Plane, BoundaryType::Circle, &[0.05, 0.0, 0.0, 1.0, 2.0, 3.0]).unwrap();
         let p = patch.dof();
         patch.covariance = DMatrix::from_fn(p, p, |r, c| (r * 10 + c) as f64);
         patch

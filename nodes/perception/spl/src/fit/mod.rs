@@ -16,11 +16,11 @@ pub mod neighbourhood;
 pub mod simulate;
 mod wlm;
 
-use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::geometry::{exp_map, log_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse, rotation_from_normal};
+use crate::patch::{BoundaryType, Patch, SurfaceType};
 use nalgebra::{DMatrix, Matrix2, Matrix3, SMatrix, SVector, Vector2, Vector3};
-use wlm::{Covariances, LmSettings, Model, PointSet, SurfaceState};
 use serde::{Deserialize, Serialize};
+use wlm::{Covariances, LmSettings, Model, PointSet, SurfaceState};
 
 /// Which surface to fit (IROS IV input `s`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -208,7 +208,11 @@ impl Target {
                     (Some(implied), None) => implied,
                     (Some(implied), Some(b)) if b == implied => b,
                     (Some(_), Some(b)) => {
-                        return Err(FitError::InvalidRequest(format!("{} patches cannot have a {} boundary (IROS Table I)", s.name(), b.name())))
+                        return Err(FitError::InvalidRequest(format!(
+                            "{} patches cannot have a {} boundary (IROS Table I)",
+                            s.name(),
+                            b.name()
+                        )))
                     }
                 };
                 Ok(Target::Fixed(s, b))
@@ -286,7 +290,8 @@ pub fn fit_patch_with_boundary_points(
     };
     // Step 1: LLS plane, normal towards the viewpoint, centre at the centroid.
     let boundary_points = if boundary_points.len() >= points.len() { boundary_points } else { points };
-    let settings = LmSettings { apex_prior: config.apex_from_centroid.then(|| wlm::ApexPrior::from_points(boundary_points)).flatten(), ..settings };
+    let settings =
+        LmSettings { apex_prior: config.apex_from_centroid.then(|| wlm::ApexPrior::from_points(boundary_points)).flatten(), ..settings };
     let (centroid, normal) = lls_plane(points, &request.viewpoint)?;
     let start = SurfaceState { k3: Vector3::zeros(), rot: rotation_from_normal(&normal), c: centroid };
     // Steps 1-ii to 3: the unbounded surface.
@@ -455,7 +460,12 @@ fn fit_surface(
         }
         _ => {
             // Step 2: general paraboloid, started from the LLS quadric graph over the plane.
-            let par = wlm::run_with_normal(Model::Paraboloid, quadric_start(&start, points), covs, &settings_for(Model::Paraboloid, settings, config))?;
+            let par = wlm::run_with_normal(
+                Model::Paraboloid,
+                quadric_start(&start, points),
+                covs,
+                &settings_for(Model::Paraboloid, settings, config),
+            )?;
             let (state, swapped) = order_axes(par.state);
             let surface = match target {
                 Target::Auto(_) => {
@@ -552,7 +562,8 @@ fn quadric_start(plane: &SurfaceState, points: &[Vector3<f64>]) -> SurfaceState 
             }
         }
     }
-    let (Some(v0), Some(&k0), Some(&k1)) = (Some(eig.eigenvectors.column(0).into_owned()), eig.eigenvalues.get(0), eig.eigenvalues.get(1)) else {
+    let (Some(v0), Some(&k0), Some(&k1)) = (Some(eig.eigenvectors.column(0).into_owned()), eig.eigenvalues.get(0), eig.eigenvalues.get(1))
+    else {
         return *plane;
     };
     let z = 0.5 * (apex.transpose() * a * apex)[(0, 0)] + g.dot(&apex) + sol[5];
@@ -635,7 +646,8 @@ fn apply_gauge(
             let (c_l, n_l) = match round_point_towards(kappa, mean_local) {
                 Some(found) => found,
                 None => {
-                    let (z, dz) = round_height(kappa, xm * xm + ym * ym).ok_or(FitError::Degenerate("data centroid beyond the fitted sphere"))?;
+                    let (z, dz) =
+                        round_height(kappa, xm * xm + ym * ym).ok_or(FitError::Degenerate("data centroid beyond the fitted sphere"))?;
                     (Vector3::new(xm, ym, z), Vector3::new(-xm * dz, -ym * dz, 1.0).normalize())
                 }
             };
@@ -733,7 +745,10 @@ fn apex_moment_second_order(surface: SurfaceType, d: &[f64], lambda: f64, s: &Ma
 fn twist_moment_second_order(surface: SurfaceType, d: &[f64], twist_variance: f64) -> Vec<(usize, usize, f64)> {
     let twisted = matches!(
         surface,
-        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid | SurfaceType::CylindricParaboloid | SurfaceType::CircularCylinder
+        SurfaceType::EllipticParaboloid
+            | SurfaceType::HyperbolicParaboloid
+            | SurfaceType::CylindricParaboloid
+            | SurfaceType::CircularCylinder
     );
     let (Some(&dx), Some(&dy)) = (d.first(), d.get(1)) else { return Vec::new() };
     if !twisted || !(dx > 0.0 && dy > 0.0 && twist_variance.is_finite() && twist_variance > 0.0) {
@@ -832,7 +847,9 @@ fn finish(
     let slide = cov_local.fixed_view::<2, 2>(11, 11).into_owned();
     cov_local[(13, 13)] += slide_sag_variance(surface, &state.k3, &slide);
     let twist_variance = cov_local[(10, 10)];
-    for (i, j, extra) in apex_moment_second_order(surface, &d, lambda, &slide).into_iter().chain(twist_moment_second_order(surface, &d, twist_variance)) {
+    for (i, j, extra) in
+        apex_moment_second_order(surface, &d, lambda, &slide).into_iter().chain(twist_moment_second_order(surface, &d, twist_variance))
+    {
         cov_local[(i, j)] += extra;
     }
 
@@ -1012,11 +1029,8 @@ mod tests {
             for _ in 0..5 {
                 let truth = random_patch(&mut rng, s, b, &near_kinect()).unwrap();
                 let (pts, covs) = sample_sensor(&mut rng, &truth, 400, &model);
-                let request = FitRequest {
-                    surface: SurfaceRequest::Exactly(s),
-                    boundary: BoundaryRequest::Exactly(b),
-                    ..FitRequest::default()
-                };
+                let request =
+                    FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
                 let fit = fit_patch(&pts, Some(&covs), &request, &FitConfig::default()).unwrap();
                 assert_eq!((fit.surface, fit.boundary), (s, b));
                 let (angle, centre, k) = errors(&fit, &truth);
@@ -1108,7 +1122,8 @@ mod tests {
             for _ in 0..60 {
                 let truth = random_patch(&mut rng, s, b, &SceneConfig::default()).unwrap();
                 let (pts, covs) = sample_sensor(&mut rng, &truth, 150, &ErrorModel::default());
-                let request = FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
+                let request =
+                    FitRequest { surface: SurfaceRequest::Exactly(s), boundary: BoundaryRequest::Exactly(b), ..FitRequest::default() };
                 let Ok(fit) = fit_patch(&pts, Some(&covs), &request, &FitConfig::default()) else { continue };
                 let Some(tp) = truth_params(&mut rng, &truth, &fit, request.containment) else { continue };
                 let (m2, rank) = mahalanobis(&error_on_manifold(&fit, &tp), &fit.covariance).unwrap();
@@ -1207,9 +1222,15 @@ mod tests {
         let to_camera = -center.normalize();
         let normal = (exp_map(&Vector3::new(0.0, 0.6, 0.0)) * to_camera).normalize();
         let rxy = r_xy_from_normal(&normal);
-        let truth = Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.08], Vector2::zeros(), Vector3::new(rxy.x, rxy.y, 0.0), center).unwrap();
+        let truth =
+            Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.08], Vector2::zeros(), Vector3::new(rxy.x, rxy.y, 0.0), center)
+                .unwrap();
         let config = FitConfig { weight_derivative: mode, ..FitConfig::default() };
-        let request = FitRequest { surface: SurfaceRequest::Exactly(SurfaceType::Plane), boundary: BoundaryRequest::Exactly(BoundaryType::Circle), ..FitRequest::default() };
+        let request = FitRequest {
+            surface: SurfaceRequest::Exactly(SurfaceType::Plane),
+            boundary: BoundaryRequest::Exactly(BoundaryType::Circle),
+            ..FitRequest::default()
+        };
         let mut sum = Vector2::zeros();
         let trials = 400;
         for _ in 0..trials {

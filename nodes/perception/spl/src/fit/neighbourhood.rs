@@ -58,7 +58,8 @@ pub fn fit_neighbourhood(
 ) -> Result<Patch, NeighbourhoodFitError> {
     let covariances = covariances_for(fit_points_in_camera, &Vector3::zeros(), &config.sensor)?;
     let request = FitRequest { containment: config.containment, ..FitRequest::default() };
-    let mut patch = fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)?;
+    let mut patch =
+        fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)?;
     if config.plane_boundary_j_step5 && patch.surface == SurfaceType::Plane {
         rescale_boundary(&mut patch, plane_boundary_factor(config.containment));
     }

@@ -187,7 +187,14 @@ pub(crate) struct Normal {
 
 /// One pass over the points: χ², `H = Σ ∇F ∇Fᵀ`, `b = Σ ∇F F` over the free parameters (eq 36;
 /// the Gauss–Newton part of the Hessian). The Sampson sum is only formed if `with_sampson`.
-pub(crate) fn accumulate(model: Model, state: &SurfaceState, set: &PointSet, min_variance: f64, weight_derivative: bool, with_sampson: bool) -> Normal {
+pub(crate) fn accumulate(
+    model: Model,
+    state: &SurfaceState,
+    set: &PointSet,
+    min_variance: f64,
+    weight_derivative: bool,
+    with_sampson: bool,
+) -> Normal {
     let run = Pass { state, set, min_variance, weight_derivative, with_sampson };
     // Each model's free parameters as sums of the local slots (the columns of `Model::embedding`),
     // so the per-point update is a rank-1 update of the (small) free matrix only.
@@ -258,17 +265,7 @@ impl Pass<'_> {
                     ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
                 }
                 // ∂f/∂p (eq 40 in local increments): κ_j → q_j², δ → g_l × q_l, δc → −g_l
-                let df = Local::from([
-                    qx * qx,
-                    qy * qy,
-                    qz * qz,
-                    gy * qz - gz * qy,
-                    gz * qx - gx * qz,
-                    gx * qy - gy * qx,
-                    -gx,
-                    -gy,
-                    -gz,
-                ]);
+                let df = Local::from([qx * qx, qy * qy, qz * qz, gy * qz - gz * qy, gz * qx - gx * qz, gx * qy - gy * qx, -gx, -gy, -gz]);
                 let grad = if self.weight_derivative && !lane.clamped {
                     // ∂σ²/∂p = 2 s_lᵀ Rᵀ ∂g_w/∂p (eq 41): κ_j → 4 s_j q_j, δ → 4(a × s + (K s) × q),
                     // δc → −4 K s, with a = g_l / 2; eq 36: ∂F/∂p = ∂f/∂p / σ − f ∂σ²/∂p / (2σ³)
@@ -565,11 +562,7 @@ impl ApexPrior {
         }
         let q = state.rot.transpose() * (self.mean - state.c);
         let cov = (state.rot.transpose() * self.cov_of_mean * state.rot).fixed_view::<2, 2>(0, 0).into_owned();
-        let info = if axes == [true, true] {
-            cov.try_inverse()?
-        } else {
-            Matrix2::new(0.0, 0.0, 0.0, 1.0 / cov[(1, 1)])
-        };
+        let info = if axes == [true, true] { cov.try_inverse()? } else { Matrix2::new(0.0, 0.0, 0.0, 1.0 / cov[(1, 1)]) };
         if !info.iter().all(|v| v.is_finite()) {
             return None;
         }
@@ -600,7 +593,13 @@ impl ApexPrior {
 }
 
 /// [`accumulate`] plus the apex pseudo-observation of `settings`, if any.
-pub(crate) fn accumulate_with_prior(model: Model, state: &SurfaceState, set: &PointSet, settings: &LmSettings, with_sampson: bool) -> Normal {
+pub(crate) fn accumulate_with_prior(
+    model: Model,
+    state: &SurfaceState,
+    set: &PointSet,
+    settings: &LmSettings,
+    with_sampson: bool,
+) -> Normal {
     let mut normal = accumulate(model, state, set, settings.min_variance, settings.weight_derivative, with_sampson);
     if let Some(prior) = &settings.apex_prior {
         prior.add_to(model, state, &mut normal);
@@ -699,7 +698,8 @@ fn levenberg_marquardt(
         // The pseudo-observation's χ² is non-negative, so a partial sum of the points' terms above
         // the current χ² still decides the trial (early stop as without it).
         let prior_chi2 = settings.apex_prior.map_or(0.0, |p| p.chi_square(model, &trial));
-        let trial_chi2 = prior_chi2 + chi_square_unless_above(&trial, set, settings.min_variance, normal.chi2 - prior_chi2, settings.chi2_tolerance);
+        let trial_chi2 =
+            prior_chi2 + chi_square_unless_above(&trial, set, settings.min_variance, normal.chi2 - prior_chi2, settings.chi2_tolerance);
         if trial_chi2.is_finite() && trial_chi2 <= normal.chi2 {
             let decrease = normal.chi2 - trial_chi2;
             state = trial;
@@ -887,7 +887,12 @@ mod tests {
                 let um = prior.terms(model, &state.apply(&(-e))).map(|t| t.0).unwrap_or_default();
                 let fd = (up - um) / 2e-7;
                 for row in 0..2 {
-                    assert!((fd[row] - jac[(row, slot)]).abs() < 1e-6, "{model:?} slot {slot} row {row}: fd {} analytic {}", fd[row], jac[(row, slot)]);
+                    assert!(
+                        (fd[row] - jac[(row, slot)]).abs() < 1e-6,
+                        "{model:?} slot {slot} row {row}: fd {} analytic {}",
+                        fd[row],
+                        jac[(row, slot)]
+                    );
                 }
             }
         }
@@ -904,7 +909,8 @@ mod tests {
             rot: crate::geometry::exp_map(&Vector3::new(0.3, -0.4, 0.2)),
             c: Vector3::new(0.1, -0.2, 1.0),
         };
-        let points = (0..n).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
+        let points =
+            (0..n).map(|i| Vector3::new(0.1 + 0.003 * i as f64, -0.2 + 0.002 * (i % 7) as f64, 1.0 + 0.001 * (i % 5) as f64)).collect();
         let covs = (0..n).map(|i| Matrix3::new(2.0, 0.3, 0.1, 0.3, 1.0, 0.2, 0.1, 0.2, 5.0 + i as f64) * 1e-6).collect();
         (state, points, covs)
     }
@@ -970,7 +976,9 @@ mod tests {
     fn free_accumulation_matches_the_embedding() {
         let (state, points, covs) = fixture(1.5, 40);
         let covs = Covariances::PerPoint(&covs);
-        for model in [Model::Plane, Model::Paraboloid, Model::CircularParaboloid, Model::CylindricParaboloid, Model::Sphere, Model::Cylinder] {
+        for model in
+            [Model::Plane, Model::Paraboloid, Model::CircularParaboloid, Model::CylindricParaboloid, Model::Sphere, Model::Cylinder]
+        {
             let mut h9 = SMatrix::<f64, 9, 9>::zeros();
             let mut b9 = Local::zeros();
             let mut sampson_sq = 0.0;

@@ -60,13 +60,7 @@ fn main() -> anyhow::Result<()> {
     times_ms.sort_by(f64::total_cmp);
     anyhow::ensure!(!times_ms.is_empty(), "no frames rendered (frames per rock must be ≥ 1)");
     let pct = |p: f64| times_ms.get(((times_ms.len() - 1) as f64 * p).round() as usize).copied().unwrap_or(f64::NAN);
-    println!(
-        "render ms/frame: median {:.2}  p95 {:.2}  p99 {:.2}  max {:.2}",
-        pct(0.5),
-        pct(0.95),
-        pct(0.99),
-        pct(1.0)
-    );
+    println!("render ms/frame: median {:.2}  p95 {:.2}  p99 {:.2}  max {:.2}", pct(0.5), pct(0.95), pct(0.99), pct(1.0));
     println!(
         "throughput: {:.1} frames/s (median-based {:.1} frames/s); valid pixels {:.1}%",
         times_ms.len() as f64 / wall,
@@ -90,4 +84,3 @@ fn main() -> anyhow::Result<()> {
     println!("imu: {:.2} µs/sample", t0.elapsed().as_secs_f64() * 1e6 / samples as f64);
     Ok(())
 }
-

@@ -11,4 +11,5 @@
 
 pub mod node;
 pub mod params;
+pub mod patch_msg;
 pub mod process;

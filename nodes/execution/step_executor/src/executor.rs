@@ -240,10 +240,10 @@ mod tests {
     use super::*;
     use crate::config::ServoConfig;
     use crate::library::Keyframe;
-    use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
     use crate::player::{JointSpec, PlayerConfig};
     use patchwalk_dynamixel::servo_bus::mock::MockBus;
     use patchwalk_robot_model::kinematics::JointLimits;
+    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 
     fn player(n: u8) -> Player {
         let joints = (1..=n)
@@ -282,14 +282,15 @@ mod tests {
         assert_eq!(executor.positions().unwrap(), vec![0.0; 3]);
         let motion = Motion {
             name: "m".into(),
-            patch: PatchGeometry {
-                surface: SurfaceType::Plane,
-                boundary: BoundaryType::Circle,
-                d: vec![0.02],
-                k: vec![],
-                r: [0.0; 3],
-                c: [0.0; 3],
-            },
+            patch: Patch::new(
+                SurfaceType::Plane,
+                BoundaryType::Circle,
+                vec![0.02],
+                nalgebra::Vector2::zeros(),
+                nalgebra::Vector3::zeros(),
+                nalgebra::Vector3::zeros(),
+            )
+            .unwrap(),
             keyframes: vec![Keyframe { positions: vec![0.5; 3], move_s: 2.0, pause_s: 0.0 }],
         };
         executor.play(motion.clone()).unwrap();

@@ -9,6 +9,5 @@ pub mod config;
 pub mod executor;
 pub mod library;
 pub mod matcher;
-pub mod patch;
 pub mod player;
 pub mod runtime;

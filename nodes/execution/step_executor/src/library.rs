@@ -11,7 +11,8 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use serde_yaml_ng::{Mapping, Value};
 
-use crate::patch::PatchGeometry;
+use nalgebra::{Vector2, Vector3};
+use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 
 /// Current schema version of the library file.
 pub const SCHEMA_VERSION: u32 = 1;
@@ -29,21 +30,84 @@ pub struct Keyframe {
 }
 
 /// One library entry: the trained patch (pose in `base_link`) and its motion.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Motion {
     pub name: String,
-    pub patch: PatchGeometry,
+    pub patch: Patch,
     pub keyframes: Vec<Keyframe>,
 }
 
-/// The whole file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct LibraryFile {
-    schema_version: u32,
+/// The whole file as read (its schema version checked).
+struct ParsedLibrary {
     joints: Vec<String>,
     motions: Vec<Motion>,
+}
+
+/// The whole file as written.
+#[derive(Serialize)]
+struct LibraryFile<'a> {
+    schema_version: u32,
+    joints: &'a [String],
+    motions: Vec<MotionRecord<'a>>,
+}
+
+/// A motion as written: the patch by its minimal parameters (J Table 1: surface and boundary type,
+/// boundary `d`, curvatures `k`, exponential-map rotation `r`, centre `c`), which a person can read
+/// and edit; the covariance of a training target is not stored.
+#[derive(Serialize)]
+struct MotionRecord<'a> {
+    name: &'a str,
+    patch: PatchRecord,
+    keyframes: &'a [Keyframe],
+}
+
+#[derive(Serialize)]
+struct PatchRecord {
+    surface: SurfaceType,
+    boundary: BoundaryType,
+    d: Vec<f64>,
+    k: Vec<f64>,
+    r: [f64; 3],
+    c: [f64; 3],
+}
+
+impl<'a> MotionRecord<'a> {
+    fn new(motion: &'a Motion) -> Self {
+        let p = &motion.patch;
+        let patch = PatchRecord {
+            surface: p.surface,
+            boundary: p.boundary,
+            d: p.boundary_params.clone(),
+            k: p.curvature_params(),
+            r: p.rotation.into(),
+            c: p.center.into(),
+        };
+        Self { name: &motion.name, patch, keyframes: &motion.keyframes }
+    }
+}
+
+/// The patch of the file's minimal parameters, validated by the Surface Patch Library (one of the 10
+/// types, parameter counts, finiteness); `k` as in [`Patch::curvature_params`].
+fn patch_from_record(
+    surface: SurfaceType,
+    boundary: BoundaryType,
+    d: Vec<f64>,
+    k: &[f64],
+    r: [f64; 3],
+    c: [f64; 3],
+) -> Result<Patch, (String, String)> {
+    let curvatures = match (surface.num_curvatures(), k) {
+        (0, []) => Vector2::zeros(),
+        (1, [kappa]) => Vector2::new(*kappa, *kappa),
+        (2, [kx, ky]) => Vector2::new(*kx, *ky),
+        (expected, got) => return Err(("k".into(), format!("{surface:?} has {expected} curvatures, got {}", got.len()))),
+    };
+    let field = |e: &patchwalk_spl::patch::PatchError| match e {
+        patchwalk_spl::patch::PatchError::WrongLength { .. } => "d",
+        patchwalk_spl::patch::PatchError::InvalidCombination { .. } => "boundary",
+        patchwalk_spl::patch::PatchError::InvalidParameter(_) => "values",
+    };
+    Patch::new(surface, boundary, d, curvatures, Vector3::from(r), Vector3::from(c)).map_err(|e| (field(&e).to_string(), e.to_string()))
 }
 
 /// Library errors; parse errors name the entry and the field.
@@ -146,7 +210,11 @@ impl MotionLibrary {
 
     /// Serialise to YAML text.
     pub fn to_yaml(&self) -> Result<String, LibraryError> {
-        let file = LibraryFile { schema_version: SCHEMA_VERSION, joints: self.joints.clone(), motions: self.motions.clone() };
+        let file = LibraryFile {
+            schema_version: SCHEMA_VERSION,
+            joints: &self.joints,
+            motions: self.motions.iter().map(MotionRecord::new).collect(),
+        };
         serde_yaml_ng::to_string(&file).map_err(|e| LibraryError::Serialize(e.to_string()))
     }
 
@@ -196,7 +264,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 type Located = (String, String);
 
 /// Parse the file with errors located as `motions[i] (name "x").field`.
-fn parse_library(text: &str, expected_joints: &[String]) -> Result<LibraryFile, Located> {
+fn parse_library(text: &str, expected_joints: &[String]) -> Result<ParsedLibrary, Located> {
     let root: Value = serde_yaml_ng::from_str(text).map_err(|e| ("file".to_string(), e.to_string()))?;
     let root = root.as_mapping().ok_or_else(|| ("file".to_string(), "top level must be a mapping".to_string()))?;
     reject_unknown(root, &["schema_version", "joints", "motions"], "file")?;
@@ -218,7 +286,7 @@ fn parse_library(text: &str, expected_joints: &[String]) -> Result<LibraryFile, 
         }
         motions.push(motion);
     }
-    Ok(LibraryFile { schema_version, joints, motions })
+    Ok(ParsedLibrary { joints, motions })
 }
 
 fn parse_motion(entry: &Value, index: usize, joint_count: usize) -> Result<Motion, Located> {
@@ -233,14 +301,16 @@ fn parse_motion(entry: &Value, index: usize, joint_count: usize) -> Result<Motio
         .ok_or_else(|| (format!("{location}.patch"), "missing or not a mapping".to_string()))?;
     let patch_location = format!("{location}.patch");
     reject_unknown(patch_map, &["surface", "boundary", "d", "k", "r", "c"], &patch_location)?;
-    let patch = PatchGeometry {
-        surface: field(patch_map, "surface", &patch_location)?,
-        boundary: field(patch_map, "boundary", &patch_location)?,
-        d: field(patch_map, "d", &patch_location)?,
-        k: field(patch_map, "k", &patch_location)?,
-        r: field(patch_map, "r", &patch_location)?,
-        c: field(patch_map, "c", &patch_location)?,
-    };
+    let k: Vec<f64> = field(patch_map, "k", &patch_location)?;
+    let patch = patch_from_record(
+        field(patch_map, "surface", &patch_location)?,
+        field(patch_map, "boundary", &patch_location)?,
+        field(patch_map, "d", &patch_location)?,
+        &k,
+        field(patch_map, "r", &patch_location)?,
+        field(patch_map, "c", &patch_location)?,
+    )
+    .map_err(|(field, message)| (format!("{patch_location}.{field}"), message))?;
     let frames = map
         .get("keyframes")
         .and_then(Value::as_sequence)
@@ -266,7 +336,6 @@ fn validate_motion(motion: &Motion, joint_count: usize) -> Result<(), (String, S
     if motion.name.trim().is_empty() {
         return Err(("name".into(), "must not be empty".into()));
     }
-    motion.patch.validate().map_err(|e| (format!("patch.{}", e.field), e.message))?;
     if motion.keyframes.is_empty() {
         return Err(("keyframes".into(), "at least one keyframe is required".into()));
     }
@@ -308,7 +377,6 @@ fn reject_unknown(map: &Mapping, known: &[&str], location: &str) -> Result<(), L
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::patch::{BoundaryType, SurfaceType};
 
     fn joints() -> Vec<String> {
         crate::config::DEFAULT_JOINTS.iter().map(|s| (*s).to_string()).collect()
@@ -317,14 +385,15 @@ mod tests {
     fn motion(name: &str) -> Motion {
         Motion {
             name: name.into(),
-            patch: PatchGeometry {
-                surface: SurfaceType::EllipticParaboloid,
-                boundary: BoundaryType::Ellipse,
-                d: vec![0.04, 0.03],
-                k: vec![12.0, 8.5],
-                r: [0.01, -0.02, 0.3],
-                c: [0.12, 0.04, -0.27],
-            },
+            patch: Patch::new(
+                SurfaceType::EllipticParaboloid,
+                BoundaryType::Ellipse,
+                vec![0.04, 0.03],
+                Vector2::new(12.0, 8.5),
+                Vector3::new(0.01, -0.02, 0.3),
+                Vector3::new(0.12, 0.04, -0.27),
+            )
+            .unwrap(),
             keyframes: vec![
                 Keyframe { positions: vec![0.1; 12], move_s: 0.8, pause_s: 0.1 },
                 Keyframe { positions: vec![-0.2; 12], move_s: 1.0, pause_s: 0.0 },

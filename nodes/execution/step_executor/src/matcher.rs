@@ -16,7 +16,7 @@
 use nalgebra::{Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
+use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 
 /// How criterion (4) compares orientations.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -165,12 +165,12 @@ pub struct Matcher {
 }
 
 /// All parameterisations of the same geometry (see module doc).
-fn equivalents(patch: &PatchGeometry, allow_normal_flip: bool) -> Vec<Equivalent> {
-    let base = patch.rotation();
+fn equivalents(patch: &Patch, allow_normal_flip: bool) -> Vec<Equivalent> {
+    let base = rotation_of(patch);
     let two_axes = matches!(patch.boundary, BoundaryType::Ellipse | BoundaryType::Rectangle);
     // A single curvature (cylindric paraboloid, cylinder) is bound to the local y axis: only half
     // turns keep that form. Circles are continuously symmetric; quadrilaterals have none for free.
-    let quarter_turns: &[u8] = match (two_axes, patch.k.len()) {
+    let quarter_turns: &[u8] = match (two_axes, patch.surface.num_curvatures()) {
         (true, 1) => &[0, 2],
         (true, _) => &[0, 1, 2, 3],
         (false, _) => &[0],
@@ -180,8 +180,8 @@ fn equivalents(patch: &PatchGeometry, allow_normal_flip: bool) -> Vec<Equivalent
     for &flip in flips {
         for &turns in quarter_turns {
             let swap = turns % 2 == 1;
-            let mut d = patch.d.clone();
-            let mut k = patch.k.clone();
+            let mut d = patch.boundary_params.clone();
+            let mut k = patch.curvature_params();
             if swap && d.len() >= 2 {
                 d.swap(0, 1);
                 if k.len() == 2 {
@@ -200,6 +200,20 @@ fn equivalents(patch: &PatchGeometry, allow_normal_flip: bool) -> Vec<Equivalent
     out
 }
 
+/// `R(r)` of a patch (IROS eq 2).
+fn rotation_of(patch: &Patch) -> Rotation3<f64> {
+    Rotation3::from_scaled_axis(patch.rotation)
+}
+
+/// The minimal curvature parameters of a patch without allocating (`[κx κy]`, `[κ]` or none).
+fn curvatures(patch: &Patch) -> ([f64; 2], usize) {
+    match patch.surface.num_curvatures() {
+        2 => ([patch.curvatures.x, patch.curvatures.y], 2),
+        1 => ([patch.curvatures.y, 0.0], 1),
+        _ => ([0.0; 2], 0),
+    }
+}
+
 fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
     if a.len() != b.len() {
         return f64::INFINITY;
@@ -215,7 +229,7 @@ enum PairResult {
 
 impl Matcher {
     /// Build over trained patches (index = position in the slice, e.g. library order).
-    pub fn new<'a>(config: MatcherConfig, trained: impl IntoIterator<Item = &'a PatchGeometry>) -> Self {
+    pub fn new<'a>(config: MatcherConfig, trained: impl IntoIterator<Item = &'a Patch>) -> Self {
         let mut entries: Vec<TrainedEntry> = trained
             .into_iter()
             .enumerate()
@@ -223,7 +237,7 @@ impl Matcher {
                 index,
                 surface: patch.surface,
                 boundary: patch.boundary,
-                centre: Vector3::from(patch.c),
+                centre: patch.center,
                 equivalents: equivalents(patch, config.allow_normal_flip),
             })
             .collect();
@@ -241,7 +255,7 @@ impl Matcher {
     }
 
     /// Criteria (1)–(5) for one pair; `map_rotation` precomputed.
-    fn check_pair(&self, entry: &TrainedEntry, map: &PatchGeometry, map_rotation: &Rotation3<f64>, distance: f64) -> PairResult {
+    fn check_pair(&self, entry: &TrainedEntry, map: &Patch, map_rotation: &Rotation3<f64>, distance: f64) -> PairResult {
         let cfg = &self.config;
         if map.surface != entry.surface {
             return PairResult::Miss(Rejection::SurfaceType { map: map.surface, trained: entry.surface });
@@ -255,13 +269,15 @@ impl Matcher {
         let mut best_angle = f64::INFINITY;
         let mut best: Option<(f64, usize)> = None;
         let map_normal = map_rotation * Vector3::z();
+        let (map_k, map_nk) = curvatures(map);
+        let map_k = map_k.get(..map_nk).unwrap_or_default();
         for (s, eq) in entry.equivalents.iter().enumerate() {
-            let dd = max_abs_diff(&map.d, &eq.d);
+            let dd = max_abs_diff(&map.boundary_params, &eq.d);
             best_d = best_d.min(dd);
             if dd >= cfg.boundary_tolerance_m {
                 continue;
             }
-            let dk = max_abs_diff(&map.k, &eq.k);
+            let dk = max_abs_diff(map_k, &eq.k);
             best_k = best_k.min(dk);
             if dk >= cfg.curvature_tolerance_per_m {
                 continue;
@@ -303,11 +319,11 @@ impl Matcher {
 
     /// Fast path: the best match over all (map, trained) pairs, visiting only trained patches within
     /// ±rs in x of each map patch.
-    pub fn best_match(&self, map: &[PatchGeometry]) -> Option<Match> {
+    pub fn best_match(&self, map: &[Patch]) -> Option<Match> {
         let rs = self.config.position_tolerance_m;
         let mut best: Option<Match> = None;
         for (map_index, patch) in map.iter().enumerate() {
-            let centre = Vector3::from(patch.c);
+            let centre = patch.center;
             let start = self.entries.partition_point(|e| e.centre.x <= centre.x - rs);
             let mut rotation: Option<Rotation3<f64>> = None;
             for entry in self.entries.get(start..).unwrap_or(&[]) {
@@ -318,7 +334,7 @@ impl Matcher {
                 if distance >= rs || entry.surface != patch.surface {
                     continue;
                 }
-                let rotation = *rotation.get_or_insert_with(|| patch.rotation());
+                let rotation = *rotation.get_or_insert_with(|| rotation_of(patch));
                 if let PairResult::Match { score, symmetry } = self.check_pair(entry, patch, &rotation, distance) {
                     let better = best.as_ref().is_none_or(|b| score < b.score);
                     if better {
@@ -332,14 +348,14 @@ impl Matcher {
 
     /// Full report: the best match plus the `diagnostics` nearest failing pairs with their reason
     /// (checks every pair; use for status/diagnostics, not in the tight loop).
-    pub fn report(&self, map: &[PatchGeometry]) -> MatchReport {
+    pub fn report(&self, map: &[Patch]) -> MatchReport {
         let best = self.best_match(map);
         let keep = self.config.diagnostics;
         let mut near_misses: Vec<NearMiss> = Vec::new();
         if keep > 0 {
             for (map_index, patch) in map.iter().enumerate() {
-                let centre = Vector3::from(patch.c);
-                let rotation = patch.rotation();
+                let centre = patch.center;
+                let rotation = rotation_of(patch);
                 for entry in &self.entries {
                     let distance = (entry.centre - centre).norm();
                     let worst_kept = near_misses.last().map_or(f64::INFINITY, |m| m.distance_m);
@@ -362,22 +378,25 @@ impl Matcher {
 mod tests {
     use super::*;
 
-    fn trained() -> PatchGeometry {
-        PatchGeometry {
-            surface: SurfaceType::EllipticParaboloid,
-            boundary: BoundaryType::Ellipse,
-            d: vec![0.05, 0.03],
-            k: vec![20.0, 10.0],
-            r: [0.1, -0.05, 0.4],
-            c: [0.12, 0.05, -0.27],
-        }
+    use nalgebra::Vector2;
+
+    fn trained() -> Patch {
+        Patch::new(
+            SurfaceType::EllipticParaboloid,
+            BoundaryType::Ellipse,
+            vec![0.05, 0.03],
+            Vector2::new(20.0, 10.0),
+            Vector3::new(0.1, -0.05, 0.4),
+            Vector3::new(0.12, 0.05, -0.27),
+        )
+        .unwrap()
     }
 
-    fn matcher(patches: &[PatchGeometry]) -> Matcher {
+    fn matcher(patches: &[Patch]) -> Matcher {
         Matcher::new(MatcherConfig::default(), patches)
     }
 
-    fn single_reason(m: &Matcher, map: PatchGeometry) -> Rejection {
+    fn single_reason(m: &Matcher, map: Patch) -> Rejection {
         let report = m.report(&[map]);
         assert!(report.best.is_none(), "{report:?}");
         report.near_misses[0].reason.clone()
@@ -403,9 +422,9 @@ mod tests {
     fn criterion_2_boundary_threshold() {
         let m = matcher(&[trained()]);
         let mut p = trained();
-        p.d[0] += 0.014;
+        p.boundary_params[0] += 0.014;
         assert!(m.best_match(&[p.clone()]).is_some());
-        p.d[0] += 0.002;
+        p.boundary_params[0] += 0.002;
         assert!(matches!(single_reason(&m, p), Rejection::BoundaryParams { max_abs_diff_m } if (max_abs_diff_m - 0.016).abs() < 1e-9));
     }
 
@@ -413,9 +432,9 @@ mod tests {
     fn criterion_3_curvature_threshold() {
         let m = matcher(&[trained()]);
         let mut p = trained();
-        p.k[1] -= 4.9;
+        p.curvatures.y -= 4.9;
         assert!(m.best_match(&[p.clone()]).is_some());
-        p.k[1] -= 0.2;
+        p.curvatures.y -= 0.2;
         assert!(matches!(single_reason(&m, p), Rejection::Curvature { .. }));
     }
 
@@ -426,8 +445,8 @@ mod tests {
             let mut p = trained();
             // Tilt about an axis perpendicular to the normal, so the normals differ by exactly `deg`.
             let axis = nalgebra::Unit::new_normalize(p.normal().cross(&Vector3::x()));
-            let r = Rotation3::from_axis_angle(&axis, deg.to_radians()) * p.rotation();
-            p.r = r.scaled_axis().into();
+            let r = Rotation3::from_axis_angle(&axis, deg.to_radians()) * rotation_of(&p);
+            p.rotation = r.scaled_axis();
             p
         };
         assert!(m.best_match(&[tilt(19.0)]).is_some());
@@ -438,9 +457,9 @@ mod tests {
     fn criterion_5_position_threshold() {
         let m = matcher(&[trained()]);
         let mut p = trained();
-        p.c[1] += 0.0095;
+        p.center.y += 0.0095;
         assert!(m.best_match(&[p.clone()]).is_some());
-        p.c[1] += 0.001;
+        p.center.y += 0.001;
         assert!(matches!(single_reason(&m, p), Rejection::Position { distance_m } if (distance_m - 0.0105).abs() < 1e-9));
     }
 
@@ -449,10 +468,10 @@ mod tests {
         let m = matcher(&[trained()]);
         // Same ellipse described with x/y swapped: frame rotated 90° about its normal.
         let mut p = trained();
-        p.d.swap(0, 1);
-        p.k.swap(0, 1);
-        let r = p.rotation() * Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
-        p.r = r.scaled_axis().into();
+        p.boundary_params.swap(0, 1);
+        p.curvatures = Vector2::new(p.curvatures.y, p.curvatures.x);
+        let r = rotation_of(&p) * Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::FRAC_PI_2);
+        p.rotation = r.scaled_axis();
         let best = m.best_match(&[p.clone()]).unwrap();
         assert_ne!(best.symmetry, 0);
         // In full-frame mode the quarter turn is also matched (same geometry).
@@ -464,9 +483,9 @@ mod tests {
     fn symmetry_normal_flip_negates_curvature() {
         let m = matcher(&[trained()]);
         let mut p = trained();
-        p.k = vec![-20.0, -10.0];
-        let r = p.rotation() * Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
-        p.r = r.scaled_axis().into();
+        p.curvatures = Vector2::new(-20.0, -10.0);
+        let r = rotation_of(&p) * Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+        p.rotation = r.scaled_axis();
         assert!(m.best_match(&[p.clone()]).is_some());
         let no_flip = Matcher::new(MatcherConfig { allow_normal_flip: false, ..Default::default() }, &[trained()]);
         assert!(no_flip.best_match(&[p]).is_none());
@@ -474,21 +493,22 @@ mod tests {
 
     #[test]
     fn symmetry_half_turn_of_rectangle_in_frame_mode() {
-        let rect = PatchGeometry {
-            surface: SurfaceType::Plane,
-            boundary: BoundaryType::Rectangle,
-            d: vec![0.06, 0.03],
-            k: vec![],
-            r: [0.0, 0.0, 0.3],
-            c: [0.1, 0.0, -0.28],
-        };
+        let rect = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Rectangle,
+            vec![0.06, 0.03],
+            Vector2::zeros(),
+            Vector3::new(0.0, 0.0, 0.3),
+            Vector3::new(0.1, 0.0, -0.28),
+        )
+        .unwrap();
         let frame = Matcher::new(MatcherConfig { orientation: OrientationCheck::Frame, ..Default::default() }, std::slice::from_ref(&rect));
         let mut half = rect.clone();
-        half.r = [0.0, 0.0, 0.3 + std::f64::consts::PI];
+        half.rotation = Vector3::new(0.0, 0.0, 0.3 + std::f64::consts::PI);
         assert!(frame.best_match(&[half]).is_some());
         // A 45° yaw is not a symmetry of a 6×3 cm rectangle.
         let mut yawed = rect.clone();
-        yawed.r = [0.0, 0.0, 0.3 + std::f64::consts::FRAC_PI_4];
+        yawed.rotation = Vector3::new(0.0, 0.0, 0.3 + std::f64::consts::FRAC_PI_4);
         assert!(matches!(frame.report(&[yawed.clone()]).near_misses[0].reason, Rejection::Orientation { .. }));
         // Normal mode (J 6.3) ignores in-plane heading.
         assert!(matcher(&[rect]).best_match(&[yawed]).is_some());
@@ -497,13 +517,13 @@ mod tests {
     #[test]
     fn best_of_many_and_near_misses_sorted() {
         let mut a = trained();
-        a.c = [0.10, 0.0, -0.27];
+        a.center = Vector3::new(0.10, 0.0, -0.27);
         let mut b = trained();
-        b.c = [0.20, 0.0, -0.27];
+        b.center = Vector3::new(0.20, 0.0, -0.27);
         let m = matcher(&[a.clone(), b.clone()]);
         let mut map_b = b.clone();
-        map_b.c[0] += 0.002;
-        let far = PatchGeometry { c: [0.5, 0.5, 0.0], ..trained() };
+        map_b.center.x += 0.002;
+        let far = Patch { center: Vector3::new(0.5, 0.5, 0.0), ..trained() };
         let report = m.report(&[far, map_b]);
         let best = report.best.unwrap();
         assert_eq!((best.map_index, best.trained_index), (1, 1));

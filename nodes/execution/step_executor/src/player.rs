@@ -382,8 +382,8 @@ impl Player {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
     use patchwalk_dynamixel::servo_bus::mock::MockBus;
+    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 
     fn joints(n: u8) -> Vec<JointSpec> {
         (1..=n)
@@ -397,14 +397,15 @@ mod tests {
     fn motion(frames: Vec<Keyframe>) -> Motion {
         Motion {
             name: "step".into(),
-            patch: PatchGeometry {
-                surface: SurfaceType::Plane,
-                boundary: BoundaryType::Circle,
-                d: vec![0.02],
-                k: vec![],
-                r: [0.0; 3],
-                c: [0.1, 0.0, -0.28],
-            },
+            patch: Patch::new(
+                SurfaceType::Plane,
+                BoundaryType::Circle,
+                vec![0.02],
+                nalgebra::Vector2::zeros(),
+                nalgebra::Vector3::zeros(),
+                nalgebra::Vector3::new(0.1, 0.0, -0.28),
+            )
+            .unwrap(),
             keyframes: frames,
         }
     }

@@ -15,11 +15,11 @@ use crate::config::StepExecutorConfig;
 use crate::executor::{initialise_bus, Executor, Telemetry};
 use crate::library::{Keyframe, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
-use crate::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::ServoBus;
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
+use patchwalk_spl::patch::Patch;
 
 /// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
 const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
@@ -72,7 +72,7 @@ pub struct Runtime {
     bus: Option<Executor>,
     bus_error: Option<String>,
     // training
-    target: Option<PatchGeometry>,
+    target: Option<Patch>,
     recorded: Vec<Keyframe>,
     // runtime state
     armed: bool,
@@ -84,7 +84,7 @@ pub struct Runtime {
     last_match: String,
     last_fault: Option<(u8, String)>,
     positions: Vec<Option<f64>>,
-    latest_map_in_base: Vec<PatchGeometry>,
+    latest_map_in_base: Vec<Patch>,
     /// Where the latest patch map's frame was relative to the robot when the map arrived (places
     /// the mapper's cloud, like the patches, relative to the robot).
     latest_base_from_map: Option<Isometry3<f64>>,
@@ -233,10 +233,10 @@ impl Runtime {
     /// A new patch map (patches in the map frame, `map_from_camera` at the map's stamp). Expresses
     /// the patches in `base_link`, matches them (J 6.3) and, when armed and idle, plays the match.
     /// Returns the match report.
-    pub fn on_patch_map(&mut self, patches_in_map: &[PatchGeometry], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
+    pub fn on_patch_map(&mut self, patches_in_map: &[Patch], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
         self.latest_base_from_map = Some(base_from_map);
-        self.latest_map_in_base = patches_in_map.iter().map(|p| p.transformed(&base_from_map)).collect();
+        self.latest_map_in_base = patches_in_map.iter().filter_map(|p| pose_in(&base_from_map, p)).collect();
         let report = self.matcher.report(&self.latest_map_in_base);
         if let Some(best) = &report.best {
             if let Some(motion) = self.library.motions().get(best.trained_index) {
@@ -294,14 +294,14 @@ impl Runtime {
     }
 
     /// Select the training target: the patch of the latest map whose centre is nearest `point_in_base`.
-    pub fn select_nearest(&mut self, point_in_base: [f64; 3]) -> Result<PatchGeometry, String> {
+    pub fn select_nearest(&mut self, point_in_base: [f64; 3]) -> Result<Patch, String> {
         let point = Point3::from(point_in_base);
         let nearest = self
             .latest_map_in_base
             .iter()
             .min_by(|a, b| {
-                let da = (Point3::from(a.c) - point).norm();
-                let db = (Point3::from(b.c) - point).norm();
+                let da = (Point3::from(a.center) - point).norm();
+                let db = (Point3::from(b.center) - point).norm();
                 da.total_cmp(&db)
             })
             .cloned()
@@ -315,7 +315,7 @@ impl Runtime {
     /// (`cloud_in_map`, in the latest patch map's frame; non-finite points are ignored) within
     /// `radius_m` of `point_in_base`, fitted with the patch core (IROS IV, type by discrimination),
     /// boundaries sized as the mapper sizes them so the target compares with mapped patches.
-    pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<PatchGeometry, String> {
+    pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<Patch, String> {
         if !(radius_m.is_finite() && radius_m > 0.0 && radius_m <= 0.5) {
             return Err(format!("radius {radius_m} m must be in (0, 0.5]"));
         }
@@ -347,17 +347,8 @@ impl Runtime {
         let fit_points: Vec<Vector3<f64>> =
             (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
         let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
-        let fitted = transform_patch(&fitted_in_camera, &map_from_camera).ok_or("fit: the patch could not be moved to the map frame")?;
-        let patch = PatchGeometry {
-            surface: SurfaceType::from_u8(fitted.surface as u8).ok_or("fit: unknown surface type")?,
-            boundary: BoundaryType::from_u8(fitted.boundary as u8).ok_or("fit: unknown boundary type")?,
-            d: fitted.boundary_params.clone(),
-            k: fitted.curvature_params(),
-            r: fitted.rotation.into(),
-            c: fitted.center.into(),
-        }
-        .transformed(&base_from_map);
-        patch.validate().map_err(|e| format!("fit: {e}"))?;
+        let patch = transform_patch(&fitted_in_camera, &(base_from_map * map_from_camera))
+            .ok_or("fit: the patch could not be moved to base_link")?;
         self.target = Some(patch.clone());
         Ok(patch)
     }
@@ -488,10 +479,18 @@ impl Runtime {
     }
 }
 
+/// A map patch expressed in `base_link` for matching (J 6.3 compares parameters and poses, not
+/// their uncertainty, so the covariance is not propagated); `None` for a patch that cannot be moved.
+fn pose_in(base_from_map: &Isometry3<f64>, patch_in_map: &Patch) -> Option<Patch> {
+    let bare = Patch { covariance: nalgebra::DMatrix::zeros(0, 0), ..patch_in_map.clone() };
+    transform_patch(&bare, base_from_map)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use patchwalk_dynamixel::servo_bus::mock::MockBus;
+    use patchwalk_spl::patch::{BoundaryType, SurfaceType};
     use std::time::{Duration, Instant};
 
     fn config(dir: &std::path::Path) -> StepExecutorConfig {
@@ -537,8 +536,8 @@ mod tests {
         cloud_in_map.push(Vector3::new(f64::NAN, 0.0, 0.0));
         let patch = runtime.select_fit(&cloud_in_map, [0.28, 0.0, -0.25], 0.05).unwrap();
         assert_eq!(patch.surface, SurfaceType::CircularParaboloid, "{patch:?}");
-        assert!((patch.k[0] + kappa).abs() < 0.5, "{patch:?}");
-        assert!((Vector3::from(patch.c) - apex_in_base).norm() < 0.003, "{patch:?}");
+        assert!((patch.curvatures.x + kappa).abs() < 0.5, "{patch:?}");
+        assert!((patch.center - apex_in_base).norm() < 0.003, "{patch:?}");
         assert!(patch.normal().z > 0.99, "{patch:?}");
         // Nothing there, or a nonsense radius: errors, and the target is kept.
         assert!(runtime.select_fit(&cloud_in_map, [2.0, 0.0, -0.25], 0.05).unwrap_err().contains("only 0 cloud points"));
@@ -578,19 +577,20 @@ mod tests {
 
         // A patch map: one plane 0.15 m ahead of the camera.
         let map_from_camera = Isometry3::identity();
-        let camera_patch = PatchGeometry {
-            surface: crate::patch::SurfaceType::Plane,
-            boundary: crate::patch::BoundaryType::Circle,
-            d: vec![0.03],
-            k: vec![],
-            r: [0.0; 3],
-            c: [0.0, 0.1, 0.4],
-        };
+        let camera_patch = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.03],
+            nalgebra::Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::new(0.0, 0.1, 0.4),
+        )
+        .unwrap();
         runtime.on_patch_map(std::slice::from_ref(&camera_patch), &map_from_camera).unwrap();
         let base_from_camera = runtime.base_from_camera().unwrap();
-        let expected_c = base_from_camera * Point3::from(camera_patch.c);
+        let expected_c = base_from_camera * Point3::from(camera_patch.center);
         let target = runtime.select_nearest(expected_c.coords.into()).unwrap();
-        assert!((Point3::from(target.c) - expected_c).norm() < 1e-9);
+        assert!((Point3::from(target.center) - expected_c).norm() < 1e-9);
 
         // Train: torque off, "move" the servos by hand, record two keyframes, save.
         runtime.set_torque(false).unwrap();
@@ -612,7 +612,7 @@ mod tests {
         // Non-matching map: nothing moves even when armed.
         runtime.arm(true).unwrap();
         let writes = bus.state().goal_writes.len();
-        let far = PatchGeometry { c: [0.3, 0.1, 0.4], ..camera_patch.clone() };
+        let far = Patch { center: Vector3::new(0.3, 0.1, 0.4), ..camera_patch.clone() };
         let report = runtime.on_patch_map(&[far], &map_from_camera).unwrap();
         assert!(report.best.is_none());
         assert!(matches!(report.near_misses[0].reason, crate::matcher::Rejection::Position { .. }));

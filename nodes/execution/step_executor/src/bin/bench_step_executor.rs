@@ -14,11 +14,11 @@ use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::{self};
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 use patchwalk_robot_model::kinematics::RobotModel;
+use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 use step_executor::config::{StepExecutorConfig, DEFAULT_JOINTS};
 use step_executor::executor::{initialise_bus, Executor};
 use step_executor::library::{Keyframe, Motion};
 use step_executor::matcher::{Matcher, MatcherConfig};
-use step_executor::patch::{BoundaryType, PatchGeometry, SurfaceType};
 use step_executor::player::{JointSpec, Player, PlayerEvent};
 
 /// Small deterministic generator (xorshift64*), seeded.
@@ -36,24 +36,21 @@ impl Rng {
     }
 }
 
-fn random_patch(rng: &mut Rng) -> PatchGeometry {
+fn random_patch(rng: &mut Rng) -> anyhow::Result<Patch> {
     let kinds = [
-        (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse, 2, 2),
-        (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse, 2, 2),
-        (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle, 2, 2),
-        (SurfaceType::CircularParaboloid, BoundaryType::Circle, 1, 1),
-        (SurfaceType::Plane, BoundaryType::Rectangle, 2, 0),
+        (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse, 2),
+        (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse, 2),
+        (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle, 2),
+        (SurfaceType::CircularParaboloid, BoundaryType::Circle, 1),
+        (SurfaceType::Plane, BoundaryType::Rectangle, 2),
     ];
-    let (surface, boundary, nd, nk) = kinds[(rng.next_f64() * kinds.len() as f64) as usize % kinds.len()];
-    PatchGeometry {
-        surface,
-        boundary,
-        d: (0..nd).map(|_| rng.uniform(0.02, 0.06)).collect(),
-        k: (0..nk).map(|_| rng.uniform(-30.0, 30.0)).collect(),
-        r: [rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-3.0, 3.0)],
-        // The area around the feet, ~10 cm in front of the robot (J 6.3), in base_link.
-        c: [rng.uniform(0.05, 0.35), rng.uniform(-0.15, 0.15), rng.uniform(-0.32, -0.26)],
-    }
+    let (surface, boundary, nd) = kinds[(rng.next_f64() * kinds.len() as f64) as usize % kinds.len()];
+    let d = (0..nd).map(|_| rng.uniform(0.02, 0.06)).collect();
+    let k = nalgebra::Vector2::new(rng.uniform(-30.0, 30.0), rng.uniform(-30.0, 30.0));
+    let r = nalgebra::Vector3::new(rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-3.0, 3.0));
+    // The area around the feet, ~10 cm in front of the robot (J 6.3), in base_link.
+    let c = nalgebra::Vector3::new(rng.uniform(0.05, 0.35), rng.uniform(-0.15, 0.15), rng.uniform(-0.32, -0.26));
+    Ok(Patch::new(surface, boundary, d, k, r, c)?)
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -77,15 +74,15 @@ fn summary(name: &str, unit: &str, mut values: Vec<f64>) {
     );
 }
 
-fn bench_matching() {
+fn bench_matching() -> anyhow::Result<()> {
     let mut rng = Rng(0x5EED_1234_ABCD_0001);
-    let trained: Vec<PatchGeometry> = (0..100).map(|_| random_patch(&mut rng)).collect();
-    let mut map: Vec<PatchGeometry> = (0..1000).map(|_| random_patch(&mut rng)).collect();
+    let trained = (0..100).map(|_| random_patch(&mut rng)).collect::<anyhow::Result<Vec<Patch>>>()?;
+    let mut map = (0..1000).map(|_| random_patch(&mut rng)).collect::<anyhow::Result<Vec<Patch>>>()?;
     // A few map patches are noisy re-observations of trained ones (within the thresholds).
     for (i, slot) in map.iter_mut().step_by(97).enumerate() {
         let mut seen = trained[i * 7 % trained.len()].clone();
-        seen.c[0] += 0.003;
-        seen.d[0] += 0.005;
+        seen.center.x += 0.003;
+        seen.boundary_params[0] += 0.005;
         *slot = seen;
     }
     let matcher = Matcher::new(MatcherConfig::default(), &trained);
@@ -105,6 +102,7 @@ fn bench_matching() {
         times.push(start.elapsed().as_secs_f64() * 1e3);
     }
     summary("matching report (best + 3 nearest misses, all pairs)", " ms", times);
+    Ok(())
 }
 
 fn joint_specs(config: &StepExecutorConfig) -> anyhow::Result<Vec<JointSpec>> {
@@ -153,14 +151,15 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyh
     // Ankle/knee-safe small amplitude inside every joint's limits.
     let motion = Motion {
         name: "bench".into(),
-        patch: PatchGeometry {
-            surface: SurfaceType::Plane,
-            boundary: BoundaryType::Circle,
-            d: vec![0.02],
-            k: vec![],
-            r: [0.0; 3],
-            c: [0.1, 0.0, -0.29],
-        },
+        patch: Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.02],
+            nalgebra::Vector2::zeros(),
+            nalgebra::Vector3::zeros(),
+            nalgebra::Vector3::new(0.1, 0.0, -0.29),
+        )
+        .unwrap(),
         keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
     };
     // Let the loop learn the present pose, then play ~4.8 s.
@@ -195,7 +194,7 @@ fn main() -> anyhow::Result<()> {
     let config = StepExecutorConfig::load(std::path::Path::new("config/step_executor.yaml"))
         .context("run from the repository root (reads config/step_executor.yaml and urdf/rpbp.urdf)")?;
     let specs = joint_specs(&config)?;
-    bench_matching();
+    bench_matching()?;
     bench_round_trip(&config, &specs)?;
     bench_control_cycle(&config, &specs)?;
     Ok(())

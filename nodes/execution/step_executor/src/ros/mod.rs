@@ -14,11 +14,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 
+use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::patch_msg;
 use step_executor::runtime::{RunState, Runtime};
 
 /// Arguments of `step_executor run`.
@@ -71,7 +73,7 @@ impl Executor {
     /// A patch map: convert, express in base_link, match (J 6.3), auto-play when armed.
     fn on_patches(&mut self, map: PatchArray) {
         self.maps_received += 1;
-        let map_from_camera = match convert::isometry_from_pose(&map.camera_pose) {
+        let map_from_camera = match patch_msg::isometry_from_pose(&map.camera_pose) {
             Ok(pose) => pose,
             Err(e) => {
                 self.log.warn("camera_pose", format_args!("{PATCHES_TOPIC}: map ignored, camera_pose: {e}"));
@@ -80,7 +82,7 @@ impl Executor {
         };
         let mut patches = Vec::with_capacity(map.patches.len());
         for msg in &map.patches {
-            match convert::patch_from_msg(msg) {
+            match patch_msg::patch_from_msg(msg) {
                 Ok(patch) => patches.push(patch),
                 Err(e) => {
                     self.log.warn("patch", format_args!("{PATCHES_TOPIC}: patch skipped: {e}"));
@@ -163,8 +165,8 @@ impl Executor {
         match selected {
             Ok(patch) => srv::SelectTargetResponse {
                 success: true,
-                message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.c),
-                patch: convert::msg_from_patch(&patch),
+                message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.center.as_slice()),
+                patch: patch_msg::msg_from_patch(0, &patch, Time::default(), Time::default()),
             },
             Err(e) => srv::SelectTargetResponse { success: false, message: format!("select_target: {e}"), ..Default::default() },
         }
@@ -395,17 +397,19 @@ mod tests {
     #[test]
     fn patch_map_is_converted_and_kept_for_target_selection() {
         let (mut executor, _dir) = without_bus();
-        let patch = step_executor::patch::PatchGeometry {
-            surface: step_executor::patch::SurfaceType::Plane,
-            boundary: step_executor::patch::BoundaryType::Circle,
-            d: vec![0.03],
-            k: vec![],
-            r: [0.0; 3],
-            c: [0.0, 0.1, 0.4],
-        };
-        let mut bad = convert::msg_from_patch(&patch);
+        let patch = patchwalk_spl::patch::Patch::new(
+            patchwalk_spl::patch::SurfaceType::Plane,
+            patchwalk_spl::patch::BoundaryType::Circle,
+            vec![0.03],
+            nalgebra::Vector2::zeros(),
+            nalgebra::Vector3::zeros(),
+            nalgebra::Vector3::new(0.0, 0.1, 0.4),
+        )
+        .unwrap();
+        let mut bad = patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default());
         bad.surface = 42;
-        let map = PatchArray { patches: vec![convert::msg_from_patch(&patch), bad], ..Default::default() };
+        let map =
+            PatchArray { patches: vec![patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default()), bad], ..Default::default() };
         executor.on_patches(map);
         let response = executor.select_target(srv::SelectTargetRequest::default());
         assert!(response.success, "{}", response.message);

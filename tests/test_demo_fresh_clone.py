@@ -3,9 +3,9 @@ a venv, creates the venv with the pinned ROS 2 Jazzy wheels and patchwalk_msgs (
 starts the system and runs the four-rock experiment with 1 trial per rock.
 
 What is tested is the HEAD commit: uncommitted changes of the working tree are not in the clone (commit
-first). The Rust build is shared through CARGO_TARGET_DIR (this run's target directory): the clone's files
-get the commit's time as their modification time, so cargo reuses the current build where it is newer
-than the commit and rebuilds what changed since. Uncommitted Rust changes already built into that target
+first). The Rust build is shared through CARGO_TARGET_DIR (this run's target directory): each file of the
+clone gets the time of the last commit that changed it as its modification time, so cargo reuses the
+current build where it is newer than those changes and rebuilds what changed since. Uncommitted Rust changes already built into that target
 directory are therefore in the binaries. The venv is never shared: the clone gets its own `.venv` from
 PyPI (about 1.5 min here, downloads included).
 
@@ -36,10 +36,17 @@ def test_demo_sets_up_and_runs_the_experiment_in_a_fresh_clone(tmp_path):
     clone = tmp_path / "patchwalk"
     git("clone", "--quiet", "--no-checkout", str(pw.REPO), str(clone), cwd=tmp_path)
     git("checkout", "--quiet", "--detach", head, cwd=clone)
-    commit_time = int(git("log", "-1", "--format=%ct", cwd=clone))
+    # Each file's modification time: the time of the last commit that changed it.
+    changed_at: dict[str, int] = {}
+    when = 0
+    for line in git("log", "--format=@%ct", "--name-only", cwd=clone).splitlines():
+        if line.startswith("@"):
+            when = int(line[1:])
+        elif line:
+            changed_at.setdefault(line, when)
     for name in git("ls-files", "-z", cwd=clone).split("\0"):
-        if name and (clone / name).is_file():
-            os.utime(clone / name, (commit_time, commit_time))
+        if name and (clone / name).is_file() and name in changed_at:
+            os.utime(clone / name, (changed_at[name], changed_at[name]))
     assert not (clone / ".venv").exists()
 
     env = {k: v for k, v in os.environ.items() if k not in ("PATCHWALK_VENV", "VIRTUAL_ENV", "PYTHONPATH")}

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Latency and CPU bench of patch_mapper on terrain_sim's 30 Hz Carmine-like stream (issue 7).
+"""Latency and CPU bench of patch_mapper on terrain_sim's 30 Hz Carmine-like stream.
 
 Starts terrain_sim and patch_mapper (release binaries, DDS on loopback, a private ROS domain), waits
 until the patch map holds at least --min-patches patches, then for --seconds measures:

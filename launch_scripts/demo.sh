@@ -1,23 +1,30 @@
 #!/usr/bin/env bash
-# Command 1: build and start the patchwalk system on its embedded defaults, DDS on loopback.
+# Command 1: set up, build and start the patchwalk system on its embedded defaults, DDS on loopback, and
+# run the four-rock experiment.
 #
-# Starts what exists so far, in order: the simulated servo bus (`step_executor sim-bus`), the terrain
+# 1. setup: launch_scripts/setup.sh (Debian cmake/g++, the venv with the pinned ROS 2 Jazzy wheels and
+#    patchwalk_msgs; each step only when missing or changed, the same as launch_scripts/test.sh does),
+# 2. build: cargo build --release --workspace --bins,
+# 3. start, in order: the simulated servo bus (`step_executor sim-bus`), the terrain
 # simulator (`terrain_sim run`), patch_mapper and step_executor. A component whose command is not
-# available yet is reported and skipped. Then runs the four-rock experiment of J 6.3
-# (launch_scripts/experiment.py: scripted training on the 4 training rocks, DEMO_TRIALS trials per
-# trained rock, trials in front of the untrained rocks), prints its table and where the pictures are,
-# and stops every process it started with SIGINT. With DEMO_EXPERIMENT=0 (or without the venv) it
-# prints what to look at instead and runs until Ctrl-C (or for DEMO_DURATION seconds).
+# available yet is reported and skipped,
+# 4. the four-rock experiment of J 6.3 (launch_scripts/experiment.py: scripted training on the 4 training
+#    rocks, DEMO_TRIALS trials per trained rock, trials in front of the untrained rocks); prints its table
+#    and where the pictures are, and stops every process it started with SIGINT.
+# With DEMO_EXPERIMENT=0 it skips the setup and the experiment, prints what to look at instead and runs
+# until Ctrl-C (or for DEMO_DURATION seconds).
 #
 # Environment: ROS_DOMAIN_ID (default 0), DEMO_EXPERIMENT (1|0, default 1), DEMO_TRIALS (default 20),
-# DEMO_UNTRAINED_TRIALS (per untrained rock, default 5), DEMO_DURATION (seconds; default: until
-# Ctrl-C), PATCHWALK_VENV (the venv with rclpy, used by the experiment and the status monitor; created by
-# launch_scripts/test.sh).
+# DEMO_UNTRAINED_TRIALS (per untrained rock, default 5), DEMO_EXPERIMENT_ARGS (more arguments for
+# experiment.py, e.g. "--trial-end timeout --full-motions all"), DEMO_DURATION (seconds; default: until
+# Ctrl-C), PATCHWALK_VENV (the venv with rclpy, used by the experiment and the status monitor; default
+# .venv, created by the setup).
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
-BIN="$REPO/target/release"
+# Binaries where cargo puts them (CARGO_TARGET_DIR shares a build between clones).
+BIN="${CARGO_TARGET_DIR:-$REPO/target}/release"
 VENV="${PATCHWALK_VENV:-$REPO/.venv}"
 RUN_DIR="$REPO/build/demo"
 mkdir -p "$RUN_DIR"
@@ -29,8 +36,33 @@ export FASTRTPS_DEFAULT_PROFILES_FILE="$REPO/tests/fastdds_loopback.xml"
 export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 export ROS_LOG_DIR="$RUN_DIR/ros_log"
 
-echo "=== building (cargo build --release --bins)"
+SETUP_PID=""
+if [ "${DEMO_EXPERIMENT:-1}" != 0 ]; then
+    # Network-bound (pip) while the build is CPU-bound: run both at once, setup lines marked [setup].
+    echo "=== [1/4] setup, while building: system packages, venv $VENV with the ROS 2 Jazzy wheels," \
+        "patchwalk_msgs (launch_scripts/setup.sh; log: $RUN_DIR/setup.log)"
+    rm -f "$RUN_DIR/setup.rc"
+    SETUP_START=$(date +%s)
+    (
+        PATCHWALK_VENV="$VENV" PATCHWALK_SKIP_PYTHON=0 bash "$REPO/launch_scripts/setup.sh" </dev/null
+        echo $? >"$RUN_DIR/setup.rc"
+    ) 2>&1 | tee "$RUN_DIR/setup.log" | sed -u -e '/^$/d' -e 's/^/[setup] /' &
+    SETUP_PID=$!
+else
+    echo "=== [1/4] setup: skipped (DEMO_EXPERIMENT=0)"
+fi
+
+echo "=== [2/4] building (cargo build --release --workspace --bins)"
 cargo build --release --workspace --bins
+if [ -n "$SETUP_PID" ]; then
+    echo "=== [1/4] waiting for the setup to finish"
+    wait "$SETUP_PID" || true
+    if [ "$(cat "$RUN_DIR/setup.rc" 2>/dev/null)" != 0 ]; then
+        echo "demo.sh: the setup failed (log: $RUN_DIR/setup.log)" >&2
+        exit 1
+    fi
+    echo "setup done ($(($(date +%s) - SETUP_START)) s; a step is redone only when its inputs change)"
+fi
 
 PIDS=()
 NAMES=()
@@ -68,7 +100,7 @@ available() {
     "$BIN/$1" "$2" --help >/dev/null 2>&1
 }
 
-echo "=== starting (ROS_DOMAIN_ID=$ROS_DOMAIN_ID, DDS on 127.0.0.1 only)"
+echo "=== [3/4] starting (ROS_DOMAIN_ID=$ROS_DOMAIN_ID, DDS on 127.0.0.1 only)"
 EXECUTOR_ARGS=()
 # forget_if_dead NAME: a just-started component that already exited is "not available yet".
 forget_if_dead() {
@@ -127,7 +159,7 @@ start step_executor "$BIN/step_executor" run ${EXECUTOR_ARGS[@]+"${EXECUTOR_ARGS
 RUN_EXPERIMENT=0
 if [ "${DEMO_EXPERIMENT:-1}" != 0 ]; then
     if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import rclpy, patchwalk_msgs.msg' 2>/dev/null; then
-        echo "skipped the experiment: no venv with rclpy and patchwalk_msgs at $VENV (launch_scripts/test.sh creates it)"
+        echo "skipped the experiment: no venv with rclpy and patchwalk_msgs at $VENV (launch_scripts/setup.sh creates it)"
     elif [ ${#PIDS[@]} -lt 4 ]; then
         echo "skipped the experiment: it needs sim_bus, terrain_sim, patch_mapper and step_executor (started: ${NAMES[*]})"
     else
@@ -136,11 +168,13 @@ if [ "${DEMO_EXPERIMENT:-1}" != 0 ]; then
 fi
 if [ "$RUN_EXPERIMENT" = 1 ]; then
     echo
-    echo "=== experiment (J 6.3): training on 4 rocks, ${DEMO_TRIALS:-20} trials per trained rock, untrained rocks"
+    echo "=== [4/4] experiment (J 6.3): training on 4 rocks, ${DEMO_TRIALS:-20} trials per trained rock," \
+        "${DEMO_UNTRAINED_TRIALS:-5} per untrained rock"
     set +e
+    # shellcheck disable=SC2086
     "$VENV/bin/python" -u launch_scripts/experiment.py --sim-bus-stdin "$SIM_BUS_STDIN" \
         --trials "${DEMO_TRIALS:-20}" --untrained-trials "${DEMO_UNTRAINED_TRIALS:-5}" \
-        --out "$RUN_DIR/experiment" 2>&1 | tee "$RUN_DIR/experiment.log"
+        --out "$RUN_DIR/experiment" ${DEMO_EXPERIMENT_ARGS:-} 2>&1 | tee "$RUN_DIR/experiment.log"
     EXPERIMENT_STATUS=${PIPESTATUS[0]}
     set -e
     echo "experiment log: $RUN_DIR/experiment.log; node logs: $RUN_DIR/*.log"
@@ -154,7 +188,7 @@ cat <<EOF
 - Node logs: tail -f $RUN_DIR/*.log
 - Status of both nodes once a second (rclpy from the test venv):
     $VENV/bin/python launch_scripts/monitor.py
-  (create the venv first with launch_scripts/test.sh), or from a ROS 2 Jazzy install:
+  (create the venv first with launch_scripts/setup.sh), or from a ROS 2 Jazzy install:
     export ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
     ros2 topic echo /patch_mapper/status       # frames received/processed/skipped/rejected
     ros2 topic echo /step_executor/status      # state, armed, torque, library size

@@ -19,6 +19,12 @@ _LOG_DIR = Path(tempfile.mkdtemp(prefix="patchwalk_pytest_"))
 ENV = pw.ros_environment(_LOG_DIR)
 os.environ.update(ENV)  # before rclpy is imported anywhere
 
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "fresh_clone: runs launch_scripts/demo.sh in a fresh clone (own venv from PyPI, minutes)")
+
+
 # Binaries whose ROS node is started with `<binary> run ...`; others take their options directly.
 RUN_SUBCOMMAND = {"patch_mapper", "step_executor", "terrain_sim"}
 

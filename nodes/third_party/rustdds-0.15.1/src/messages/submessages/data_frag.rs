@@ -87,7 +87,7 @@ impl DataFrag {
     2 + // fragmentsInSubmessage
     2 + // fragmentSize
     4 + // sampleSize
-    self.inline_qos.as_ref().map(|q| q.len_serialized() ).unwrap_or(0) + // QoS ParameterList
+    self.inline_qos.as_ref().filter(|q| !q.parameters.is_empty()).map(|q| q.len_serialized() ).unwrap_or(0) + // QoS ParameterList, written only when not empty
     self.serialized_payload.len()
   }
 
@@ -301,8 +301,13 @@ impl<C: Context> Writable<C> for DataFrag {
     writer.write_value(&self.fragments_in_submessage)?;
     writer.write_value(&self.fragment_size)?;
     writer.write_value(&self.data_size)?;
-    if self.inline_qos.is_some() && !self.inline_qos.as_ref().unwrap().parameters.is_empty() {
-      writer.write_value(&self.inline_qos)?;
+    // The ParameterList itself, not the Option: speedy would prefix an Option with a presence
+    // byte, which shifts the parameter list and the payload by one octet and makes the submessage
+    // one octet longer than `len_serialized` (the octetsToNextHeader written in its header).
+    if let Some(inline_qos) = self.inline_qos.as_ref() {
+      if !inline_qos.parameters.is_empty() {
+        writer.write_value(inline_qos)?;
+      }
     }
     writer.write_bytes(&self.serialized_payload)?;
     Ok(())
@@ -332,6 +337,44 @@ mod tests {
     df.write_to_stream_with_ctx(Endianness::LittleEndian, &mut buf)
       .expect("serialize DataFrag body");
     Bytes::from(buf)
+  }
+
+  // A fragment with inline QoS (a service reply carries the request's sample identity there):
+  // the written body is exactly `len_serialized` octets (the octetsToNextHeader of its header)
+  // and reads back unchanged, parameter list and payload included.
+  #[test]
+  fn inline_qos_fragment_round_trips_with_its_announced_length() {
+    use crate::{
+      messages::submessages::elements::parameter::Parameter, structure::parameter_id::ParameterId,
+    };
+
+    let sample_identity = vec![7u8; 24]; // GUID (16) + sequence number (8)
+    let mut inline_qos = ParameterList::new();
+    inline_qos.push(Parameter {
+      parameter_id: ParameterId::PID_RELATED_SAMPLE_IDENTITY,
+      value: sample_identity.clone(),
+    });
+    inline_qos.push(Parameter {
+      parameter_id: ParameterId::PID_RELATED_SAMPLE_IDENTITY_CUSTOM,
+      value: sample_identity,
+    });
+    let payload: Vec<u8> = (0..512u32).map(|i| (i % 251) as u8).collect();
+    let df = DataFrag {
+      writer_sn: SequenceNumber::new(3),
+      fragment_starting_num: FragmentNumber::new(1),
+      fragments_in_submessage: 2,
+      fragment_size: 256,
+      data_size: 1400,
+      inline_qos: Some(inline_qos),
+      serialized_payload: Bytes::from(payload),
+      ..Default::default()
+    };
+    let bytes = serialize_body(&df);
+    assert_eq!(bytes.len(), df.len_serialized());
+    let flags = BitFlags::<DATAFRAG_Flags>::from_endianness(Endianness::LittleEndian)
+      | DATAFRAG_Flags::InlineQos;
+    let read = DataFrag::deserialize(&bytes, flags).expect("deserialize DataFrag with inline QoS");
+    assert_eq!(read, df);
   }
 
   #[test]

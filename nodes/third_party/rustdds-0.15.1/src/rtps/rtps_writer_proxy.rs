@@ -100,10 +100,16 @@ impl RtpsWriterProxy {
     }
   }
 
+  /// Count for the next ACKNACK or NACK_FRAG to this writer: 1, 2, 3, ...
+  ///
+  /// A writer ignores an ACKNACK whose count is not newer than the last one it
+  /// accepted, and Fast DDS 2.x starts that record at 0 (`last_acknack_count_ <
+  /// count`), so a first ACKNACK with count 0 - the preemptive one sent on match
+  /// included - would be ignored and recovery would wait for the writer's next
+  /// periodic HEARTBEAT. `sent_ack_nack_count` is the number sent so far.
   pub fn next_ack_nack_sequence_number(&mut self) -> i32 {
-    let c = self.sent_ack_nack_count;
-    self.sent_ack_nack_count += 1;
-    c
+    self.sent_ack_nack_count = self.sent_ack_nack_count.wrapping_add(1);
+    self.sent_ack_nack_count
   }
 
   // Returns a bound, below which everything can be acknowledged, i.e.
@@ -414,6 +420,16 @@ mod bounded_map_tests {
       vec![],
       EntityId::UNKNOWN,
     )
+  }
+
+  // Writers accept only ACKNACK counts newer than the last one (Fast DDS 2.x
+  // starts from 0), so the first one sent must be 1.
+  #[test]
+  fn acknack_counts_start_at_one() {
+    let mut proxy = test_proxy();
+    assert_eq!(proxy.next_ack_nack_sequence_number(), 1);
+    assert_eq!(proxy.next_ack_nack_sequence_number(), 2);
+    assert_eq!(proxy.sent_ack_nack_count, 2);
   }
 
   // Regression: a best-effort writer sends no HEARTBEAT/GAP, so the changes map

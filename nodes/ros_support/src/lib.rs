@@ -5,6 +5,8 @@
 //!   tracing, and [`node::RateLimitedLog`] for bad input that must not flood the log.
 //! - [`params`]: YAML configuration files with `--param key=value` overrides, unknown keys named.
 //! - [`process`]: process CPU time for the benchmarks.
+//! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
+//! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
 //! against other ROS 2 implementations.
@@ -13,3 +15,4 @@ pub mod node;
 pub mod params;
 pub mod patch_msg;
 pub mod process;
+pub mod wait;

@@ -16,6 +16,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use ros2_client::dds::rustdds::DomainParticipantBuilder;
 use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscription};
 use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
+use ros2_client::service::RmwRequestId;
 use ros2_client::{MessageInfo, Name, NodeName, NodeOptions};
 
 use patchwalk_msgs::builtin_interfaces::msg::Time;
@@ -41,6 +42,8 @@ pub enum NodeError {
     Endpoint { what: &'static str, name: String, reason: String },
     #[error("cannot install the SIGINT/SIGTERM handler: {0}")]
     Signal(#[from] std::io::Error),
+    #[error("cannot wait for input readiness: {0}")]
+    Wait(std::io::Error),
 }
 
 /// Which network interfaces DDS discovery and traffic use.
@@ -252,6 +255,37 @@ where
         }
     }
     handled
+}
+
+/// Up to `max` pending requests of `server`, to be answered later with [`respond`] (work that runs
+/// off the loop). A failed receive is logged.
+pub fn take_requests<Req, Resp>(server: &Server<Req, Resp>, name: &str, max: usize, log: &mut RateLimitedLog) -> Vec<(RmwRequestId, Req)>
+where
+    Req: ros2_client::Message + Clone + 'static,
+    Resp: ros2_client::Message + 'static,
+{
+    let mut taken = Vec::new();
+    for _ in 0..max {
+        match server.receive_request() {
+            Ok(Some(request)) => taken.push(request),
+            Ok(None) => break,
+            Err(e) => {
+                log.warn(name, format_args!("{name}: cannot read a request: {e:?}"));
+            }
+        }
+    }
+    taken
+}
+
+/// Answer a request taken with [`take_requests`]; a failed send is logged.
+pub fn respond<Req, Resp>(server: &Server<Req, Resp>, name: &str, request_id: RmwRequestId, response: Resp, log: &mut RateLimitedLog)
+where
+    Req: ros2_client::Message + Clone + 'static,
+    Resp: ros2_client::Message + 'static,
+{
+    if let Err(e) = server.send_response(request_id, response) {
+        log.warn(name, format_args!("{name}: cannot send the response: {e:?}"));
+    }
 }
 
 /// Answer every pending request of `server` with `handle`; a failed receive or send is logged, never

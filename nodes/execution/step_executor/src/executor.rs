@@ -5,7 +5,7 @@
 //! additionally isolates the node from any bus stall.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -65,8 +65,13 @@ pub struct Executor {
     telemetry: Receiver<Telemetry>,
     estop: Arc<AtomicBool>,
     shutdown: Arc<AtomicBool>,
+    notify: Arc<OnceLock<Notify>>,
     thread: Option<JoinHandle<()>>,
 }
+
+/// Called by the bus thread after a cycle that the node should publish at once (a motion cycle or
+/// an event): wakes the node's loop.
+pub type Notify = Box<dyn Fn() + Send + Sync>;
 
 /// Start-up sequence: ping every servo (model check), torque off, write the Return Delay Time.
 pub fn initialise_bus(bus: &mut dyn ServoBus, player: &Player, config: &BusConfig) -> Result<(), ExecutorError> {
@@ -93,6 +98,8 @@ impl Executor {
         let shutdown = Arc::new(AtomicBool::new(false));
         let thread_estop = Arc::clone(&estop);
         let thread_shutdown = Arc::clone(&shutdown);
+        let notify: Arc<OnceLock<Notify>> = Arc::new(OnceLock::new());
+        let thread_notify = Arc::clone(&notify);
         let thread = std::thread::Builder::new()
             .name("servo-bus".into())
             .spawn(move || {
@@ -118,8 +125,12 @@ impl Executor {
                         torque,
                         event: report.event,
                     };
+                    let urgent = telemetry.goal.is_some() || telemetry.event.is_some();
                     // Never block the control loop on a slow consumer: drop telemetry instead.
                     let _ = telemetry_tx.try_send(telemetry);
+                    if let (true, Some(notify)) = (urgent, thread_notify.get()) {
+                        notify();
+                    }
                     cycle_index += 1;
                     next += cycle;
                     let now = Instant::now();
@@ -131,12 +142,18 @@ impl Executor {
                 }
             })
             .map_err(|e| ExecutorError::Refused(format!("cannot start the bus thread: {e}")))?;
-        Ok(Self { commands: command_tx, telemetry: telemetry_rx, estop, shutdown, thread: Some(thread) })
+        Ok(Self { commands: command_tx, telemetry: telemetry_rx, estop, shutdown, notify, thread: Some(thread) })
     }
 
     /// Request an e-stop (honoured at the start of the next cycle).
     pub fn estop(&self) {
         self.estop.store(true, Ordering::SeqCst);
+    }
+
+    /// Have the bus thread call `notify` after every cycle of a motion and after every event (set
+    /// once; later calls are ignored).
+    pub fn set_notify(&self, notify: Notify) {
+        let _ = self.notify.set(notify);
     }
 
     /// Telemetry of the cycles since the last call.

@@ -110,6 +110,27 @@ fn patch_from_record(
     Patch::new(surface, boundary, d, curvatures, Vector3::from(r), Vector3::from(c)).map_err(|e| (field(&e).to_string(), e.to_string()))
 }
 
+/// A snapshot of the library to write, made by [`MotionLibrary::save_job`].
+#[derive(Debug, Clone)]
+pub struct SaveJob {
+    path: PathBuf,
+    text: String,
+    move_corrupt_aside: bool,
+}
+
+impl SaveJob {
+    /// Move a corrupt file aside (once), then write atomically.
+    pub fn run(&self) -> Result<(), LibraryError> {
+        let io = |source| LibraryError::Io { path: self.path.clone(), source };
+        if self.move_corrupt_aside && self.path.exists() {
+            let mut aside = self.path.clone().into_os_string();
+            aside.push(".corrupt");
+            std::fs::rename(&self.path, PathBuf::from(aside)).map_err(io)?;
+        }
+        write_atomically(&self.path, self.text.as_bytes()).map_err(io)
+    }
+}
+
 /// Library errors; parse errors name the entry and the field.
 #[derive(Debug, thiserror::Error)]
 pub enum LibraryError {
@@ -221,16 +242,20 @@ impl MotionLibrary {
     /// Save atomically: write `<dir>/.<name>.tmp-<pid>`, fsync it, rename over the target, fsync the
     /// directory. A corrupt file found at load time is first renamed to `<path>.corrupt`.
     pub fn save(&mut self) -> Result<(), LibraryError> {
-        let text = self.to_yaml()?;
-        let io = |source| LibraryError::Io { path: self.path.clone(), source };
-        if self.corrupt_on_disk && self.path.exists() {
-            let mut aside = self.path.clone().into_os_string();
-            aside.push(".corrupt");
-            std::fs::rename(&self.path, PathBuf::from(aside)).map_err(io)?;
-        }
-        write_atomically(&self.path, text.as_bytes()).map_err(io)?;
-        self.corrupt_on_disk = false;
+        self.save_job()?.run()?;
+        self.mark_saved();
         Ok(())
+    }
+
+    /// [`MotionLibrary::save`] in parts: the text to write now, the writing on any thread, then
+    /// [`MotionLibrary::mark_saved`].
+    pub fn save_job(&self) -> Result<SaveJob, LibraryError> {
+        Ok(SaveJob { path: self.path.clone(), text: self.to_yaml()?, move_corrupt_aside: self.corrupt_on_disk })
+    }
+
+    /// The file on disk is this library now (a corrupt one has been moved aside).
+    pub fn mark_saved(&mut self) {
+        self.corrupt_on_disk = false;
     }
 }
 

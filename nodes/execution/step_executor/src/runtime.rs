@@ -11,9 +11,9 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use patchwalk_spl::fit::neighbourhood::fit_neighbourhood;
 use patchwalk_spl::transform::transform_patch;
 
-use crate::config::StepExecutorConfig;
+use crate::config::{StepExecutorConfig, TrainingFitConfig};
 use crate::executor::{initialise_bus, Executor, Telemetry};
-use crate::library::{Keyframe, Motion, MotionLibrary};
+use crate::library::{Keyframe, LibraryError, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
@@ -182,6 +182,18 @@ impl Runtime {
         Ok((runtime, warnings))
     }
 
+    /// See [`Executor::set_notify`]; without a bus there is nothing to notify about.
+    pub fn set_bus_notify(&self, notify: crate::executor::Notify) {
+        if let Some(bus) = &self.bus {
+            bus.set_notify(notify);
+        }
+    }
+
+    /// Whether the servo bus thread runs (the bus opened and every servo answered).
+    pub fn has_bus(&self) -> bool {
+        self.bus.is_some()
+    }
+
     pub fn joint_names(&self) -> &[String] {
         &self.joint_names
     }
@@ -316,6 +328,14 @@ impl Runtime {
     /// `radius_m` of `point_in_base`, fitted with the patch core (IROS IV, type by discrimination),
     /// boundaries sized as the mapper sizes them so the target compares with mapped patches.
     pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<Patch, String> {
+        let patch = self.fit_job(point_in_base, radius_m)?.run(cloud_in_map)?;
+        self.set_target(patch.clone());
+        Ok(patch)
+    }
+
+    /// [`Runtime::select_fit`] in parts, so that the fit can run on another thread: the checked
+    /// request (the point, the radius, where the cloud's frame is, the fit's configuration).
+    pub fn fit_job(&self, point_in_base: [f64; 3], radius_m: f64) -> Result<FitJob, String> {
         if !(radius_m.is_finite() && radius_m > 0.0 && radius_m <= 0.5) {
             return Err(format!("radius {radius_m} m must be in (0, 0.5]"));
         }
@@ -323,61 +343,61 @@ impl Runtime {
             return Err("point must be finite".into());
         }
         let base_from_map = self.latest_base_from_map.ok_or("no patch map received yet (its camera pose places the cloud)")?;
-        if cloud_in_map.is_empty() {
-            return Err("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)".into());
-        }
-        let point_in_map = (base_from_map.inverse() * Point3::from(point_in_base)).coords;
-        // NaN and infinite points fail the distance test.
-        let points: Vec<Vector3<f64>> = cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
-        // Fitted as the mapper fits its seeds (`training_fit`: nf points spread over the
-        // neighbourhood, sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the
-        // point looking down (map z is up, REP-103), so the target compares with mapped patches
-        // under J 6.3's thresholds.
-        let config = &self.config.training_fit;
-        let min_points = config.min_points.max(1);
-        if points.len() < min_points {
-            return Err(format!("only {} cloud points within {radius_m} m of the point (need {min_points})", points.len()));
-        }
-        let map_from_camera = Isometry3::from_parts(
-            Translation3::from(point_in_map + Vector3::z()),
-            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
-        );
-        let points_in_camera: Vec<Vector3<f64>> = points.iter().map(|p| (map_from_camera.inverse() * Point3::from(*p)).coords).collect();
-        let nf = config.fit_points.clamp(1, points_in_camera.len());
-        let fit_points: Vec<Vector3<f64>> =
-            (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
-        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
-        let patch = transform_patch(&fitted_in_camera, &(base_from_map * map_from_camera))
-            .ok_or("fit: the patch could not be moved to base_link")?;
-        self.target = Some(patch.clone());
-        Ok(patch)
+        Ok(FitJob { point_in_base, radius_m, base_from_map, config: self.config.training_fit.clone() })
+    }
+
+    /// The training target from now on (a fitted or selected patch in `base_link`).
+    pub fn set_target(&mut self, patch: Patch) {
+        self.target = Some(patch);
     }
 
     /// Save the trained motion (target + recorded keyframes) atomically under `name`.
     pub fn save_motion(&mut self, name: &str) -> Result<String, String> {
+        let change = self.prepare_save(name)?;
+        change.write().map_err(|e| e.to_string())?;
+        Ok(self.commit(change))
+    }
+
+    pub fn delete_motion(&mut self, name: &str) -> Result<String, String> {
+        let change = self.prepare_delete(name)?;
+        change.write().map_err(|e| e.to_string())?;
+        Ok(self.commit(change))
+    }
+
+    /// The library with the trained motion added, ready to be written ([`LibraryChange::write`],
+    /// on any thread) and then committed ([`Runtime::commit`]); nothing changes until then.
+    pub fn prepare_save(&self, name: &str) -> Result<LibraryChange, String> {
         let patch = self.target.clone().ok_or("no target patch selected (call select_target first)")?;
         if self.recorded.is_empty() {
             return Err("no keyframes recorded (call record_keyframe first)".into());
         }
+        let count = self.recorded.len();
         let motion = Motion { name: name.to_string(), patch, keyframes: self.recorded.clone() };
         let mut library = self.library.clone();
         library.insert(motion).map_err(|e| e.to_string())?;
-        library.save().map_err(|e| e.to_string())?;
-        self.library = library;
-        self.rebuild_matcher();
-        let count = self.recorded.len();
-        self.recorded.clear();
-        self.target = None;
-        Ok(format!("saved {name:?} ({count} keyframes) to {}", self.library.path().display()))
+        let message = format!("saved {name:?} ({count} keyframes) to {}", library.path().display());
+        Ok(LibraryChange { library, trained: true, message })
     }
 
-    pub fn delete_motion(&mut self, name: &str) -> Result<String, String> {
+    /// The library without `name`, ready to be written and committed like [`Runtime::prepare_save`].
+    pub fn prepare_delete(&self, name: &str) -> Result<LibraryChange, String> {
         let mut library = self.library.clone();
         library.remove(name).map_err(|e| e.to_string())?;
-        library.save().map_err(|e| e.to_string())?;
+        Ok(LibraryChange { library, trained: false, message: format!("deleted {name:?}") })
+    }
+
+    /// Take a written library change: the matcher uses it from the next patch map on; after a save,
+    /// training starts afresh. Returns the message for the caller.
+    pub fn commit(&mut self, change: LibraryChange) -> String {
+        let LibraryChange { mut library, trained, message, .. } = change;
+        library.mark_saved();
         self.library = library;
         self.rebuild_matcher();
-        Ok(format!("deleted {name:?}"))
+        if trained {
+            self.recorded.clear();
+            self.target = None;
+        }
+        message
     }
 
     fn rebuild_matcher(&mut self) {
@@ -476,6 +496,63 @@ impl Runtime {
     /// Latest measured positions (rad) where known.
     pub fn positions(&self) -> &[Option<f64>] {
         &self.positions
+    }
+}
+
+/// A training fit requested by [`Runtime::fit_job`], to run where it does not hold up the node.
+#[derive(Debug, Clone)]
+pub struct FitJob {
+    point_in_base: [f64; 3],
+    radius_m: f64,
+    base_from_map: Isometry3<f64>,
+    config: TrainingFitConfig,
+}
+
+impl FitJob {
+    /// Fit the cloud points (in the latest patch map's frame; non-finite ones are ignored) within
+    /// the radius of the point, as the mapper fits its seeds (`training_fit`: nf points spread over
+    /// the neighbourhood, sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the
+    /// point looking down (map z is up, REP-103), so the target compares with mapped patches under
+    /// J 6.3's thresholds. The patch comes back in `base_link`.
+    pub fn run(&self, cloud_in_map: &[Vector3<f64>]) -> Result<Patch, String> {
+        let (base_from_map, radius_m, config) = (&self.base_from_map, self.radius_m, &self.config);
+        if cloud_in_map.is_empty() {
+            return Err("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)".into());
+        }
+        let point_in_map = (base_from_map.inverse() * Point3::from(self.point_in_base)).coords;
+        // NaN and infinite points fail the distance test.
+        let points: Vec<Vector3<f64>> = cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
+        let min_points = config.min_points.max(1);
+        if points.len() < min_points {
+            return Err(format!("only {} cloud points within {radius_m} m of the point (need {min_points})", points.len()));
+        }
+        let map_from_camera = Isometry3::from_parts(
+            Translation3::from(point_in_map + Vector3::z()),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        );
+        let points_in_camera: Vec<Vector3<f64>> = points.iter().map(|p| (map_from_camera.inverse() * Point3::from(*p)).coords).collect();
+        let nf = config.fit_points.clamp(1, points_in_camera.len());
+        let fit_points: Vec<Vector3<f64>> =
+            (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
+        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
+        transform_patch(&fitted_in_camera, &(base_from_map * map_from_camera))
+            .ok_or_else(|| "fit: the patch could not be moved to base_link".into())
+    }
+}
+
+/// A library change prepared by [`Runtime::prepare_save`] or [`Runtime::prepare_delete`].
+#[derive(Debug)]
+pub struct LibraryChange {
+    library: MotionLibrary,
+    /// A save of the trained motion (training starts afresh once committed).
+    trained: bool,
+    message: String,
+}
+
+impl LibraryChange {
+    /// Serialise and write the file atomically (fsync); the runtime's library is untouched.
+    pub fn write(&self) -> Result<(), LibraryError> {
+        self.library.save_job()?.run()
     }
 }
 

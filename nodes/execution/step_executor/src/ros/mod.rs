@@ -1,15 +1,20 @@
 //! ROS 2 wiring of the step_executor node (`step_executor run`): subscribes the patch map, publishes
-//! /joint_states and /step_executor/status, and serves the training/playback services of names.md.
+//! /joint_states and /step_executor/status, and serves the training/playback services named below.
 //!
-//! The loop is single-threaded and never blocks on input: drain the patch map, serve every service,
-//! publish the status every `1 / status_rate_hz`, sleep `poll_period_ms`.
+//! The loop waits for input (`patchwalk_ros::wait`) instead of polling: on every wake-up it answers
+//! the e-stop first, then the other services, hands long work (a training fit, a library save or
+//! delete with fsync) to a worker thread (`jobs`) and answers those requests when their job is done,
+//! takes the patch map, publishes joint states and the status. Nothing it does takes long, so an
+//! e-stop is answered within a pass whatever else was asked.
 //!
 //! The handlers delegate to the library's [`Runtime`] (motion library, J 6.3 matcher, servo bus
 //! thread); this layer converts messages (`convert`). Without a servo bus (port missing) the node
 //! still starts: bus services answer `success = false` with the reason, the status carries it too.
 
 mod convert;
+mod jobs;
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
@@ -21,7 +26,12 @@ use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_ros::patch_msg;
-use step_executor::runtime::{RunState, Runtime};
+use patchwalk_ros::wait::Wakeup;
+use patchwalk_spl::patch::Patch;
+use ros2_client::service::RmwRequestId;
+use step_executor::runtime::{FitJob, LibraryChange, RunState, Runtime};
+
+use jobs::{Finished, Job, Jobs};
 
 /// Arguments of `step_executor run`.
 #[derive(clap::Args, Debug, Default)]
@@ -34,7 +44,7 @@ pub struct RunArgs {
 /// `ros:` section holds the ROS-level parameters.
 pub type ExecutorFileView = step_executor::config::StepExecutorConfig;
 
-/// Topic and service names (names.md).
+/// Topic and service names.
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
 /// The mapper's birds-eye cloud (map frame): what `select_target` MODE_FIT_AT_POINT fits.
 pub const CLOUD_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
@@ -51,8 +61,11 @@ pub const STOP: &str = "/step_executor/stop";
 pub const ARM: &str = "/step_executor/arm";
 pub const RESET_ESTOP: &str = "/step_executor/reset_estop";
 
-/// Poll period of the loop in ms.
-const POLL_PERIOD_MS: u64 = 2;
+/// The longest the loop sleeps without input (it also wakes for status, joint states and jobs).
+const MAX_WAIT: Duration = Duration::from_millis(100);
+/// Requests of one service taken per loop pass (the rest wait for the next pass, so a flood of one
+/// service cannot hold up the others).
+const REQUESTS_PER_PASS: usize = 64;
 
 /// Node state and the service handlers (delegating to the library's [`Runtime`]).
 struct Executor {
@@ -60,14 +73,22 @@ struct Executor {
     maps_received: u64,
     log: RateLimitedLog,
     /// Latest birds-eye cloud, decoded only when a fit is asked for.
-    latest_cloud: Option<PointCloud2>,
+    latest_cloud: Option<Arc<PointCloud2>>,
+    jobs_pending: JobsPending,
     /// Stops taken in the current loop pass (see [`Executor::reset_estop`]).
     stops_in_pass: usize,
 }
 
 impl Executor {
     fn new(runtime: Runtime) -> Self {
-        Self { runtime, maps_received: 0, log: RateLimitedLog::default(), latest_cloud: None, stops_in_pass: 0 }
+        Self {
+            runtime,
+            maps_received: 0,
+            log: RateLimitedLog::default(),
+            latest_cloud: None,
+            jobs_pending: JobsPending::default(),
+            stops_in_pass: 0,
+        }
     }
 
     /// A patch map: convert, express in base_link, match (J 6.3), auto-play when armed.
@@ -150,32 +171,39 @@ impl Executor {
         }
     }
 
-    fn select_target(&mut self, request: srv::SelectTargetRequest) -> srv::SelectTargetResponse {
+    /// `select_target`: the nearest patch is answered at once; a fit becomes a job.
+    fn select_target(&mut self, request: srv::SelectTargetRequest) -> Handled<srv::SelectTargetResponse> {
         let p = &request.point;
         let point = [p.x, p.y, p.z];
         let selected = match request.mode {
             srv::SelectTargetRequest::MODE_NEAREST_POINT => self.runtime.select_nearest(point),
-            srv::SelectTargetRequest::MODE_FIT_AT_POINT => match self.latest_cloud.as_ref().map(convert::points_from_cloud) {
-                None => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
-                Some(Err(e)) => Err(format!("{CLOUD_TOPIC}: {e}")),
-                Some(Ok(points_in_map)) => self.runtime.select_fit(&points_in_map, point, request.radius),
-            },
+            srv::SelectTargetRequest::MODE_FIT_AT_POINT => {
+                let started = match (&self.latest_cloud, self.jobs_pending.fit) {
+                    (_, true) => Err("a fit is in progress; call again when it is answered".to_string()),
+                    (None, _) => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
+                    (Some(cloud), false) => self.runtime.fit_job(point, request.radius).map(|job| Later::Fit(job, Arc::clone(cloud))),
+                };
+                return match started {
+                    Ok(later) => Handled::Later(later),
+                    Err(e) => Handled::Answer(select_target_response(Err(e))),
+                };
+            }
             mode => Err(format!("unknown mode {mode} (0 = nearest point, 1 = fit at point)")),
         };
-        match selected {
-            Ok(patch) => srv::SelectTargetResponse {
-                success: true,
-                message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.center.as_slice()),
-                patch: patch_msg::msg_from_patch(0, &patch, Time::default(), Time::default()),
-            },
-            Err(e) => srv::SelectTargetResponse { success: false, message: format!("select_target: {e}"), ..Default::default() },
-        }
+        Handled::Answer(select_target_response(selected))
     }
 
-    fn save_motion(&mut self, request: srv::SaveMotionRequest) -> srv::SaveMotionResponse {
-        match self.runtime.save_motion(&request.name) {
-            Ok(message) => srv::SaveMotionResponse { success: true, message },
-            Err(e) => srv::SaveMotionResponse { success: false, message: format!("save_motion({:?}): {e}", request.name) },
+    /// `save_motion`: the new library is prepared now and written by a job.
+    fn save_motion(&mut self, request: srv::SaveMotionRequest) -> Handled<srv::SaveMotionResponse> {
+        let failed = |e: String| {
+            Handled::Answer(srv::SaveMotionResponse { success: false, message: format!("save_motion({:?}): {e}", request.name) })
+        };
+        if let Some(busy) = self.jobs_pending.library_busy() {
+            return failed(busy.into());
+        }
+        match self.runtime.prepare_save(&request.name) {
+            Ok(change) => Handled::Later(Later::Write { save: true, name: request.name.clone(), change }),
+            Err(e) => failed(e),
         }
     }
 
@@ -195,10 +223,45 @@ impl Executor {
         srv::ListMotionsResponse { success: true, message: format!("{} motions", motions.len()), motions }
     }
 
-    fn delete_motion(&mut self, request: srv::DeleteMotionRequest) -> srv::DeleteMotionResponse {
-        match self.runtime.delete_motion(&request.name) {
-            Ok(message) => srv::DeleteMotionResponse { success: true, message },
-            Err(e) => srv::DeleteMotionResponse { success: false, message: e },
+    /// `delete_motion`: prepared now, written by a job.
+    fn delete_motion(&mut self, request: srv::DeleteMotionRequest) -> Handled<srv::DeleteMotionResponse> {
+        let failed = |message: String| Handled::Answer(srv::DeleteMotionResponse { success: false, message });
+        if let Some(busy) = self.jobs_pending.library_busy() {
+            return failed(format!("delete_motion({:?}): {busy}", request.name));
+        }
+        match self.runtime.prepare_delete(&request.name) {
+            Ok(change) => Handled::Later(Later::Write { save: false, name: request.name.clone(), change }),
+            Err(e) => failed(e),
+        }
+    }
+
+    /// A finished job: take its result into the runtime and build the answer.
+    fn finish(&mut self, finished: Finished) -> FinishedAnswer {
+        match finished {
+            Finished::Fit { request_id, result } => {
+                self.jobs_pending.fit = false;
+                if let Ok(patch) = &result {
+                    self.runtime.set_target(patch.clone());
+                }
+                FinishedAnswer::SelectTarget(request_id, select_target_response(result))
+            }
+            Finished::Write { request_id, save, name, change, result } => {
+                self.jobs_pending.write = false;
+                let result = result.map(|()| self.runtime.commit(change));
+                if save {
+                    let response = match result {
+                        Ok(message) => srv::SaveMotionResponse { success: true, message },
+                        Err(e) => srv::SaveMotionResponse { success: false, message: format!("save_motion({name:?}): {e}") },
+                    };
+                    FinishedAnswer::SaveMotion(request_id, response)
+                } else {
+                    let response = match result {
+                        Ok(message) => srv::DeleteMotionResponse { success: true, message },
+                        Err(e) => srv::DeleteMotionResponse { success: false, message: format!("delete_motion({name:?}): {e}") },
+                    };
+                    FinishedAnswer::DeleteMotion(request_id, response)
+                }
+            }
         }
     }
 
@@ -254,6 +317,75 @@ impl Executor {
     }
 }
 
+/// A service handler's decision: answer now, or start a job that answers when it finishes.
+enum Handled<R> {
+    Answer(R),
+    Later(Later),
+}
+
+/// A job as the handler decided it (the loop adds the request id).
+enum Later {
+    Fit(FitJob, Arc<PointCloud2>),
+    Write { save: bool, name: String, change: LibraryChange },
+}
+
+/// Which kinds of job are running: one fit and one library write at a time.
+#[derive(Debug, Default)]
+struct JobsPending {
+    fit: bool,
+    write: bool,
+}
+
+impl JobsPending {
+    /// Why a library change cannot start now: one write at a time, and a save must not take the
+    /// target while a fit is about to replace it.
+    fn library_busy(&self) -> Option<&'static str> {
+        if self.write {
+            Some("a save or delete is in progress; call again when it is answered")
+        } else if self.fit {
+            Some("a select_target fit is in progress; call again when it is answered")
+        } else {
+            None
+        }
+    }
+}
+
+/// The answer to a request whose job has finished.
+enum FinishedAnswer {
+    SelectTarget(RmwRequestId, srv::SelectTargetResponse),
+    SaveMotion(RmwRequestId, srv::SaveMotionResponse),
+    DeleteMotion(RmwRequestId, srv::DeleteMotionResponse),
+}
+
+fn select_target_response(selected: Result<Patch, String>) -> srv::SelectTargetResponse {
+    match selected {
+        Ok(patch) => srv::SelectTargetResponse {
+            success: true,
+            message: format!("target: {:?}/{:?} at {:?} in base_link", patch.surface, patch.boundary, patch.center.as_slice()),
+            patch: patch_msg::msg_from_patch(0, &patch, Time::default(), Time::default()),
+        },
+        Err(e) => srv::SelectTargetResponse { success: false, message: format!("select_target: {e}"), ..Default::default() },
+    }
+}
+
+/// Queue a handler's job; if the worker is gone, answer the request with the failure at once.
+fn start(executor: &mut Executor, jobs: &Jobs, request_id: RmwRequestId, later: Later, log: &mut RateLimitedLog) {
+    let job = match later {
+        Later::Fit(job, cloud) => {
+            executor.jobs_pending.fit = true;
+            Job::Fit { request_id, job, cloud }
+        }
+        Later::Write { save, name, change } => {
+            executor.jobs_pending.write = true;
+            Job::Write { request_id, save, name, change }
+        }
+    };
+    if let Err(e) = jobs.submit(job) {
+        executor.jobs_pending = JobsPending::default();
+        log.warn("jobs", format_args!("step_executor: {e}"));
+    }
+}
+
 fn failure_bool(message: String) -> SetBoolResponse {
     SetBoolResponse { success: false, message }
 }
@@ -281,45 +413,102 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let shutdown = Shutdown::install()?;
 
     let mut ros = RosNode::new("step_executor", network)?;
-    let patches_sub = ros.subscription::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
-    let cloud_sub = ros.subscription::<PointCloud2>(CLOUD_TOPIC, node::reliable_qos())?;
+    let mut patches_sub = ros.subscription::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
+    let mut cloud_sub = ros.subscription::<PointCloud2>(CLOUD_TOPIC, node::reliable_qos())?;
     // Joint states come from the servo bus thread; nothing is published without a bus.
     let joint_states_pub = ros.publisher::<JointState>(JOINT_STATES_TOPIC, node::reliable_qos())?;
     let status_pub = ros.publisher::<ExecutorStatus>(STATUS_TOPIC, node::reliable_qos())?;
-    let set_torque_srv = ros.server::<SetBool>(SET_TORQUE)?;
-    let record_keyframe_srv = ros.server::<srv::RecordKeyframe>(RECORD_KEYFRAME)?;
-    let select_target_srv = ros.server::<srv::SelectTarget>(SELECT_TARGET)?;
-    let save_motion_srv = ros.server::<srv::SaveMotion>(SAVE_MOTION)?;
-    let list_motions_srv = ros.server::<srv::ListMotions>(LIST_MOTIONS)?;
-    let delete_motion_srv = ros.server::<srv::DeleteMotion>(DELETE_MOTION)?;
-    let play_motion_srv = ros.server::<srv::PlayMotion>(PLAY_MOTION)?;
-    let stop_srv = ros.server::<Trigger>(STOP)?;
-    let arm_srv = ros.server::<SetBool>(ARM)?;
-    let reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
+    let mut set_torque_srv = ros.server::<SetBool>(SET_TORQUE)?;
+    let mut record_keyframe_srv = ros.server::<srv::RecordKeyframe>(RECORD_KEYFRAME)?;
+    let mut select_target_srv = ros.server::<srv::SelectTarget>(SELECT_TARGET)?;
+    let mut save_motion_srv = ros.server::<srv::SaveMotion>(SAVE_MOTION)?;
+    let mut list_motions_srv = ros.server::<srv::ListMotions>(LIST_MOTIONS)?;
+    let mut delete_motion_srv = ros.server::<srv::DeleteMotion>(DELETE_MOTION)?;
+    let mut play_motion_srv = ros.server::<srv::PlayMotion>(PLAY_MOTION)?;
+    let mut stop_srv = ros.server::<Trigger>(STOP)?;
+    let mut arm_srv = ros.server::<SetBool>(ARM)?;
+    let mut reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
+
+    // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
+    // an event, or a periodic output is due.
+    let mut wakeup = Wakeup::new()?;
+    wakeup.watch(&mut patches_sub)?;
+    wakeup.watch(&mut cloud_sub)?;
+    wakeup.watch(&mut stop_srv)?;
+    wakeup.watch(&mut reset_estop_srv)?;
+    wakeup.watch(&mut arm_srv)?;
+    wakeup.watch(&mut set_torque_srv)?;
+    wakeup.watch(&mut record_keyframe_srv)?;
+    wakeup.watch(&mut select_target_srv)?;
+    wakeup.watch(&mut save_motion_srv)?;
+    wakeup.watch(&mut list_motions_srv)?;
+    wakeup.watch(&mut delete_motion_srv)?;
+    wakeup.watch(&mut play_motion_srv)?;
+    let job_waker = wakeup.waker();
+    let jobs = Jobs::spawn(move || {
+        let _ = job_waker.wake();
+    })
+    .context("cannot start the job worker")?;
 
     let mut log = RateLimitedLog::default();
     let mut executor = Executor::new(runtime);
+    let bus_waker = wakeup.waker();
+    executor.runtime.set_bus_notify(Box::new(move || {
+        let _ = bus_waker.wake();
+    }));
+    let has_bus = executor.runtime.has_bus();
     let joint_names = executor.runtime.joint_names().to_vec();
     let mut next_status = Instant::now();
     let mut next_joint_state = Instant::now();
     tracing::info!("step_executor running");
 
     while !shutdown.requested() {
-        node::drain(&patches_sub, PATCHES_TOPIC, 8, &mut log, |map, _| executor.on_patches(map));
-        node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(cloud));
-        // E-stop first: it must not wait behind other requests; then the resets of this pass
+        let full = |n: usize| n >= REQUESTS_PER_PASS;
+        // E-stop first: it never waits behind other requests; then the resets of this pass
         // (refused when a stop came in the same pass, see `Executor::reset_estop`).
         executor.begin_pass();
-        node::serve(&stop_srv, STOP, &mut log, |_| executor.stop());
-        node::serve(&reset_estop_srv, RESET_ESTOP, &mut log, |_| executor.reset_estop());
-        node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r));
-        node::serve(&set_torque_srv, SET_TORQUE, &mut log, |r| executor.set_torque(r));
-        node::serve(&record_keyframe_srv, RECORD_KEYFRAME, &mut log, |r| executor.record_keyframe(r));
-        node::serve(&select_target_srv, SELECT_TARGET, &mut log, |r| executor.select_target(r));
-        node::serve(&save_motion_srv, SAVE_MOTION, &mut log, |r| executor.save_motion(r));
-        node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r));
-        node::serve(&delete_motion_srv, DELETE_MOTION, &mut log, |r| executor.delete_motion(r));
-        node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r));
+        let mut more = full(node::serve(&stop_srv, STOP, &mut log, |_| executor.stop()));
+        more |= full(node::serve(&reset_estop_srv, RESET_ESTOP, &mut log, |_| executor.reset_estop()));
+        more |= full(node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r)));
+        more |= full(node::serve(&set_torque_srv, SET_TORQUE, &mut log, |r| executor.set_torque(r)));
+        more |= full(node::serve(&record_keyframe_srv, RECORD_KEYFRAME, &mut log, |r| executor.record_keyframe(r)));
+        more |= full(node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r)));
+        more |= full(node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r)));
+        // Services whose work may take long: answered now, or by a job when it finishes.
+        let requests = node::take_requests(&select_target_srv, SELECT_TARGET, REQUESTS_PER_PASS, &mut log);
+        more |= full(requests.len());
+        for (request_id, request) in requests {
+            match executor.select_target(request) {
+                Handled::Answer(response) => node::respond(&select_target_srv, SELECT_TARGET, request_id, response, &mut log),
+                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
+            }
+        }
+        let requests = node::take_requests(&save_motion_srv, SAVE_MOTION, REQUESTS_PER_PASS, &mut log);
+        more |= full(requests.len());
+        for (request_id, request) in requests {
+            match executor.save_motion(request) {
+                Handled::Answer(response) => node::respond(&save_motion_srv, SAVE_MOTION, request_id, response, &mut log),
+                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
+            }
+        }
+        let requests = node::take_requests(&delete_motion_srv, DELETE_MOTION, REQUESTS_PER_PASS, &mut log);
+        more |= full(requests.len());
+        for (request_id, request) in requests {
+            match executor.delete_motion(request) {
+                Handled::Answer(response) => node::respond(&delete_motion_srv, DELETE_MOTION, request_id, response, &mut log),
+                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
+            }
+        }
+        let finished: Vec<Finished> = jobs.finished().collect();
+        for done in finished {
+            match executor.finish(done) {
+                FinishedAnswer::SelectTarget(id, response) => node::respond(&select_target_srv, SELECT_TARGET, id, response, &mut log),
+                FinishedAnswer::SaveMotion(id, response) => node::respond(&save_motion_srv, SAVE_MOTION, id, response, &mut log),
+                FinishedAnswer::DeleteMotion(id, response) => node::respond(&delete_motion_srv, DELETE_MOTION, id, response, &mut log),
+            }
+        }
+        more |= node::drain(&patches_sub, PATCHES_TOPIC, 8, &mut log, |map, _| executor.on_patches(map)) >= 8;
+        more |= node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(Arc::new(cloud))) >= 4;
         // Every control cycle while playing, at joint_state_rate_hz otherwise.
         for telemetry in executor.runtime.poll() {
             let playing = telemetry.goal.is_some();
@@ -337,7 +526,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             node::publish(&status_pub, STATUS_TOPIC, executor.status(), &mut log);
             next_status = now + status_period;
         }
-        std::thread::sleep(Duration::from_millis(POLL_PERIOD_MS));
+        let mut due = next_status.min(now + MAX_WAIT);
+        if has_bus {
+            due = due.min(next_joint_state);
+        }
+        let timeout = if more { Duration::ZERO } else { due.saturating_duration_since(Instant::now()) };
+        wakeup.wait(timeout);
     }
     tracing::info!(maps_received = executor.maps_received, "step_executor: shutting down");
     Ok(())
@@ -346,6 +540,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    impl<R> Handled<R> {
+        fn answer(self) -> R {
+            match self {
+                Handled::Answer(r) => r,
+                Handled::Later(_) => panic!("expected an answer, got a job"),
+            }
+        }
+    }
 
     /// An executor on the real config and URDF with no servo bus.
     fn without_bus() -> (Executor, tempfile::TempDir) {
@@ -390,7 +593,7 @@ mod tests {
         assert!(!response.success && response.message.contains("not available"), "{}", response.message);
         let response = executor.list_motions(srv::ListMotionsRequest::default());
         assert!(response.success && response.motions.is_empty());
-        let response = executor.select_target(srv::SelectTargetRequest::default());
+        let response = executor.select_target(srv::SelectTargetRequest::default()).answer();
         assert!(!response.success && response.message.contains("no patch map"));
     }
 
@@ -411,7 +614,7 @@ mod tests {
         let map =
             PatchArray { patches: vec![patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default()), bad], ..Default::default() };
         executor.on_patches(map);
-        let response = executor.select_target(srv::SelectTargetRequest::default());
+        let response = executor.select_target(srv::SelectTargetRequest::default()).answer();
         assert!(response.success, "{}", response.message);
         assert_eq!(response.patch.surface, patchwalk_msgs::msg::Patch::PLANE);
     }

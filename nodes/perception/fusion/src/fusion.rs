@@ -58,7 +58,7 @@ pub enum FusionError {
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TsdfConfig {
-    /// Voxel edge (m). J 5 leaves it to the KinectFusion implementation; 5 mm is the target.
+    /// Voxel edge (m). J 5 leaves it to the KinectFusion implementation; 5 mm is the design target.
     pub voxel_size_m: f32,
     /// Cube edge Vs (m) (J 4, "its size Vs (a predefined constant)"); rounded up to whole blocks.
     pub size_m: f32,

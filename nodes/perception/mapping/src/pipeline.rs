@@ -33,7 +33,7 @@ use patchwalk_fusion::raycast::BirdsEyeView;
 use patchwalk_fusion::tracking::{FrameReport, Tracker, TrackerConfig, TrackingError, TrackingStatus};
 use patchwalk_spl::sensor::ErrorModel;
 
-/// Name of the gravity-aligned output frame (names.md).
+/// Name of the gravity-aligned output frame (REP-105 `map`).
 pub const MAP_FRAME: &str = "map";
 
 /// Pipeline-level parameters (`pipeline:` in config/patch_mapper.yaml). Gravity comes from the

@@ -11,7 +11,7 @@ use nalgebra::{DMatrix, DVector, Isometry3, Matrix3, Translation3, UnitQuaternio
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-/// Surface type (numbering fixed across the project, see names.md).
+/// Surface type (numbering fixed across the project: the surface constants of `msgs/msg/Patch.msg`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SurfaceType {

@@ -789,15 +789,18 @@ impl<const M: usize> Cholesky<M> {
                 *v = a[(r, c)];
             }
         }
+        // Column j is updated from the columns k < j of the same array: indices, not iterators.
+        #[allow(clippy::needless_range_loop)]
         for j in 0..M {
             for k in 0..j {
                 let factor = -l[k][j];
                 for i in j..M {
-                    l[j][i] = factor * l[k][i] + l[j][i];
+                    // IEEE addition is commutative: the same value as nalgebra's `factor * l_k + l_j`.
+                    l[j][i] += factor * l[k][i];
                 }
             }
             let diag = l[j][j];
-            if diag == 0.0 || !(diag >= 0.0) {
+            if diag.is_nan() || diag <= 0.0 {
                 return None;
             }
             let denom = diag.sqrt();
@@ -822,7 +825,7 @@ impl<const M: usize> Cholesky<M> {
             let coeff = x[i] / l[i][i];
             x[i] = coeff;
             for r in i + 1..M {
-                x[r] = -coeff * l[i][r] + x[r];
+                x[r] += -coeff * l[i][r];
             }
         }
         for i in (0..M).rev() {

@@ -19,11 +19,28 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum SceneError {
     #[error("invalid rock {name:?}: {reason}")]
-    InvalidRock { name: String, reason: String },
+    InvalidRock { name: String, reason: ShapeError },
     #[error("invalid scene: {0}")]
     Invalid(String),
     #[error("no rock with index {index} (the scene has {count})")]
     NoSuchRock { index: usize, count: usize },
+}
+
+/// Why a rock shape is not a solid standing on the table ([`RockShape::validate`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ShapeError {
+    /// A size that must be positive and finite.
+    #[error("{name} = {value} must be positive and finite")]
+    NotPositive { name: &'static str, value: f64 },
+    /// An ellipsoid cap whose centre is too low to reach above the table.
+    #[error("centre_z_m = {centre_z_m} puts the ellipsoid under the table")]
+    UnderTable { centre_z_m: f64 },
+    /// A flat boulder whose sloped top dips below the table.
+    #[error("top slope ({sx}, {sy}) takes the top below the table")]
+    SlopeBelowTable { sx: f64, sy: f64 },
+    /// A lying cylinder sunk by less than nothing or by more than its diameter.
+    #[error("sunk {sunk_m} m must be in [0, 2 r) for r = {radius_m} m")]
+    SunkOutOfRange { sunk_m: f64, radius_m: f64 },
 }
 
 /// Smallest ray parameter accepted as a hit (metres along a unit-z camera ray).
@@ -89,7 +106,7 @@ pub struct Foothold {
     pub direction_x_in_world: Vector3<f64>,
     /// Principal curvatures (m⁻¹) along `direction_x` and `normal × direction_x`.
     pub curvatures_per_m: [f64; 2],
-    /// Surface type name as in names.md (`elliptic_paraboloid`, `circular_paraboloid`, `plane`,
+    /// Surface type name as `patchwalk_spl::patch::SurfaceType::name` spells it (`elliptic_paraboloid`, `circular_paraboloid`, `plane`,
     /// `cylindric_paraboloid`).
     pub surface_type: &'static str,
     /// Radius (m) of the top region around `top` that stays within the shape's smooth top.
@@ -114,12 +131,12 @@ pub struct Rock {
 
 impl RockShape {
     /// Checks positive sizes and that the solid stands on the table.
-    pub fn validate(&self) -> Result<(), String> {
-        let positive = |name: &str, value: f64| {
+    pub fn validate(&self) -> Result<(), ShapeError> {
+        let positive = |name: &'static str, value: f64| {
             if value.is_finite() && value > 0.0 {
                 Ok(())
             } else {
-                Err(format!("{name} = {value} must be positive and finite"))
+                Err(ShapeError::NotPositive { name, value })
             }
         };
         match *self {
@@ -128,7 +145,7 @@ impl RockShape {
                 positive("b", b)?;
                 positive("c", c)?;
                 if !(centre_z_m.is_finite() && centre_z_m > -c) {
-                    return Err(format!("centre_z_m = {centre_z_m} puts the ellipsoid under the table"));
+                    return Err(ShapeError::UnderTable { centre_z_m });
                 }
             }
             RockShape::ParaboloidBump { height_m, curvatures_per_m: [kx, ky] } => {
@@ -140,14 +157,14 @@ impl RockShape {
                 positive("radius", radius_m)?;
                 positive("height", height_m)?;
                 if !(sx.is_finite() && sy.is_finite()) || (sx.hypot(sy) * radius_m) >= height_m {
-                    return Err(format!("top slope ({sx}, {sy}) takes the top below the table"));
+                    return Err(ShapeError::SlopeBelowTable { sx, sy });
                 }
             }
             RockShape::LyingCylinder { radius_m, length_m, sunk_m } => {
                 positive("radius", radius_m)?;
                 positive("length", length_m)?;
                 if !(sunk_m.is_finite() && (0.0..2.0 * radius_m).contains(&sunk_m)) {
-                    return Err(format!("sunk {sunk_m} m must be in [0, 2 r) for r = {radius_m} m"));
+                    return Err(ShapeError::SunkOutOfRange { sunk_m, radius_m });
                 }
             }
         }

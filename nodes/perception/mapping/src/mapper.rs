@@ -20,7 +20,7 @@ use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, Neighbour
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
 use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
-use crate::seeds::{select_seeds, Seed, SeedConfig};
+use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
 use patchwalk_spl::fit::FitConfig;
@@ -316,8 +316,7 @@ impl Mapper {
         // Stage iii.
         let seeds = select_seeds(
             &saliency,
-            &preprocessed.auxiliary,
-            &preprocessed.auxiliary_intrinsics,
+            AuxiliaryImage { depth: &preprocessed.auxiliary, intrinsics: &preprocessed.auxiliary_intrinsics },
             self.map.grid(),
             &input.volume_from_camera,
             &self.map.cell_counts(),

@@ -200,7 +200,7 @@ impl Pipeline {
         mapper: MapperConfig,
         intrinsics: Intrinsics,
     ) -> Result<Self, PipelineError> {
-        if !(0.0..=1.0).contains(&config.min_valid_fraction) || !(config.imu_buffer_s.is_finite() && config.imu_buffer_s > 0.0) {
+        if !((0.0..=1.0).contains(&config.min_valid_fraction) && config.imu_buffer_s.is_finite() && config.imu_buffer_s > 0.0) {
             return Err(PipelineError::Config("min_valid_fraction must be in [0, 1] and imu_buffer_s positive".into()));
         }
         let tracker = Tracker::new(tracker, intrinsics)?;

@@ -160,7 +160,8 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
                 *q = if z > 0.0 { 0.25 * (inv_two_sigma_sq_1m / (z2 * z2)) } else { 0.0 };
             }
             // Does a 0 (invalid) tap get weight exactly 0 from every valid centre of the row?
-            let zero_tap_ignored = centre.iter().zip(quarter_inv.iter()).all(|(&z, &q)| !(z > 0.0) || biweight(0.0 - z, q) == 0.0);
+            let zero_tap_ignored =
+                centre.iter().zip(quarter_inv.iter()).all(|(&z, &q)| z.is_nan() || z <= 0.0 || biweight(0.0 - z, q) == 0.0);
             sum_w.fill(0.0);
             sum_wz.fill(0.0);
             // Window rows inside the image (rows outside it contribute nothing).

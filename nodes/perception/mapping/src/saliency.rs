@@ -178,7 +178,7 @@ impl IntegralCloud {
         let mean = |s: [f64; 4]| (s[3] >= min_count).then(|| Vector3::new(s[0], s[1], s[2]) / s[3]);
         let normal = (mean(right)? - mean(left)?).cross(&(mean(below)? - mean(above)?));
         let norm = normal.norm();
-        if !(norm > 1e-12) {
+        if norm.is_nan() || norm <= 1e-12 {
             return None;
         }
         let normal = normal / norm;

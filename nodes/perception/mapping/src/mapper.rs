@@ -142,6 +142,25 @@ impl Verdict {
             Verdict::Skipped => "skipped",
         }
     }
+
+    /// The verdict of a validated patch: the first failed test in J's order (steps 14–16), or
+    /// valid (with the placeholder id `u64::MAX` until the patch map assigns one).
+    pub fn from_validation(validation: &Validation) -> Self {
+        if !validation.residual.passed {
+            Verdict::Residual
+        } else if !validation.coverage.passed {
+            Verdict::Coverage
+        } else if !validation.curvature_ok() {
+            Verdict::Curvature
+        } else {
+            Verdict::Valid { id: u64::MAX }
+        }
+    }
+
+    /// Whether the patch passed validation.
+    pub fn is_valid(&self) -> bool {
+        matches!(self, Verdict::Valid { .. })
+    }
 }
 
 /// Result for one seed.
@@ -507,15 +526,7 @@ fn process_seed(
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
             let validation = validate_patch(&patch, &validation_points, &config.validate);
-            outcome.verdict = if !validation.residual.passed {
-                Verdict::Residual
-            } else if !validation.coverage.passed {
-                Verdict::Coverage
-            } else if !validation.curvature_ok() {
-                Verdict::Curvature
-            } else {
-                Verdict::Valid { id: u64::MAX }
-            };
+            outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);
             outcome.validation = Some(validation);
             cpu_ms[2] += t2.elapsed().as_secs_f64() * 1e3;

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 /// JSON form of a patch (the patch fields of every CLI's patch record).
 #[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct PatchJson {
+pub(super) struct PatchJson {
     /// Surface type name.
     pub surface: SurfaceType,
     /// Boundary type name.

@@ -15,7 +15,7 @@ mod json;
 mod shape;
 mod types;
 
-pub use json::PatchJson;
+use json::PatchJson;
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 pub use shape::{PatchQuery, PatchShape};

@@ -12,8 +12,8 @@
 //! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
 //! camera and the projector images so that per pixel only the rocks that can be hit are tested.
 //!
-//! [`config`] holds the camera's parameters, [`noise`] the random draws of the error model and
-//! [`edges`] the depth discontinuities where data go missing.
+//! [`config`] holds the camera's parameters, `noise` the random draws of the error model and
+//! `edges` the depth discontinuities where data go missing.
 
 pub mod config;
 mod edges;

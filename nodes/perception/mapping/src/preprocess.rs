@@ -110,7 +110,7 @@ pub fn remove_background(depth: &DepthImage, z_min_m: f64, z_max_m: f64) -> Dept
     DepthImage { width: depth.width, height: depth.height, depth_m }
 }
 
-/// Step 4: discontinuity-preserving bilateral filter (J [72]). Each valid pixel becomes the
+/// Step 4: discontinuity-preserving bilateral filter (J \[72\]). Each valid pixel becomes the
 /// weighted mean of the valid pixels in its window, with weight
 /// `exp(−Δp²/2σ_s²) · k(Δz²/2σ_r(z)²)`, `σ_r(z) = σ_1m·z²`; invalid pixels stay NaN. The range
 /// kernel is the biweight `k(t) = (1 − t/4)₊²` (≈ e^{−t/2}·… near 0, exactly 0 beyond

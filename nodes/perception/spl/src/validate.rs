@@ -19,9 +19,9 @@ pub struct ValidateConfig {
     pub zeta_outside: f64,
     /// Bad-cell limit T_p as a fraction of N_p (J 3.3.2: 0.3).
     pub bad_cell_fraction: f64,
-    /// Minimum curvature κ_min,t (m⁻¹) (J 3.3.3 / [10]: −13.6).
+    /// Minimum curvature κ_min,t (m⁻¹) (J 3.3.3 / \[10\]: −13.6).
     pub curvature_min: f64,
-    /// Maximum curvature κ_max,t (m⁻¹) (J 3.3.3 / [10]: 19.7).
+    /// Maximum curvature κ_max,t (m⁻¹) (J 3.3.3 / \[10\]: 19.7).
     pub curvature_max: f64,
     /// Sub-samples per cell side for the cell ∩ boundary area A_i (approximation of the exact
     /// intersection area; 4 → 16 samples per cell).

@@ -148,7 +148,7 @@ pub(super) fn fit_surface(
     }
 }
 
-/// Initial paraboloid for step 2 by linear least squares (cf. IROS [5]): in the step-1 plane frame fit
+/// Initial paraboloid for step 2 by linear least squares (cf. IROS \[5\]): in the step-1 plane frame fit
 /// the graph `z = ½ uᵀ A u + gᵀ u + h`; the principal axes of `A` give the local x/y axes and
 /// curvatures, and the stationary point `−A⁻¹ g` the apex (kept at the centroid along directions
 /// whose curvature does not determine it within the data extent). Falls back to the plane.

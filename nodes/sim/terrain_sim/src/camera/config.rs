@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 #[serde(deny_unknown_fields, default)]
 pub struct NoiseConfig {
     pub enabled: bool,
-    /// Pointing error σp of the measurement rays (px); J 2.1: 0.35 px (Kinect, from [62]).
+    /// Pointing error σp of the measurement rays (px); J 2.1: 0.35 px (Kinect, from \[62\]).
     pub sigma_pointing_px: f64,
     /// Disparity matching error σm (px); J 2.1: 0.17 px.
     pub sigma_disparity_px: f64,

@@ -2,7 +2,7 @@
 //! (eq 35) with `σ_i² = ∇_q f Σ_i ∇_q fᵀ` (eq 34) and its gradient over the local increments with the
 //! `∂σ/∂p` term of eq 36, summed as `χ²`, `H = Σ ∇F ∇Fᵀ`, `b = Σ ∇F F` over the free parameters of a
 //! model. The points are packed in blocks of four (struct of arrays) and the per-point loop is
-//! fixed-size and allocation-free; [`point_terms`] is the reference form of one point the tests
+//! fixed-size and allocation-free; `point_terms` is the reference form of one point the tests
 //! compare it with bit for bit.
 
 use super::{Free, FreeMatrix, Local, Model, SurfaceState, MAX_FREE};
@@ -290,7 +290,7 @@ impl Frame {
     }
 }
 
-/// One point's values of [`point_terms`]: what the χ², the gradient of eq 40 and the weight
+/// One point's values of `point_terms`: what the χ², the gradient of eq 40 and the weight
 /// derivative of eq 41 (formed by the caller) need.
 struct Lane {
     /// `F = f / σ` (eq 35).
@@ -310,7 +310,7 @@ struct Lane {
     clamped: bool,
 }
 
-/// The per-point values of [`point_terms`] ([`Lane`]) for all `BLOCK` slots of a chunk (the padding
+/// The per-point values of `point_terms` ([`Lane`]) for all `BLOCK` slots of a chunk (the padding
 /// of the last chunk included; the caller ignores it), handed to `sink` with the slot index. The
 /// arithmetic is that of `point_terms` operation by operation (nalgebra's `M v` is
 /// `(m₀ v₀ + m₁ v₁) + m₂ v₂` per row, dot products likewise), so the results are bit-identical;

@@ -98,7 +98,7 @@ pub fn ros_domain_id() -> Result<u16, NodeError> {
     }
 }
 
-/// Sensor-data QoS (REP-2003 / rclcpp `SensorDataQoS`, depth 5 per names.md): best effort, volatile,
+/// Sensor-data QoS (REP-2003 / rclcpp `SensorDataQoS`, depth 5): best effort, volatile,
 /// keep last 5 — a late depth frame is worth less than the next one.
 pub fn sensor_data_qos() -> QosProfile {
     QosProfile::subscription_default().reliability_best_effort().durability(Durability::Volatile).history(History::KeepLast { depth: 5 })

@@ -171,7 +171,7 @@ fn check_size(width: usize, height: usize, len: usize) -> Result<(), CameraError
     if width == 0 || height == 0 {
         return Err(CameraError::Empty { width, height });
     }
-    let expected = width.checked_mul(height).unwrap_or(usize::MAX);
+    let expected = width.saturating_mul(height);
     if len != expected {
         return Err(CameraError::SizeMismatch { width, height, len, expected });
     }

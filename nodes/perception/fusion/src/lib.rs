@@ -11,4 +11,5 @@ pub mod dataset;
 pub mod fusion;
 pub mod raycast;
 pub mod tracking;
+pub mod trajectory;
 pub mod volume;

@@ -426,7 +426,7 @@ fn refine_crossing(
         at = trilinear(t)?;
     }
     let norm = at.gradient.norm();
-    if !(norm > 1e-6) {
+    if norm.is_nan() || norm <= 1e-6 {
         return None;
     }
     Some((t, at.gradient / norm))

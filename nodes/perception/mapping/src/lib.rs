@@ -5,7 +5,8 @@
 //! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1) → [`seeds`] (J 3.2.1
 //! steps 1–10) → [`neighbourhood`] (r-balls, nf subsets) → fit and validate (the Surface Patch
 //! Library) → [`patch_map`] (J 4.6) and [`patch_tracking`] (J 5.2). [`mapper`] runs one frame,
-//! [`pipeline`] the node's per-frame sequence with fusion and tracking; [`render`] draws pictures.
+//! [`pipeline`] the node's per-frame sequence with fusion and tracking; [`render`] draws pictures;
+//! [`record`] is the one JSON record of a patch and its verdict that the CLIs write.
 //!
 //! ROS-free; the `patch_mapper` node wraps it.
 
@@ -16,6 +17,7 @@ pub mod patch_map;
 pub mod patch_tracking;
 pub mod pipeline;
 pub mod preprocess;
+pub mod record;
 pub mod render;
 pub mod saliency;
 pub mod seeds;

@@ -20,7 +20,7 @@ use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, Neighbour
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
 use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
-use crate::seeds::{select_seeds, Seed, SeedConfig};
+use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
 use patchwalk_spl::fit::FitConfig;
@@ -141,6 +141,25 @@ impl Verdict {
             Verdict::FitFailed(_) => "fit_failed",
             Verdict::Skipped => "skipped",
         }
+    }
+
+    /// The verdict of a validated patch: the first failed test in J's order (steps 14–16), or
+    /// valid (with the placeholder id `u64::MAX` until the patch map assigns one).
+    pub fn from_validation(validation: &Validation) -> Self {
+        if !validation.residual.passed {
+            Verdict::Residual
+        } else if !validation.coverage.passed {
+            Verdict::Coverage
+        } else if !validation.curvature_ok() {
+            Verdict::Curvature
+        } else {
+            Verdict::Valid { id: u64::MAX }
+        }
+    }
+
+    /// Whether the patch passed validation.
+    pub fn is_valid(&self) -> bool {
+        matches!(self, Verdict::Valid { .. })
     }
 }
 
@@ -316,8 +335,7 @@ impl Mapper {
         // Stage iii.
         let seeds = select_seeds(
             &saliency,
-            &preprocessed.auxiliary,
-            &preprocessed.auxiliary_intrinsics,
+            AuxiliaryImage { depth: &preprocessed.auxiliary, intrinsics: &preprocessed.auxiliary_intrinsics },
             self.map.grid(),
             &input.volume_from_camera,
             &self.map.cell_counts(),
@@ -508,15 +526,7 @@ fn process_seed(
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
             let validation = validate_patch(&patch, &validation_points, &config.validate);
-            outcome.verdict = if !validation.residual.passed {
-                Verdict::Residual
-            } else if !validation.coverage.passed {
-                Verdict::Coverage
-            } else if !validation.curvature_ok() {
-                Verdict::Curvature
-            } else {
-                Verdict::Valid { id: u64::MAX }
-            };
+            outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);
             outcome.validation = Some(validation);
             cpu_ms[2] += t2.elapsed().as_secs_f64() * 1e3;

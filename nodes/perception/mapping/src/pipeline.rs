@@ -33,7 +33,7 @@ use patchwalk_fusion::raycast::BirdsEyeView;
 use patchwalk_fusion::tracking::{FrameReport, Tracker, TrackerConfig, TrackingError, TrackingStatus};
 use patchwalk_spl::sensor::ErrorModel;
 
-/// Name of the gravity-aligned output frame (names.md).
+/// Name of the gravity-aligned output frame (REP-105 `map`).
 pub const MAP_FRAME: &str = "map";
 
 /// Pipeline-level parameters (`pipeline:` in config/patch_mapper.yaml). Gravity comes from the
@@ -200,7 +200,7 @@ impl Pipeline {
         mapper: MapperConfig,
         intrinsics: Intrinsics,
     ) -> Result<Self, PipelineError> {
-        if !(0.0..=1.0).contains(&config.min_valid_fraction) || !(config.imu_buffer_s.is_finite() && config.imu_buffer_s > 0.0) {
+        if !((0.0..=1.0).contains(&config.min_valid_fraction) && config.imu_buffer_s.is_finite() && config.imu_buffer_s > 0.0) {
             return Err(PipelineError::Config("min_valid_fraction must be in [0, 1] and imu_buffer_s positive".into()));
         }
         let tracker = Tracker::new(tracker, intrinsics)?;

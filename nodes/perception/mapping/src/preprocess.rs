@@ -110,7 +110,7 @@ pub fn remove_background(depth: &DepthImage, z_min_m: f64, z_max_m: f64) -> Dept
     DepthImage { width: depth.width, height: depth.height, depth_m }
 }
 
-/// Step 4: discontinuity-preserving bilateral filter (J [72]). Each valid pixel becomes the
+/// Step 4: discontinuity-preserving bilateral filter (J \[72\]). Each valid pixel becomes the
 /// weighted mean of the valid pixels in its window, with weight
 /// `exp(−Δp²/2σ_s²) · k(Δz²/2σ_r(z)²)`, `σ_r(z) = σ_1m·z²`; invalid pixels stay NaN. The range
 /// kernel is the biweight `k(t) = (1 − t/4)₊²` (≈ e^{−t/2}·… near 0, exactly 0 beyond
@@ -160,7 +160,8 @@ fn bilateral_filter_in_range(depth: &DepthImage, (lo, hi): (f32, f32), radius: u
                 *q = if z > 0.0 { 0.25 * (inv_two_sigma_sq_1m / (z2 * z2)) } else { 0.0 };
             }
             // Does a 0 (invalid) tap get weight exactly 0 from every valid centre of the row?
-            let zero_tap_ignored = centre.iter().zip(quarter_inv.iter()).all(|(&z, &q)| !(z > 0.0) || biweight(0.0 - z, q) == 0.0);
+            let zero_tap_ignored =
+                centre.iter().zip(quarter_inv.iter()).all(|(&z, &q)| z.is_nan() || z <= 0.0 || biweight(0.0 - z, q) == 0.0);
             sum_w.fill(0.0);
             sum_wz.fill(0.0);
             // Window rows inside the image (rows outside it contribute nothing).

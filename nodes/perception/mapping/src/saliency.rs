@@ -2,7 +2,7 @@
 //!
 //! - 6.1 DtFP: fixation point `f = l_d·ĝ + l_f·(x̂ × ĝ)/|x̂ × ĝ|` in the camera frame,
 //! - 6.2 H ← points of D within the R-ball around f,
-//! - 6.3 normals N (window 2rf/Z) and N_s (half window) by integral images (J [76], the
+//! - 6.3 normals N (window 2rf/Z) and N_s (half window) by integral images (J \[76\], the
 //!   "average 3D gradient" variant: smoothed horizontal and vertical 3D gradients from box means),
 //! - 6.4 DoN: drop i when `N(i)ᵀN_s(i) < cos φ_d`,
 //! - 6.5 DoNG: drop i when `−N(i)ᵀĝ < cos φ_g`.
@@ -23,7 +23,7 @@ pub struct SaliencyConfig {
     /// in J; 1.2 m is a chest-height hand-held rig like J's human recordings.
     pub fixation_down_m: f64,
     /// Step 6.1: l_f, horizontal distance of the fixation point ahead of the camera (m): "about two
-    /// steps ahead" (J 4.2.1, [75]); 2 × 0.75 m human steps.
+    /// steps ahead" (J 4.2.1, \[75\]); 2 × 0.75 m human steps.
     pub fixation_forward_m: f64,
     /// Step 6.2: R, radius of the region of interest around f (m). J 6.1.2: "no patches fitted
     /// further than 0.7 m from the fixation point". Non-finite (`.inf` in YAML) disables DtFP.
@@ -168,7 +168,7 @@ impl IntegralCloud {
         [sum(b3, b2, t3, t2), sum(b1, b0, t1, t0), sum(b3, b0, l3, l0), sum(m3, m0, t3, t0)]
     }
 
-    /// Normal at pixel `(u, v)` from half window `half` (J [76], average 3D gradient): the
+    /// Normal at pixel `(u, v)` from half window `half` (J \[76\], average 3D gradient): the
     /// horizontal gradient is mean(right box) − mean(left box), the vertical one mean(lower box) −
     /// mean(upper box), each box `half × (2·half + 1)` pixels; `n = ∂h × ∂v` turned towards the camera.
     pub fn normal(&self, u: usize, v: usize, half: usize, point: &Vector3<f64>, min_support: f64) -> Option<Vector3<f64>> {
@@ -178,7 +178,7 @@ impl IntegralCloud {
         let mean = |s: [f64; 4]| (s[3] >= min_count).then(|| Vector3::new(s[0], s[1], s[2]) / s[3]);
         let normal = (mean(right)? - mean(left)?).cross(&(mean(below)? - mean(above)?));
         let norm = normal.norm();
-        if !(norm > 1e-12) {
+        if norm.is_nan() || norm <= 1e-12 {
             return None;
         }
         let normal = normal / norm;

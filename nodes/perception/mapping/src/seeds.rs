@@ -41,19 +41,26 @@ pub struct Seed {
     pub cell: Cell,
 }
 
+/// The auxiliary depth image D the seeds are drawn from, with its intrinsics.
+#[derive(Debug, Clone, Copy)]
+pub struct AuxiliaryImage<'a> {
+    pub depth: &'a DepthImage,
+    pub intrinsics: &'a Intrinsics,
+}
+
 /// Steps 7–10. `occupied[grid.flat(cell)]` is the number of patches the map already holds in each
 /// cell (empty slice = none). The frame counter `frame` is mixed into the RNG seed so consecutive
 /// frames draw different seeds while runs stay reproducible.
 pub fn select_seeds(
     saliency: &Saliency,
-    auxiliary: &DepthImage,
-    auxiliary_intrinsics: &Intrinsics,
+    auxiliary: AuxiliaryImage<'_>,
     grid: &VolumeGrid,
     volume_from_camera: &Isometry3<f64>,
     occupied: &[usize],
     config: &SeedConfig,
     frame: u64,
 ) -> Vec<Seed> {
+    let AuxiliaryImage { depth: auxiliary, intrinsics: auxiliary_intrinsics } = auxiliary;
     let n = grid.cells_per_side;
     // Step 8: bucket H by cell.
     let mut buckets: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new(); n * n];
@@ -119,7 +126,8 @@ mod tests {
     fn seeds_respect_caps_order_and_saliency() {
         let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let seeds = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &config, 0);
+        let seeds =
+            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &config, 0);
         assert!(seeds.len() >= 10, "{} seeds", seeds.len());
         // ng = 1: every cell at most once, every seed salient and inside its cell.
         let mut cells: Vec<_> = seeds.iter().map(|s| s.cell).collect();
@@ -142,8 +150,7 @@ mod tests {
         // ns caps the total and keeps the nearest cells.
         let capped = select_seeds(
             &saliency,
-            &depth,
-            &intrinsics,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
             &grid,
             &volume_from_camera,
             &[],
@@ -153,13 +160,22 @@ mod tests {
         assert_eq!(capped.len(), 3);
         assert_eq!(capped.iter().map(|s| s.cell).collect::<Vec<_>>(), seeds[..3].iter().map(|s| s.cell).collect::<Vec<_>>());
         // ng = 3 gives up to 3 per cell.
-        let three =
-            select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &SeedConfig { per_cell: 3, ..config.clone() }, 0);
+        let three = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &[],
+            &SeedConfig { per_cell: 3, ..config.clone() },
+            0,
+        );
         assert!(three.len() > 2 * seeds.len());
         // Deterministic for the same frame, different for another frame.
-        let again = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &config, 0);
+        let again =
+            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &config, 0);
         assert_eq!(again, seeds);
-        let other = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &config, 1);
+        let other =
+            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &config, 1);
         assert_ne!(other, seeds);
     }
 
@@ -167,11 +183,20 @@ mod tests {
     fn occupied_cells_take_no_new_seeds() {
         let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let all = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &[], &config, 0);
+        let all =
+            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &config, 0);
         let mut occupied = vec![0; 64];
         let full = all[0].cell;
         occupied[grid.flat(full)] = 1;
-        let rest = select_seeds(&saliency, &depth, &intrinsics, &grid, &volume_from_camera, &occupied, &config, 0);
+        let rest = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &occupied,
+            &config,
+            0,
+        );
         assert_eq!(rest.len(), all.len() - 1);
         assert!(rest.iter().all(|s| s.cell != full));
     }

@@ -19,9 +19,9 @@ pub struct ValidateConfig {
     pub zeta_outside: f64,
     /// Bad-cell limit T_p as a fraction of N_p (J 3.3.2: 0.3).
     pub bad_cell_fraction: f64,
-    /// Minimum curvature κ_min,t (m⁻¹) (J 3.3.3 / [10]: −13.6).
+    /// Minimum curvature κ_min,t (m⁻¹) (J 3.3.3 / \[10\]: −13.6).
     pub curvature_min: f64,
-    /// Maximum curvature κ_max,t (m⁻¹) (J 3.3.3 / [10]: 19.7).
+    /// Maximum curvature κ_max,t (m⁻¹) (J 3.3.3 / \[10\]: 19.7).
     pub curvature_max: f64,
     /// Sub-samples per cell side for the cell ∩ boundary area A_i (approximation of the exact
     /// intersection area; 4 → 16 samples per cell).
@@ -166,7 +166,8 @@ pub fn principal_curvature_range(patch: &Patch) -> (f64, f64) {
 /// `min_points_per_cell` of the `n` points spread over `area` (see [`ValidateConfig`]).
 pub fn coverage_cell_size(area: f64, n: usize, config: &ValidateConfig) -> f64 {
     let wc = config.cell_size;
-    if !(config.min_points_per_cell > 0.0) || n == 0 || !(area > 0.0) {
+    let per_cell = config.min_points_per_cell;
+    if per_cell.is_nan() || per_cell <= 0.0 || n == 0 || area.is_nan() || area <= 0.0 {
         return wc;
     }
     wc.max((area * config.min_points_per_cell / n as f64).sqrt())
@@ -186,7 +187,7 @@ fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<
     let wc = coverage_cell_size(area, local.len(), config);
     let n_p = area / (wc * wc);
     let allowed = config.bad_cell_fraction * n_p;
-    if local.is_empty() || !(n_p > 0.0) || !(wc > 0.0) {
+    if local.is_empty() || n_p.is_nan() || n_p <= 0.0 || wc.is_nan() || wc <= 0.0 {
         return (usize::MAX, allowed);
     }
     let h = patch.boundary_half_extents();

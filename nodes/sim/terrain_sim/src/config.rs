@@ -15,15 +15,15 @@ use crate::scene::SceneConfig;
 pub enum ConfigError {
     #[error("cannot read config {path}: {source}")]
     Read { path: PathBuf, source: std::io::Error },
-    #[error("invalid config {path}: {message}")]
-    Parse { path: PathBuf, message: String },
+    #[error("invalid config {path}: {source}")]
+    Parse { path: PathBuf, source: serde_yaml_ng::Error },
 }
 
 /// ROS 2 node wiring (used by the binary only).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NodeConfig {
-    /// Frame ids of the published messages (names.md).
+    /// Frame ids of the published messages (REP-103 `camera_optical`, `imu`).
     pub camera_frame_id: String,
     pub imu_frame_id: String,
     /// Robot model for following `/joint_states` (relative to the workspace root); empty = ignore
@@ -77,15 +77,15 @@ impl SimConfig {
     /// Loads a YAML file; missing keys take their defaults.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
-        Self::from_yaml(&text).map_err(|message| ConfigError::Parse { path: path.to_path_buf(), message })
+        Self::from_yaml(&text).map_err(|source| ConfigError::Parse { path: path.to_path_buf(), source })
     }
 
     /// Parses YAML text (error message names the offending key).
-    pub fn from_yaml(text: &str) -> Result<Self, String> {
+    pub fn from_yaml(text: &str) -> Result<Self, serde_yaml_ng::Error> {
         if text.trim().is_empty() {
             return Ok(Self::default());
         }
-        serde_yaml_ng::from_str(text).map_err(|e| e.to_string())
+        serde_yaml_ng::from_str(text)
     }
 }
 
@@ -103,7 +103,7 @@ mod tests {
 
     #[test]
     fn unknown_keys_are_named() {
-        let error = SimConfig::from_yaml("camera:\n  fxx: 500\n").unwrap_err();
+        let error = SimConfig::from_yaml("camera:\n  fxx: 500\n").unwrap_err().to_string();
         assert!(error.contains("fxx"), "{error}");
         let config = SimConfig::from_yaml("seed: 3\ncamera:\n  fx: 500\n").unwrap();
         assert_eq!((config.seed, config.camera.fx, config.camera.fy), (3, 500.0, 570.3));

@@ -219,7 +219,7 @@ fn accuracy(args: &Args) {
         let mut floor: [Vec<f64>; 3] = Default::default();
         let (mut inside, mut inside_surf, mut inside_chart, mut counted, mut fails) = (0usize, 0usize, 0usize, 0usize, 0usize);
         let debug = std::env::var("BENCH_DEBUG").is_ok();
-        let mut z2 = vec![0.0; 11];
+        let mut z2 = [0.0; 11];
         let mut worse = 0usize;
         for _ in 0..args.trials {
             let Ok(truth) = random_patch(&mut rng, s, b, &scene) else { continue };
@@ -263,8 +263,8 @@ fn accuracy(args: &Args) {
                     for i in 0..err.len() {
                         z2[i] += err[i] * err[i] / fit.covariance[(i, i)].max(1e-300);
                     }
-                    let truth_res = patchwalk_spl::fit::chi_square(&truth, &pts, Some(&covs), &cfg);
-                    let fit_res = patchwalk_spl::fit::chi_square(&fit, &pts, Some(&covs), &cfg);
+                    let truth_res = patchwalk_spl::fit::chi_square(&truth, pts, Some(covs), &cfg);
+                    let fit_res = patchwalk_spl::fit::chi_square(&fit, pts, Some(covs), &cfg);
                     if fit_res > truth_res + 1e-6 {
                         worse += 1;
                     }

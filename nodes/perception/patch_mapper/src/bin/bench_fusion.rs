@@ -16,7 +16,8 @@ use anyhow::Context;
 use patchwalk_fusion::dataset::{test_data_dir, Dataset};
 use patchwalk_fusion::fusion::TsdfConfig;
 use patchwalk_fusion::raycast::raycast;
-use patchwalk_fusion::tracking::{absolute_trajectory_rmse, Frame, Tracker, TrackerConfig, TrackingStatus};
+use patchwalk_fusion::tracking::{Frame, Tracker, TrackerConfig, TrackingStatus};
+use patchwalk_fusion::trajectory::absolute_trajectory_rmse;
 use patchwalk_fusion::volume::MovingVolumeConfig;
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {

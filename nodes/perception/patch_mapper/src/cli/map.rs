@@ -19,8 +19,8 @@ use patchwalk_mapping::mapper::{
     default_volume_from_map, single_frame_volume_from_camera, FrameInput, FrameResult, FrameSummary, Mapper, MapperConfig, StageTimings,
     Verdict,
 };
+use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::{render_patches, render_saliency};
-use patchwalk_spl::patch::PatchJson;
 use serde::Serialize;
 
 /// Arguments of `patch_mapper map`.
@@ -37,7 +37,7 @@ pub struct MapArgs {
     #[arg(long, default_value = "map_out")]
     pub out: PathBuf,
     /// Gravity (down) in the camera frame, e.g. `0,0.79,0.62`; overrides every other source.
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::parse_vec3, allow_hyphen_values = true)]
     pub gravity: Option<Vector3<f64>>,
     /// Where gravity comes from without --gravity: auto, imu (accelerometer through
     /// mapper.acquire.camera_from_imu) or plane (dominant plane normal).
@@ -60,15 +60,6 @@ pub struct MapArgs {
     pub no_pictures: bool,
 }
 
-fn parse_vec3(s: &str) -> Result<Vector3<f64>, String> {
-    let v: Vec<f64> =
-        s.split(',').map(|p| p.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| format!("expected x,y,z: {e}"))?;
-    match v.as_slice() {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vector3::new(*x, *y, *z)),
-        _ => Err(format!("expected three finite numbers x,y,z, got '{s}'")),
-    }
-}
-
 /// Loads a MapperConfig from YAML: a `mapper:` section, or the bare keys. Unknown keys are errors
 /// naming the key.
 pub fn load_config(path: &Path) -> Result<MapperConfig> {
@@ -82,13 +73,12 @@ pub fn load_config(path: &Path) -> Result<MapperConfig> {
     serde_yaml_ng::from_value(section).with_context(|| format!("{}: invalid mapper configuration", path.display()))
 }
 
-/// One JSON line of patches.jsonl.
+/// One JSON line of patches.jsonl: a fitted patch (valid or rejected by J 3.3, Fig. 6) and where
+/// it came from.
 #[derive(Serialize)]
 struct PatchLine<'a> {
     frame: usize,
     timestamp: f64,
-    /// valid, residual, coverage or curvature (J 3.3 / Fig. 6).
-    verdict: &'a str,
     /// Map id of valid patches.
     id: Option<u64>,
     /// Seed cell `[ix, iz]` on the volume grid.
@@ -97,7 +87,7 @@ struct PatchLine<'a> {
     frame_id: &'a str,
     neighbourhood_points: usize,
     #[serde(flatten)]
-    patch: PatchJson,
+    record: PatchRecord,
 }
 
 pub fn run(args: MapArgs) -> Result<()> {
@@ -213,16 +203,14 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
             Verdict::Residual | Verdict::Coverage | Verdict::Curvature => None,
             _ => continue,
         };
-        let verdict = outcome.verdict.name();
         let line = PatchLine {
             frame,
             timestamp,
-            verdict,
             id,
             cell: [outcome.seed.cell.0, outcome.seed.cell.1],
             frame_id: "camera_optical",
             neighbourhood_points: outcome.neighbourhood_size,
-            patch: PatchJson::from(patch.clone()),
+            record: PatchRecord::with_verdict(patch.clone(), &outcome.verdict, outcome.validation.as_ref()),
         };
         serde_json::to_writer(&mut *out, &line)?;
         out.write_all(b"\n")?;
@@ -294,6 +282,36 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::Vector2;
+    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+
+    #[test]
+    fn patch_lines_parse_into_the_patch_record() {
+        let patch = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.05],
+            Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::new(0.0, 0.0, 1.0),
+        )
+        .unwrap();
+        for verdict in [Verdict::Valid { id: 3 }, Verdict::Coverage, Verdict::FitFailed("degenerate".into())] {
+            let line = PatchLine {
+                frame: 1,
+                timestamp: 0.5,
+                id: None,
+                cell: [2, 3],
+                frame_id: "camera_optical",
+                neighbourhood_points: 40,
+                record: PatchRecord::with_verdict(patch.clone(), &verdict, None),
+            };
+            let text = serde_json::to_string(&line).unwrap();
+            let record: PatchRecord = serde_json::from_str(&text).unwrap();
+            assert_eq!((record.valid, record.verdict.as_str()), (verdict.is_valid(), verdict.name()), "{text}");
+            assert_eq!(record.patch, patch);
+        }
+    }
 
     #[test]
     fn config_file_holds_the_defaults_and_rejects_unknown_keys() {

@@ -13,10 +13,10 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
 use patchwalk_fusion::dataset::{write_tum_poses, Dataset, StampedPose};
-use patchwalk_mapping::mapper::{FrameSummary, Verdict};
+use patchwalk_mapping::mapper::FrameSummary;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
+use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::render_patches;
-use patchwalk_spl::patch::PatchJson;
 use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
@@ -48,15 +48,13 @@ pub struct ReplayArgs {
 #[derive(Serialize)]
 struct SeedLine {
     frame: usize,
-    verdict: &'static str,
-    failures: Vec<String>,
     neighbourhood_points: usize,
     /// Seed point in the map frame.
     seed_in_map: [f64; 3],
     /// Patch centre in the dataset's world frame (with ground truth).
     center_in_world: Option<[f64; 3]>,
     #[serde(flatten)]
-    patch: PatchJson,
+    record: PatchRecord,
 }
 
 /// One line of patches.jsonl: a patch of the final map.
@@ -68,7 +66,7 @@ struct MapLine {
     center_in_world: Option<[f64; 3]>,
     normal_in_world: Option<[f64; 3]>,
     #[serde(flatten)]
-    patch: PatchJson,
+    record: PatchRecord,
 }
 
 pub fn run(args: ReplayArgs) -> Result<()> {
@@ -124,15 +122,10 @@ pub fn run(args: ReplayArgs) -> Result<()> {
             let center_in_world = world_from_map.map(|w| (w * nalgebra::Point3::from(patch.center)).coords.into());
             let line = SeedLine {
                 frame: index,
-                verdict: outcome.verdict.name(),
-                failures: match &outcome.verdict {
-                    Verdict::FitFailed(why) => vec![why.clone()],
-                    _ => outcome.validation.map(|v| v.failures()).unwrap_or_default(),
-                },
                 neighbourhood_points: outcome.neighbourhood_size,
                 seed_in_map: (output.map_from_birds_eye * nalgebra::Point3::from(outcome.seed.point_in_camera)).coords.into(),
                 center_in_world,
-                patch: patch.into(),
+                record: PatchRecord::with_verdict(patch, &outcome.verdict, outcome.validation.as_ref()),
             };
             serde_json::to_writer(&mut seeds_out, &line)?;
             seeds_out.write_all(b"\n")?;
@@ -165,7 +158,7 @@ pub fn run(args: ReplayArgs) -> Result<()> {
             last_seen: mapped.last_seen,
             center_in_world: world_from_map.map(|w| (w * nalgebra::Point3::from(mapped.patch.center)).coords.into()),
             normal_in_world: world_from_map.map(|w| (w.rotation * mapped.patch.normal()).into()),
-            patch: mapped.patch.clone().into(),
+            record: PatchRecord::mapped(mapped.patch.clone()),
         };
         serde_json::to_writer(&mut map_out, &line)?;
         map_out.write_all(b"\n")?;
@@ -179,4 +172,46 @@ pub fn run(args: ReplayArgs) -> Result<()> {
     );
     println!("final map: {} patches -> {}; seeds -> {}", pipeline.map().len(), map_path.display(), seeds_path.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Vector2, Vector3};
+    use patchwalk_mapping::mapper::Verdict;
+    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+
+    #[test]
+    fn seed_and_map_lines_parse_into_the_patch_record() {
+        let patch = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.05],
+            Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::new(0.0, 0.0, 1.0),
+        )
+        .unwrap();
+        let seed = SeedLine {
+            frame: 0,
+            neighbourhood_points: 40,
+            seed_in_map: [0.0; 3],
+            center_in_world: None,
+            record: PatchRecord::with_verdict(patch.clone(), &Verdict::Residual, None),
+        };
+        let map = MapLine {
+            id: 7,
+            first_seen: 0.0,
+            last_seen: 1.0,
+            center_in_world: None,
+            normal_in_world: None,
+            record: PatchRecord::mapped(patch.clone()),
+        };
+        for (text, valid, verdict) in
+            [(serde_json::to_string(&seed).unwrap(), false, "residual"), (serde_json::to_string(&map).unwrap(), true, "valid")]
+        {
+            let record: PatchRecord = serde_json::from_str(&text).unwrap();
+            assert_eq!((record.valid, record.verdict.as_str(), &record.patch), (valid, verdict, &patch), "{text}");
+        }
+    }
 }

@@ -12,7 +12,8 @@ use patchwalk_fusion::calibration::{calibrate_dataset, dominant_plane, gravity_f
 use patchwalk_fusion::dataset::{write_tum_poses, Dataset, StampedPose};
 use patchwalk_fusion::fusion::TsdfConfig;
 use patchwalk_fusion::raycast::BirdsEyeView;
-use patchwalk_fusion::tracking::{absolute_trajectory_rmse, relative_pose_errors, Frame, Tracker, TrackerConfig, TrackingStatus};
+use patchwalk_fusion::tracking::{Frame, Tracker, TrackerConfig, TrackingStatus};
+use patchwalk_fusion::trajectory::{absolute_trajectory_rmse, relative_pose_errors};
 
 /// Where the gravity direction of each frame comes from.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq)]

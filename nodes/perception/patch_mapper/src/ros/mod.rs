@@ -92,7 +92,8 @@ impl Default for PatchMapperConfig {
     }
 }
 
-/// ROS-level parameters of the node (names per names.md; topics may be remapped here).
+/// ROS-level parameters of the node (input topics may be remapped here; the output names are the
+/// constants below).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MapperRosParams {
@@ -129,7 +130,7 @@ impl Default for MapperRosParams {
     }
 }
 
-/// Output topic and service names (names.md).
+/// Output topic and service names of the node (the topic table of the README).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
 pub const MARKERS_TOPIC: &str = "/patch_mapper/markers";
 pub const BIRDS_EYE_TOPIC: &str = "/patch_mapper/birds_eye_cloud";

@@ -292,7 +292,7 @@ pub fn error_on_manifold(fit: &Patch, truth_params: &DVector<f64>) -> DVector<f6
 pub fn mahalanobis(err: &DVector<f64>, cov: &DMatrix<f64>) -> Option<(f64, usize)> {
     let eig = cov.clone().symmetric_eigen();
     let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
-    if !(max > 0.0) {
+    if max.is_nan() || max <= 0.0 {
         return None;
     }
     let mut m2 = 0.0;

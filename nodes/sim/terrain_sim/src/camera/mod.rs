@@ -11,117 +11,24 @@
 //!
 //! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
 //! camera and the projector images so that per pixel only the rocks that can be hit are tested.
+//!
+//! [`config`] holds the camera's parameters, `noise` the random draws of the error model and
+//! `edges` the depth discontinuities where data go missing.
+
+pub mod config;
+mod edges;
+mod noise;
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use patchwalk_fusion::camera::{CameraError, DepthImage, Intrinsics};
-use rand::{RngCore, SeedableRng};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+
+pub use config::{CameraConfig, MissingDataConfig, NoiseConfig};
+use edges::{at_depth_edge, depth_gradients};
+use noise::row_rng;
+pub use noise::{mix, FastNormal};
 
 use crate::scene::{Ray, Scene};
-
-/// Sensor noise (J 2.1, eq. 2).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct NoiseConfig {
-    pub enabled: bool,
-    /// Pointing error σp of the measurement rays (px); J 2.1: 0.35 px (Kinect, from [62]).
-    pub sigma_pointing_px: f64,
-    /// Disparity matching error σm (px); J 2.1: 0.17 px.
-    pub sigma_disparity_px: f64,
-    /// Disparity quantisation (px); PrimeSense sensors report 1/8-pixel sub-pixel disparity. 0 = off.
-    pub disparity_step_px: f64,
-    /// Output depth quantisation (m); 16UC1 millimetres. 0 = off.
-    pub depth_step_m: f64,
-}
-
-impl Default for NoiseConfig {
-    fn default() -> Self {
-        Self { enabled: true, sigma_pointing_px: 0.35, sigma_disparity_px: 0.17, disparity_step_px: 0.125, depth_step_m: 0.001 }
-    }
-}
-
-/// Where a structured-light sensor returns no depth.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct MissingDataConfig {
-    /// Surfaces seen at more than this angle between ray and normal return nothing (grazing).
-    pub max_incidence_deg: f64,
-    /// A pixel whose 4-neighbour depth differs by more than this fraction of its depth is dropped
-    /// (depth edges).
-    pub edge_jump_ratio: f64,
-    /// Drop points the projector cannot see (occluded along the baseline).
-    pub projector_shadow: bool,
-}
-
-impl Default for MissingDataConfig {
-    fn default() -> Self {
-        Self { max_incidence_deg: 78.0, edge_jump_ratio: 0.03, projector_shadow: true }
-    }
-}
-
-/// The depth camera: intrinsics, rate, range, baseline, noise and missing data.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct CameraConfig {
-    /// J 2.1: 640 × 480 images at 30 Hz.
-    pub width: usize,
-    pub height: usize,
-    /// Carmine 1.09 depth focal length (px); OpenNI reports ≈ 570.3 at VGA.
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub rate_hz: f64,
-    /// Projector–camera baseline b (m) of J eq. 2; the projector sits at +x of `camera_optical`.
-    pub baseline_m: f64,
-    /// Range limits (m); Carmine 1.09 is rated 0.35–1.4 m and still returns depth further out.
-    pub min_depth_m: f64,
-    pub max_depth_m: f64,
-    pub noise: NoiseConfig,
-    pub missing: MissingDataConfig,
-}
-
-impl Default for CameraConfig {
-    fn default() -> Self {
-        Self {
-            width: 640,
-            height: 480,
-            fx: 570.3,
-            fy: 570.3,
-            cx: 319.5,
-            cy: 239.5,
-            rate_hz: 30.0,
-            baseline_m: 0.075,
-            min_depth_m: 0.35,
-            max_depth_m: 3.5,
-            noise: NoiseConfig::default(),
-            missing: MissingDataConfig::default(),
-        }
-    }
-}
-
-impl CameraConfig {
-    pub fn intrinsics(&self) -> Result<Intrinsics, CameraError> {
-        Intrinsics::new(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
-    }
-
-    /// First-order depth standard deviation of J eq. 2 at depth `z`: σz = z²·σm/(f·b).
-    pub fn depth_sigma(&self, z: f64) -> f64 {
-        z * z * self.noise.sigma_disparity_px / (self.fx * self.baseline_m)
-    }
-
-    /// This sensor's parameters for the mapper's Murray–Little covariance model
-    /// (`patchwalk_spl::sensor::murray_little`), so perception can use the simulator's true noise.
-    pub fn stereo_error_params(&self) -> patchwalk_spl::sensor::StereoErrorParams {
-        patchwalk_spl::sensor::StereoErrorParams {
-            sigma_pointing_px: self.noise.sigma_pointing_px,
-            sigma_disparity_px: self.noise.sigma_disparity_px,
-            baseline_m: self.baseline_m,
-            focal_px: self.fx,
-        }
-    }
-}
 
 /// Errors from building the camera.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -439,126 +346,6 @@ fn quantise(value: f64, step: f64) -> f64 {
     }
 }
 
-/// Deterministic RNG for (seed, pass, row), independent of thread scheduling.
-fn row_rng(seed: u64, pass: u64, row: usize) -> FastNormal {
-    FastNormal::new(mix(mix(seed, pass), row as u64))
-}
-
-/// Bits of randomness per normal draw (table of 2^12 equal-probability quantiles).
-const NORMAL_TABLE_BITS: u32 = 12;
-
-/// Standard normal draws from a table of 4096 equal-probability quantiles, five per 64-bit random
-/// word: ≈ 10× faster than a ziggurat per pixel, tails cut at ±3.5σ, variance rescaled to exactly 1.
-pub struct FastNormal {
-    rng: rand::rngs::SmallRng,
-    bits: u64,
-    left: u32,
-}
-
-impl FastNormal {
-    pub fn new(seed: u64) -> Self {
-        Self { rng: rand::rngs::SmallRng::seed_from_u64(seed), bits: 0, left: 0 }
-    }
-
-    #[inline]
-    pub fn sample(&mut self) -> f64 {
-        if self.left == 0 {
-            self.bits = self.rng.next_u64();
-            self.left = 64 / NORMAL_TABLE_BITS;
-        }
-        let index = (self.bits & ((1 << NORMAL_TABLE_BITS) - 1)) as usize;
-        self.bits >>= NORMAL_TABLE_BITS;
-        self.left -= 1;
-        normal_table().get(index).copied().unwrap_or(0.0)
-    }
-}
-
-fn normal_table() -> &'static [f64] {
-    static TABLE: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
-    TABLE.get_or_init(|| {
-        let n = 1usize << NORMAL_TABLE_BITS;
-        let mut table: Vec<f64> = (0..n).map(|i| inverse_normal_cdf((i as f64 + 0.5) / n as f64)).collect();
-        let variance = table.iter().map(|x| x * x).sum::<f64>() / n as f64;
-        let scale = 1.0 / variance.sqrt();
-        table.iter_mut().for_each(|x| *x *= scale);
-        table
-    })
-}
-
-/// Inverse of the standard normal CDF for p in (0, 1) (Acklam's rational approximation, relative
-/// error < 1.2e-9).
-fn inverse_normal_cdf(p: f64) -> f64 {
-    const A: [f64; 6] =
-        [-3.969683028665376e1, 2.209460984245205e2, -2.759285104469687e2, 1.38357751867269e2, -3.066479806614716e1, 2.506628277459239];
-    const B: [f64; 5] = [-5.447609879822406e1, 1.615858368580409e2, -1.556989798598866e2, 6.680131188771972e1, -1.328068155288572e1];
-    const C: [f64; 6] =
-        [-7.784894002430293e-3, -3.223964580411365e-1, -2.400758277161838, -2.549732539343734, 4.374664141464968, 2.938163982698783];
-    const D: [f64; 4] = [7.784695709041462e-3, 3.224671290700398e-1, 2.445134137142996, 3.754408661907416];
-    let tail = |q: f64| {
-        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5]) / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
-    };
-    if p < 0.02425 {
-        tail((-2.0 * p.ln()).sqrt())
-    } else if p > 1.0 - 0.02425 {
-        -tail((-2.0 * (1.0 - p).ln()).sqrt())
-    } else {
-        let q = p - 0.5;
-        let r = q * q;
-        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
-            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
-    }
-}
-
-/// SplitMix64-style mixing of two words into a seed.
-pub fn mix(a: u64, b: u64) -> u64 {
-    let mut z = a ^ b.wrapping_add(0x9e37_79b9_7f4a_7c15).rotate_left(17);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
-/// Whether pixel `(u, v)` of depth `z` lies at a depth discontinuity: a valid 4-neighbour differs
-/// by more than `ratio · z`.
-#[inline]
-fn at_depth_edge(depth: &[f32], width: usize, height: usize, u: usize, v: usize, z: f32, ratio: f32) -> bool {
-    let neighbours = [
-        (u > 0).then(|| v * width + u - 1),
-        (u + 1 < width).then(|| v * width + u + 1),
-        (v > 0).then(|| (v - 1) * width + u),
-        (v + 1 < height).then(|| (v + 1) * width + u),
-    ];
-    neighbours.into_iter().flatten().filter_map(|i| depth.get(i).copied()).any(|n| n.is_finite() && (n - z).abs() > ratio * z)
-}
-
-/// Image gradients (m/px) of a depth image: central differences, one-sided next to invalid pixels
-/// or depth edges (jumps above `ratio · z`), 0 where neither neighbour is usable.
-fn depth_gradients(depth: &[f32], width: usize, height: usize, ratio: f32) -> (Vec<f32>, Vec<f32>) {
-    let at = |u: usize, v: usize| depth.get(v * width + u).copied().filter(|z| z.is_finite());
-    let derivative = |z: f32, before: Option<f32>, after: Option<f32>| {
-        let near = |n: Option<f32>| n.filter(|n| (n - z).abs() <= ratio * z);
-        match (near(before), near(after)) {
-            (Some(b), Some(a)) => 0.5 * (a - b),
-            (Some(b), None) => z - b,
-            (None, Some(a)) => a - z,
-            (None, None) => 0.0,
-        }
-    };
-    let mut gradient_u = vec![0.0f32; width * height];
-    let mut gradient_v = vec![0.0f32; width * height];
-    gradient_u.par_chunks_mut(width).zip(gradient_v.par_chunks_mut(width)).enumerate().for_each(|(v, (row_u, row_v))| {
-        for u in 0..width {
-            let Some(z) = at(u, v) else { continue };
-            let (left, right) = (u.checked_sub(1).and_then(|l| at(l, v)), (u + 1 < width).then(|| at(u + 1, v)).flatten());
-            let (up, down) = (v.checked_sub(1).and_then(|w| at(u, w)), (v + 1 < height).then(|| at(u, v + 1)).flatten());
-            if let (Some(gu), Some(gv)) = (row_u.get_mut(u), row_v.get_mut(u)) {
-                *gu = derivative(z, left, right);
-                *gv = derivative(z, up, down);
-            }
-        }
-    });
-    (gradient_u, gradient_v)
-}
-
 /// Depth in 16-bit millimetres (0 = no data), the `16UC1` encoding of `sensor_msgs/Image`.
 pub fn to_millimetres(image: &DepthImage) -> Vec<u16> {
     image.depth_m.iter().map(|&d| if d.is_finite() { (f64::from(d) * 1000.0).round().clamp(0.0, 65535.0) as u16 } else { 0 }).collect()
@@ -748,19 +535,6 @@ mod tests {
         assert!((reused.1 - full.1).abs() < 0.1 * full.2, "mean {} vs {}", reused.1, full.1);
         // Same seed, same cache → same image.
         assert_eq!(to_millimetres(&camera.render_reusing(&scene, &sim_pose, 10, &mut cache)), to_millimetres(&second));
-    }
-
-    #[test]
-    fn fast_normal_has_unit_moments() {
-        let mut normal = FastNormal::new(1);
-        let n = 200_000;
-        let draws: Vec<f64> = (0..n).map(|_| normal.sample()).collect();
-        let mean = draws.iter().sum::<f64>() / n as f64;
-        let variance = draws.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n as f64;
-        let within_one = draws.iter().filter(|x| x.abs() < 1.0).count() as f64 / n as f64;
-        assert!(mean.abs() < 0.01 && (variance - 1.0).abs() < 0.01, "{mean} {variance}");
-        assert!((within_one - 0.6827).abs() < 0.005, "{within_one}");
-        assert!((inverse_normal_cdf(0.975) - 1.959964).abs() < 1e-6);
     }
 
     #[test]

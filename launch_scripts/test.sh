@@ -65,6 +65,30 @@ if [ "${PATCHWALK_SKIP_RUST:-0}" != 1 ]; then
     fi
     # A non-zero exit without a failed test (build error, crash) still counts as one failure.
     if [ "$RUST_STATUS" != 0 ] && [ "$RUST_FAILED" = 0 ]; then RUST_FAILED=1; fi
+    # The crate docs' examples (the Surface Patch Library's five-line fit, ...).
+    log "cargo test --release --workspace --doc"
+    cargo test --release --workspace --doc >"$LOG_DIR/doc.log" 2>&1
+    DOC_STATUS=$?
+    grep -E '^test result: ' "$LOG_DIR/doc.log" > "$LOG_DIR/doc.summary"
+    if [ "$DOC_STATUS" = 0 ]; then
+        RUST_PASSED=$((RUST_PASSED + $(count passed "$LOG_DIR/doc.summary")))
+    else
+        RUST_FAILED=$((RUST_FAILED + $(count failed "$LOG_DIR/doc.summary") + 1))
+        tail -30 "$LOG_DIR/doc.log"
+    fi
+    # Formatting and lints (workspace lints: no unwrap/expect/panic outside tests, unsafe denied).
+    log "cargo fmt --all --check"
+    if ! cargo fmt --all --check >"$LOG_DIR/fmt.log" 2>&1; then
+        head -40 "$LOG_DIR/fmt.log"
+        echo "test.sh: cargo fmt --all --check found unformatted code (run cargo fmt --all)"
+        RUST_FAILED=$((RUST_FAILED + 1))
+    fi
+    log "cargo clippy --release --workspace --all-targets -- -D warnings"
+    if ! cargo clippy --release --workspace --all-targets -- -D warnings >"$LOG_DIR/clippy.log" 2>&1; then
+        grep -E '^(error|warning)' -A6 "$LOG_DIR/clippy.log" | head -60
+        echo "test.sh: clippy found problems (log: $LOG_DIR/clippy.log)"
+        RUST_FAILED=$((RUST_FAILED + 1))
+    fi
 fi
 
 # --- 6. rclpy integration tests -----------------------------------------------------------------------

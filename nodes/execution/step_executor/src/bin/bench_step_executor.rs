@@ -158,8 +158,7 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyh
             nalgebra::Vector2::zeros(),
             nalgebra::Vector3::zeros(),
             nalgebra::Vector3::new(0.1, 0.0, -0.29),
-        )
-        .unwrap(),
+        )?,
         keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
     };
     // Let the loop learn the present pose, then play ~4.8 s.

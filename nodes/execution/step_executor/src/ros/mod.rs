@@ -184,7 +184,7 @@ impl Executor {
                     (Some(cloud), false) => self.runtime.fit_job(point, request.radius).map(|job| Later::Fit(job, Arc::clone(cloud))),
                 };
                 return match started {
-                    Ok(later) => Handled::Later(later),
+                    Ok(later) => Handled::Later(Box::new(later)),
                     Err(e) => Handled::Answer(select_target_response(Err(e))),
                 };
             }
@@ -202,7 +202,7 @@ impl Executor {
             return failed(busy.into());
         }
         match self.runtime.prepare_save(&request.name) {
-            Ok(change) => Handled::Later(Later::Write { save: true, name: request.name.clone(), change }),
+            Ok(change) => Handled::Later(Box::new(Later::Write { save: true, name: request.name.clone(), change })),
             Err(e) => failed(e),
         }
     }
@@ -230,7 +230,7 @@ impl Executor {
             return failed(format!("delete_motion({:?}): {busy}", request.name));
         }
         match self.runtime.prepare_delete(&request.name) {
-            Ok(change) => Handled::Later(Later::Write { save: false, name: request.name.clone(), change }),
+            Ok(change) => Handled::Later(Box::new(Later::Write { save: false, name: request.name.clone(), change })),
             Err(e) => failed(e),
         }
     }
@@ -243,7 +243,7 @@ impl Executor {
                 if let Ok(patch) = &result {
                     self.runtime.set_target(patch.clone());
                 }
-                FinishedAnswer::SelectTarget(request_id, select_target_response(result))
+                FinishedAnswer::SelectTarget(request_id, Box::new(select_target_response(result)))
             }
             Finished::Write { request_id, save, name, change, result } => {
                 self.jobs_pending.write = false;
@@ -320,7 +320,7 @@ impl Executor {
 /// A service handler's decision: answer now, or start a job that answers when it finishes.
 enum Handled<R> {
     Answer(R),
-    Later(Later),
+    Later(Box<Later>),
 }
 
 /// A job as the handler decided it (the loop adds the request id).
@@ -352,7 +352,7 @@ impl JobsPending {
 
 /// The answer to a request whose job has finished.
 enum FinishedAnswer {
-    SelectTarget(RmwRequestId, srv::SelectTargetResponse),
+    SelectTarget(RmwRequestId, Box<srv::SelectTargetResponse>),
     SaveMotion(RmwRequestId, srv::SaveMotionResponse),
     DeleteMotion(RmwRequestId, srv::DeleteMotionResponse),
 }
@@ -369,8 +369,8 @@ fn select_target_response(selected: Result<Patch, String>) -> srv::SelectTargetR
 }
 
 /// Queue a handler's job; if the worker is gone, answer the request with the failure at once.
-fn start(executor: &mut Executor, jobs: &Jobs, request_id: RmwRequestId, later: Later, log: &mut RateLimitedLog) {
-    let job = match later {
+fn start(executor: &mut Executor, jobs: &Jobs, request_id: RmwRequestId, later: Box<Later>, log: &mut RateLimitedLog) {
+    let job = match *later {
         Later::Fit(job, cloud) => {
             executor.jobs_pending.fit = true;
             Job::Fit { request_id, job, cloud }
@@ -502,7 +502,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let finished: Vec<Finished> = jobs.finished().collect();
         for done in finished {
             match executor.finish(done) {
-                FinishedAnswer::SelectTarget(id, response) => node::respond(&select_target_srv, SELECT_TARGET, id, response, &mut log),
+                FinishedAnswer::SelectTarget(id, response) => node::respond(&select_target_srv, SELECT_TARGET, id, *response, &mut log),
                 FinishedAnswer::SaveMotion(id, response) => node::respond(&save_motion_srv, SAVE_MOTION, id, response, &mut log),
                 FinishedAnswer::DeleteMotion(id, response) => node::respond(&delete_motion_srv, DELETE_MOTION, id, response, &mut log),
             }

@@ -1,4 +1,4 @@
-"""Both nodes come up on the ROS 2 graph with every endpoint of names.md, typed, and stop cleanly."""
+"""Both nodes come up on the ROS 2 graph with every endpoint of the README table, typed, and stop cleanly."""
 
 import signal
 

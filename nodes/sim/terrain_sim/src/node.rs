@@ -21,6 +21,7 @@ use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, Regio
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::wait::Wakeup;
 use ros2_client::{MessageTypeName, Publisher, Subscription};
 use terrain_sim::config::SimConfig;
 use terrain_sim::imu::ImuSample;
@@ -88,8 +89,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let info_pub = ros.publisher::<CameraInfo>(CAMERA_INFO_TOPIC, node::sensor_data_qos())?;
     let imu_pub = ros.publisher::<Imu>(IMU_TOPIC, node::sensor_data_qos())?;
     // Best effort matches both reliable and best-effort joint state publishers.
-    let joint_sub = ros.subscription::<JointState>(JOINT_STATES_TOPIC, node::sensor_data_qos())?;
-    let place_sub: Subscription<UInt32> = std_msgs_subscription(&mut ros, PLACE_TOPIC, "UInt32")?;
+    let mut joint_sub = ros.subscription::<JointState>(JOINT_STATES_TOPIC, node::sensor_data_qos())?;
+    let mut place_sub: Subscription<UInt32> = std_msgs_subscription(&mut ros, PLACE_TOPIC, "UInt32")?;
+    // The control loop sleeps until a placement or joint state arrives, or the rock report is due.
+    let mut wakeup = Wakeup::new()?;
+    if robot.is_some() {
+        wakeup.watch(&mut joint_sub)?;
+    }
+    wakeup.watch(&mut place_sub)?;
     let rock_pub: Publisher<UInt32> = std_msgs_publisher(&mut ros, ROCK_TOPIC, "UInt32")?;
 
     let pose = Arc::new(Mutex::new(RobotPose {
@@ -125,7 +132,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     while !shutdown.requested() {
         let mut placed = false;
         let mut requests = Vec::new();
-        node::drain(&place_sub, PLACE_TOPIC, 16, &mut log, |msg, _| requests.push(msg.data as usize));
+        let mut more = node::drain(&place_sub, PLACE_TOPIC, 16, &mut log, |msg, _| requests.push(msg.data as usize)) >= 16;
         for index in requests {
             match sim.scene.station(index) {
                 Ok(world_from_station) => {
@@ -148,7 +155,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         if let Some(robot) = robot.as_mut() {
             let mut latest = None;
-            node::drain(&joint_sub, JOINT_STATES_TOPIC, 64, &mut log, |msg, _| latest = Some(msg));
+            more |= node::drain(&joint_sub, JOINT_STATES_TOPIC, 64, &mut log, |msg, _| latest = Some(msg)) >= 64;
             if let Some(msg) = latest {
                 follow_joint_state(robot, &msg, &pose, &mut log);
             }
@@ -158,7 +165,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             node::publish(&rock_pub, ROCK_TOPIC, UInt32 { data: rock }, &mut log);
             last_rock_report = Instant::now();
         }
-        std::thread::sleep(Duration::from_millis(5));
+        let report_due = Duration::from_secs(1).saturating_sub(last_rock_report.elapsed());
+        wakeup.wait(if more { Duration::ZERO } else { report_due.min(Duration::from_millis(100)) });
     }
     for (name, handle) in [("camera", camera_thread), ("imu", imu_thread)] {
         if handle.join().is_err() {

@@ -5,12 +5,16 @@
 //! Two threads. The ROS loop never blocks: it drains the subscriptions, converts and checks each
 //! message, forwards IMU samples, hands depth frames to the worker keep-latest (a frame still waiting
 //! when a newer one arrives is dropped and counted as skipped), serves reset, publishes the status and
-//! sleeps `poll_period_ms`. The worker runs the pipeline at the sensor rate and publishes its outputs.
+//! waits for the next input (`patchwalk_ros::wait`). The worker runs the pipeline at the sensor rate
+//! and publishes its outputs.
 //! Every bad input (wrong encoding or size, NaN/zero depth, missing CameraInfo, IMU gaps, out-of-order
 //! or duplicate stamps) is counted, logged once per period, and skipped — the node keeps running.
 
 mod convert;
 mod publish;
+
+/// The longest the loop sleeps without input (a shutdown request is seen within this).
+const MAX_WAIT: Duration = Duration::from_millis(100);
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -20,6 +24,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use nalgebra::Vector3;
+use patchwalk_ros::wait::Wakeup;
 use serde::{Deserialize, Serialize};
 
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
@@ -105,8 +110,6 @@ pub struct MapperRosParams {
     pub imu_topic: String,
     /// Period of /patch_mapper/status in s.
     pub status_period_s: f64,
-    /// Sleep between two polls of the inputs in ms (bounds the added latency).
-    pub poll_period_ms: u64,
     /// Minimum time between two identical warnings in s.
     pub log_period_s: f64,
     /// Publish the birds-eye raycast as PointCloud2 on /patch_mapper/birds_eye_cloud.
@@ -122,7 +125,6 @@ impl Default for MapperRosParams {
             camera_info_topic: "/camera/depth/camera_info".into(),
             imu_topic: "/imu/data".into(),
             status_period_s: 0.5,
-            poll_period_ms: 2,
             log_period_s: 2.0,
             publish_birds_eye_cloud: true,
             publish_markers: true,
@@ -396,20 +398,25 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let shutdown = Shutdown::install()?;
 
     let mut ros = RosNode::new("patch_mapper", network)?;
-    let depth_sub = ros.subscription::<Image>(&params.depth_topic, node::sensor_data_qos())?;
-    let info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
-    let imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
+    let mut depth_sub = ros.subscription::<Image>(&params.depth_topic, node::sensor_data_qos())?;
+    let mut info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
+    let mut imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
     let patches_pub = ros.publisher::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
     let markers_pub = ros.publisher::<MarkerArray>(MARKERS_TOPIC, node::reliable_qos())?;
     let birds_eye_pub = ros.publisher::<PointCloud2>(BIRDS_EYE_TOPIC, node::reliable_qos())?;
     let status_pub = ros.publisher::<MapperStatus>(STATUS_TOPIC, node::reliable_qos())?;
-    let reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+    let mut reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+    // The loop sleeps until an input is ready or the status is due.
+    let mut wakeup = Wakeup::new()?;
+    wakeup.watch(&mut depth_sub)?;
+    wakeup.watch(&mut info_sub)?;
+    wakeup.watch(&mut imu_sub)?;
+    wakeup.watch(&mut reset_srv)?;
 
     let status_period = Duration::try_from_secs_f64(params.status_period_s)
         .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
     let log_period = Duration::try_from_secs_f64(params.log_period_s)
         .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
-    let poll_period = Duration::from_millis(params.poll_period_ms);
     // Check the pipeline sections now, so a bad config fails at start and not at the first frame.
     Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), Intrinsics::primesense_default())
         .context("invalid pipeline/tracker/mapper configuration")?;
@@ -447,10 +454,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
 
     while !shutdown.requested() {
-        node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log));
-        node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log));
-        node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log));
-        node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
+        let mut more =
+            node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
+        more |= node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log)) >= 256;
+        more |= node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log)) >= 8;
+        more |= node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
             if let Ok(mut mark) = reset.lock() {
                 *mark = Some(ResetMark::now());
             }
@@ -461,7 +469,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             let frames = frames.unwrap_or(0);
             tracing::info!("reset: map cleared after {frames} processed frames");
             TriggerResponse { success: true, message: format!("map cleared ({frames} frames processed so far)") }
-        });
+        }) >= 64;
         let now = Instant::now();
         if now >= next_status {
             if let Ok(mut s) = status.lock() {
@@ -473,7 +481,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if worker_thread.is_finished() {
             anyhow::bail!("the pipeline thread ended unexpectedly");
         }
-        std::thread::sleep(poll_period);
+        let timeout =
+            if more { Duration::ZERO } else { next_status.min(Instant::now() + MAX_WAIT).saturating_duration_since(Instant::now()) };
+        wakeup.wait(timeout);
     }
     stop.store(true, Ordering::Relaxed);
     if worker_thread.join().is_err() {

@@ -32,16 +32,8 @@ LOG_DIR = Path(tempfile.mkdtemp(prefix="bench_patch_mapper_"))
 ENV = pw.ros_environment(LOG_DIR)
 os.environ.update(ENV)  # before rclpy is imported
 
-# terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw).
-CAMERA_FROM_IMU_XYZW = (0.5, -0.5, 0.5, 0.5)
-
-
-def rotation_matrix(x, y, z, w):
-    return [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
+# patch_mapper's configuration for the simulated rig (terrain_sim's IMU mount).
+SIM_MAPPER_CONFIG = REPO / "config" / "patch_mapper_sim.yaml"
 
 
 def cpu_seconds(pid: int) -> float:
@@ -69,13 +61,13 @@ def main() -> int:
 
     mapper_params = {
         "ros.status_period_s": "0.05",
-        "mapper.acquire.camera_from_imu": str(rotation_matrix(*CAMERA_FROM_IMU_XYZW)),
         # More cells than J's Vg = 8 (8 cm instead of 16 cm) so the map holds >= 100 foot-size patches.
         "mapper.seeds.cells_per_side": "16",
         "mapper.seeds.per_cell": "2",
         "mapper.seeds.max_seeds": "128",
     }
-    mapper_args = [a for k, v in mapper_params.items() for a in ("--param", f"{k}={v}")]
+    mapper_args = ["--config", str(SIM_MAPPER_CONFIG)]
+    mapper_args += [a for k, v in mapper_params.items() for a in ("--param", f"{k}={v}")]
     mapper_args += [a for p in args.param for a in ("--param", p)]
     harness = pw.RosHarness("bench_patch_mapper")
     sim = pw.NodeProcess("terrain_sim", ["run"], ENV, LOG_DIR)

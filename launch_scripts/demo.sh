@@ -151,9 +151,8 @@ if available terrain_sim run; then
 else
     echo "skipped terrain_sim: \`terrain_sim run\` not available yet (patch_mapper waits for depth images)"
 fi
-# terrain_sim's IMU is mounted like the URDF's (x forward, y left, z up): camera_from_imu of
-# config/terrain_sim.yaml imu.camera_from_imu_xyzw [0.5, -0.5, 0.5, 0.5] as a row-major matrix.
-start patch_mapper "$BIN/patch_mapper" run --param 'mapper.acquire.camera_from_imu=[[0.0,-1.0,0.0],[0.0,0.0,-1.0],[1.0,0.0,0.0]]'
+# The simulated rig's settings (terrain_sim's IMU mount) are in config/patch_mapper_sim.yaml.
+start patch_mapper "$BIN/patch_mapper" run --config "$REPO/config/patch_mapper_sim.yaml"
 start step_executor "$BIN/step_executor" run ${EXECUTOR_ARGS[@]+"${EXECUTOR_ARGS[@]}"}
 
 RUN_EXPERIMENT=0

@@ -50,7 +50,7 @@ from typing import Callable, IO, Optional
 
 import numpy as np
 
-from experiment_robot import (JOINTS, REPO, SERVO_ID, SIM_CAMERA_FROM_IMU, SURFACE_NAMES, Rock, load_scene,  # noqa: F401
+from experiment_robot import (JOINTS, REPO, SERVO_ID, SIM_MAPPER_CONFIG, SURFACE_NAMES, Rock, load_scene,  # noqa: F401
                               patch_normal, stepping_motion, ticks_from_rad)
 
 sys.path.insert(0, str(REPO / "tests"))

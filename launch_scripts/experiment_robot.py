@@ -56,9 +56,8 @@ STANCE_HEIGHT = 0.285
 RS_M = 0.01
 AS_DEG = 20.0
 
-# camera_from_imu of terrain_sim's IMU (imu.camera_from_imu_xyzw [0.5, -0.5, 0.5, 0.5]: imu x forward,
-# y left, z up) as patch_mapper's row-major `mapper.acquire.camera_from_imu` parameter.
-SIM_CAMERA_FROM_IMU = "[[0.0,-1.0,0.0],[0.0,0.0,-1.0],[1.0,0.0,0.0]]"
+# patch_mapper's configuration for the simulated rig (terrain_sim's IMU mount).
+SIM_MAPPER_CONFIG = REPO / "config" / "patch_mapper_sim.yaml"
 
 SURFACE_NAMES = ["elliptic_paraboloid", "hyperbolic_paraboloid", "cylindric_paraboloid", "circular_paraboloid",
                  "plane", "sphere", "circular_cylinder"]

@@ -33,8 +33,7 @@ def test_four_rock_experiment_matches_every_trained_rock_and_nothing_else(ros, s
         # One at a time, each on the graph before the next starts (discovery is unicast on loopback).
         start_node("terrain_sim")
         ros.wait_for_nodes("/terrain_sim", timeout=60)
-        # terrain_sim's IMU mount (config/terrain_sim.yaml imu.camera_from_imu_xyzw) as a row-major matrix.
-        start_node("patch_mapper", "--param", f"mapper.acquire.camera_from_imu={ex.SIM_CAMERA_FROM_IMU}")
+        start_node("patch_mapper", "--config", str(ex.SIM_MAPPER_CONFIG))
         ros.wait_for_nodes("/patch_mapper", timeout=60)
         # A pty served by a user process on a loaded host: 500 ms per answer (the RS-485 default is 34).
         executor = start_node("step_executor", "--param", f"bus.port={pty}", "--param", "bus.response_timeout_ms=500",

@@ -20,8 +20,6 @@ pub const CENTER_TICKS: f64 = 2048.0;
 /// Errors while loading or validating the configuration.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("cannot read config {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
     #[error("invalid config {path}: {message}")]
     Parse { path: PathBuf, message: String },
     #[error("invalid config: {0}")]
@@ -170,12 +168,6 @@ impl StepExecutorConfig {
         Ok(config)
     }
 
-    /// Load from a file and validate.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.to_path_buf(), source })?;
-        Self::from_yaml(&text, path)
-    }
-
     /// Joint names in keyframe order.
     pub fn joint_names(&self) -> Vec<String> {
         self.servos.iter().map(|s| s.joint.clone()).collect()
@@ -254,7 +246,8 @@ mod tests {
     #[test]
     fn shipped_config_file_is_valid_and_equals_defaults() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/step_executor.yaml");
-        let config = StepExecutorConfig::load(&path).unwrap();
+        let config: StepExecutorConfig = patchwalk_ros::params::load_config(Some(&path), &[]).unwrap();
+        config.validate().unwrap();
         assert_eq!(config, StepExecutorConfig::default());
     }
 

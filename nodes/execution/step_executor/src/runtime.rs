@@ -572,7 +572,8 @@ mod tests {
 
     fn config(dir: &std::path::Path) -> StepExecutorConfig {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
-        let mut config = StepExecutorConfig::load(&root.join("config/step_executor.yaml")).unwrap();
+        let mut config: StepExecutorConfig =
+            patchwalk_ros::params::load_config(Some(&root.join("config/step_executor.yaml")), &[]).unwrap();
         config.urdf_path = root.join("urdf/rpbp.urdf");
         config.library_path = dir.join("motions.yaml");
         config

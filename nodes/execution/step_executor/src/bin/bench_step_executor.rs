@@ -190,7 +190,7 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyh
 }
 
 fn main() -> anyhow::Result<()> {
-    let config = StepExecutorConfig::load(std::path::Path::new("config/step_executor.yaml"))
+    let config: StepExecutorConfig = patchwalk_ros::params::load_config(Some(std::path::Path::new("config/step_executor.yaml")), &[])
         .context("run from the repository root (reads config/step_executor.yaml and urdf/rpbp.urdf)")?;
     let specs = joint_specs(&config)?;
     bench_matching()?;

@@ -29,8 +29,8 @@ pub struct MapArgs {
     /// TUM directory (depth.txt [+ accelerometer.txt]), directory of depth PNGs with an intrinsics
     /// JSON, or one depth PNG (with a JSON or calib_params.xml beside it).
     pub input: PathBuf,
-    /// YAML with the mapper configuration: a `mapper:` section (as in config/patch_mapper.yaml or
-    /// config/mapper.yaml) or the bare MapperConfig keys. Missing keys take J's defaults.
+    /// YAML whose `mapper:` section configures the mapper (as in config/patch_mapper.yaml); missing
+    /// keys take J's defaults.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Output directory for patches.jsonl and the pictures.
@@ -60,17 +60,20 @@ pub struct MapArgs {
     pub no_pictures: bool,
 }
 
-/// Loads a MapperConfig from YAML: a `mapper:` section, or the bare keys. Unknown keys are errors
-/// naming the key.
+/// The part of a configuration file `map` reads: its `mapper:` section (other sections, such as the
+/// node's `ros:`, are ignored).
+#[derive(serde::Deserialize, Default)]
+#[serde(default)]
+struct MapFile {
+    mapper: MapperConfig,
+}
+
+/// Loads a MapperConfig from the `mapper:` section of a YAML file, laid over J's defaults, with the
+/// nodes' loader (unknown keys are errors naming the key).
 pub fn load_config(path: &Path) -> Result<MapperConfig> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let value: serde_yaml_ng::Value = serde_yaml_ng::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-    let section = match value.get("mapper") {
-        Some(section) => section.clone(),
-        None if value.is_null() => return Ok(MapperConfig::default()),
-        None => value,
-    };
-    serde_yaml_ng::from_value(section).with_context(|| format!("{}: invalid mapper configuration", path.display()))
+    let file: MapFile =
+        patchwalk_ros::params::load_config(Some(path), &[]).with_context(|| format!("{}: invalid mapper configuration", path.display()))?;
+    Ok(file.mapper)
 }
 
 /// One JSON line of patches.jsonl: a fitted patch (valid or rejected by J 3.3, Fig. 6) and where
@@ -314,16 +317,17 @@ mod tests {
     }
 
     #[test]
-    fn config_file_holds_the_defaults_and_rejects_unknown_keys() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/mapper.yaml");
-        assert_eq!(load_config(&path).unwrap(), MapperConfig::default());
+    fn config_files_are_laid_over_the_defaults_and_reject_unknown_keys() {
         let dir = tempfile::tempdir().unwrap();
+        let empty = dir.path().join("empty.yaml");
+        std::fs::write(&empty, "# only comments\n").unwrap();
+        assert_eq!(load_config(&empty).unwrap(), MapperConfig::default());
+        let section = dir.path().join("section.yaml");
+        std::fs::write(&section, "mapper:\n  time_limit_ms: 50.0\n").unwrap();
+        assert_eq!(load_config(&section).unwrap(), MapperConfig { time_limit_ms: 50.0, ..MapperConfig::default() });
         let bad = dir.path().join("bad.yaml");
         std::fs::write(&bad, "mapper:\n  seeds:\n    cells: 4\n").unwrap();
         let message = format!("{:#}", load_config(&bad).unwrap_err());
         assert!(message.contains("cells"), "{message}");
-        let bare = dir.path().join("bare.yaml");
-        std::fs::write(&bare, "foot_radius_m: 0.1\n").unwrap();
-        assert_eq!(load_config(&bare).unwrap().foot_radius_m, 0.1);
     }
 }

@@ -11,6 +11,7 @@ use patchwalk_msgs::msg;
 use patchwalk_msgs::sensor_msgs::msg::{PointCloud2, PointField};
 use patchwalk_msgs::std_msgs::msg::{ColorRGBA, Header};
 use patchwalk_msgs::visualization_msgs::msg::{Marker, MarkerArray};
+use patchwalk_ros::patch_msg::{self, pose_from_isometry};
 use patchwalk_spl::patch::Patch;
 
 /// Seconds since the epoch -> `builtin_interfaces/Time` (saturating; non-finite -> 0).
@@ -28,32 +29,9 @@ pub fn seconds_from_time(time: &Time) -> f64 {
     f64::from(time.sec) + f64::from(time.nanosec) * 1e-9
 }
 
-/// Isometry -> `geometry_msgs/Pose`.
-pub fn pose_from_isometry(isometry: &Isometry3<f64>) -> Pose {
-    let t = isometry.translation.vector;
-    let q = isometry.rotation.coords; // (i, j, k, w)
-    Pose { position: Point { x: t.x, y: t.y, z: t.z }, orientation: Quaternion { x: q.x, y: q.y, z: q.z, w: q.w } }
-}
-
 /// One patch of the map -> `patchwalk_msgs/Patch` (covariance row-major p × p over [d, k, r, c]).
 pub fn patch_msg(id: u64, patch: &Patch, first_seen: f64, last_seen: f64) -> msg::Patch {
-    let p = patch.covariance.nrows();
-    let covariance = (0..p).flat_map(|r| (0..p).map(move |c| (r, c))).map(|(r, c)| patch.covariance[(r, c)]).collect();
-    msg::Patch {
-        id: u32::try_from(id).unwrap_or(u32::MAX),
-        surface: patch.surface as u8,
-        boundary: patch.boundary as u8,
-        curvatures: patch.curvature_params(),
-        boundary_params: patch.boundary_params.clone(),
-        rotation: patch.rotation.into(),
-        center: patch.center.into(),
-        pose: pose_from_isometry(&patch.world_from_patch()),
-        covariance,
-        residual: patch.residual,
-        num_points: u32::try_from(patch.num_points).unwrap_or(u32::MAX),
-        first_seen: time_from_seconds(first_seen),
-        last_seen: time_from_seconds(last_seen),
-    }
+    patch_msg::msg_from_patch(u32::try_from(id).unwrap_or(u32::MAX), patch, time_from_seconds(first_seen), time_from_seconds(last_seen))
 }
 
 /// The whole map with the camera pose; `stamp` is the depth frame's stamp.

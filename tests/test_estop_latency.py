@@ -56,3 +56,70 @@ def test_stop_is_answered_during_a_large_library_write(ros, start_node, tmp_path
     print(f"stop during a library write: p50 {statistics.median(latencies) * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
     assert max(latencies) < 1.0
     assert [m.name for m in _wait(_send(listing, ListMotions.Request()))[0].motions] == names[5:]
+
+
+def _cloud(points: int):
+    """A PointCloud2 laid out as the mapper's birds-eye cloud (x, y, z FLOAT32): `points` points
+    filling the 1 m cube around the map origin, so that a fit of radius 0.5 m around any point near
+    the robot takes a while (decoding, filtering, boundary moments over ~150,000 points)."""
+    import numpy as np
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    rng = np.random.default_rng(3)
+    xyz = np.zeros((points, 3), dtype="<f4")
+    xyz[:] = rng.uniform(-0.5, 0.5, (points, 3))
+    msg = PointCloud2()
+    msg.header.frame_id = "map"
+    msg.height, msg.width = 1, points
+    msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    msg.point_step, msg.row_step = 12, 12 * points
+    msg.is_dense = True
+    msg.data = xyz.tobytes()
+    return msg
+
+
+def test_stop_is_answered_during_a_training_fit(ros, step_executor):
+    """select_target MODE_FIT_AT_POINT on a large cloud runs off the loop: a stop sent while it runs is
+    answered first."""
+    from patchwalk_msgs.msg import PatchArray
+    from patchwalk_msgs.srv import SelectTarget
+    from sensor_msgs.msg import PointCloud2
+
+    cloud_pub = ros.publisher(PointCloud2, "/patch_mapper/birds_eye_cloud", qos=10)
+    map_pub = ros.publisher(PatchArray, "/patch_mapper/patches", qos=10)
+    ros.wait_for_subscriber(cloud_pub)
+    ros.wait_for_subscriber(map_pub)
+    empty_map = PatchArray()
+    empty_map.header.frame_id = "map"
+    empty_map.camera_pose.orientation.w = 1.0
+    select = ros.client(SelectTarget, "/step_executor/select_target")
+    stop = ros.client(Trigger, "/step_executor/stop")
+    for client in (select, stop):
+        assert client.wait_for_service(timeout_sec=60.0)
+    _wait(_send(stop, Trigger.Request()))
+    cloud = _cloud(300_000)
+    # base_link's origin: with the map at the camera (identity camera pose) it lies inside the cube.
+    request = SelectTarget.Request(mode=SelectTarget.Request.MODE_FIT_AT_POINT, radius=0.5)
+    latencies = []
+    for trial in range(3):
+        map_pub.publish(empty_map)
+        cloud_pub.publish(cloud)
+        # The fit answers "no birds-eye cloud" until both have arrived; then it fits.
+        deadline = time.monotonic() + 30.0
+        while True:
+            response, _, _ = _wait(_send(select, request))
+            if "no birds-eye cloud" not in response.message and "no patch map" not in response.message:
+                break
+            assert time.monotonic() < deadline, response.message
+            time.sleep(0.1)
+        fitting = _send(select, request)
+        time.sleep(0.002)
+        stopped = _send(stop, Trigger.Request())
+        response, stop_latency, stop_at = _wait(stopped)
+        fitted, fit_latency, fit_at = _wait(fitting)
+        assert response.success
+        print(f"fit on a {cloud.width}-point cloud: {fit_latency * 1e3:.1f} ms ({fitted.message[:60]}); "
+              f"stop answered after {stop_latency * 1e3:.1f} ms")
+        latencies.append(stop_latency)
+        assert stop_at < fit_at, "the stop waited for the fit"
+    assert max(latencies) < 1.0

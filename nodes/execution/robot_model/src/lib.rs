@@ -23,3 +23,20 @@ pub const DEFAULT_JOINTS: [&str; 12] = [
     "r_ankle_roll",
     "l_ankle_roll",
 ];
+
+#[cfg(test)]
+mod tests {
+    /// Every physical link of the shipped model has a visual and a collision shape (RViz shows the
+    /// robot); only the frames without a body (optical frame, soles) have none.
+    #[test]
+    fn the_rpbp_model_has_visuals_and_collisions() {
+        let robot = urdf_rs::read_from_string(super::RPBP_URDF).unwrap();
+        for link in &robot.links {
+            let frame_only = ["camera_optical", "left_foot", "right_foot"].contains(&link.name.as_str());
+            assert_eq!(link.visual.is_empty(), frame_only, "{}: visual", link.name);
+            assert_eq!(link.collision.is_empty(), frame_only, "{}: collision", link.name);
+        }
+        assert_eq!(robot.materials.len(), 3);
+        crate::kinematics::RobotModel::from_urdf_str(super::RPBP_URDF).unwrap();
+    }
+}

@@ -300,7 +300,8 @@ impl MotionLibrary {
     }
 
     /// Load, or on a malformed/unreadable file start empty (the node must still start) and keep the
-    /// file untouched until the next save moves it to `<path>.corrupt`. Returns the error for reporting.
+    /// file untouched until the next save moves it to the first free `<path>.corrupt`, `<path>.corrupt.1`, ….
+    /// Returns the error for reporting.
     pub fn load_or_empty(path: &Path, joints: &[String]) -> (Self, Option<LibraryError>) {
         match Self::load(path, joints) {
             Ok(library) => (library, None),
@@ -362,7 +363,7 @@ impl MotionLibrary {
     }
 
     /// Save atomically: write `<dir>/.<name>.tmp-<pid>`, fsync it, rename over the target, fsync the
-    /// directory. A corrupt file found at load time is first renamed to `<path>.corrupt`.
+    /// directory. A corrupt file found at load time is first renamed to the first free `<path>.corrupt[.N]`.
     pub fn save(&mut self) -> Result<(), LibraryError> {
         self.save_job()?.run()?;
         self.mark_saved();

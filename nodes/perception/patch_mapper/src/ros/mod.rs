@@ -8,7 +8,8 @@
 //! waits for the next input (`patchwalk_ros::wait`). The worker runs the pipeline at the sensor rate
 //! and publishes its outputs.
 //! Every bad input (wrong encoding or size, NaN/zero depth, missing CameraInfo, IMU gaps, out-of-order
-//! or duplicate stamps) is counted, logged once per period, and skipped — the node keeps running.
+//! or duplicate stamps, stamps far ahead of the node clock) is counted, logged once per period, and
+//! skipped — the node keeps running.
 
 mod convert;
 mod publish;

@@ -24,6 +24,17 @@ pub enum ConfigError {
     Parse { path: PathBuf, message: String },
     #[error("invalid config: {0}")]
     Invalid(String),
+    #[error("invalid config: {0}")]
+    Setting(#[from] InvalidSetting),
+}
+
+/// A configuration value outside its range: the dotted key, the rule it breaks and the value given.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{key}: {rule}, got {value}")]
+pub struct InvalidSetting {
+    pub key: &'static str,
+    pub rule: &'static str,
+    pub value: f64,
 }
 
 /// Top level of `config/step_executor.yaml`.
@@ -211,8 +222,8 @@ impl StepExecutorConfig {
         if self.bus.return_delay_us > 508 {
             return Err(ConfigError::Invalid("bus.return_delay_us: at most 508 (register 9 is 2 µs × 0..=254)".into()));
         }
-        self.matcher.validate().map_err(ConfigError::Invalid)?;
-        self.player.validate().map_err(ConfigError::Invalid)?;
+        self.matcher.validate()?;
+        self.player.validate()?;
         Ok(())
     }
 }

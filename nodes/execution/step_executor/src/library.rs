@@ -17,6 +17,56 @@ use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 /// Current schema version of the library file.
 pub const SCHEMA_VERSION: u32 = 1;
 
+/// The longest motion name, in bytes of UTF-8.
+pub const MAX_NAME_BYTES: usize = 128;
+
+/// Why a motion name is refused (the rule it breaks). Names are shown in logs, listings and
+/// terminals, so they must be short, visible text that displays as what it is.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NameError {
+    #[error("name must not be empty or whitespace only")]
+    Empty,
+    #[error("name must not start or end with whitespace")]
+    OuterWhitespace,
+    #[error("name is {bytes} bytes long; at most {MAX_NAME_BYTES} bytes are allowed")]
+    TooLong { bytes: usize },
+    #[error("name contains the control character U+{code:04X} at byte {at} (printable characters only)")]
+    Control { code: u32, at: usize },
+    #[error("name contains the bidirectional control character U+{code:04X} at byte {at} (it can make the name display as another)")]
+    Bidi { code: u32, at: usize },
+    #[error("name contains the invisible format character U+{code:04X} at byte {at} (printable characters only)")]
+    Invisible { code: u32, at: usize },
+}
+
+/// Checks a motion name: not empty, no surrounding whitespace, at most [`MAX_NAME_BYTES`], no control
+/// characters, no bidirectional embedding/override/isolate characters (U+202A–U+202E, U+2066–U+2069)
+/// and no other invisible format characters (zero-width spaces and joiners, marks, separators, BOM).
+pub fn validate_name(name: &str) -> Result<(), NameError> {
+    if name.trim().is_empty() {
+        return Err(NameError::Empty);
+    }
+    if name.len() > MAX_NAME_BYTES {
+        return Err(NameError::TooLong { bytes: name.len() });
+    }
+    for (at, ch) in name.char_indices() {
+        let code = u32::from(ch);
+        if ch.is_control() {
+            return Err(NameError::Control { code, at });
+        }
+        if matches!(ch, '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}' | '\u{200E}' | '\u{200F}' | '\u{061C}') {
+            return Err(NameError::Bidi { code, at });
+        }
+        if matches!(ch, '\u{00AD}' | '\u{180E}' | '\u{200B}'..='\u{200D}' | '\u{2028}' | '\u{2029}' | '\u{2060}'..='\u{2065}' | '\u{206A}'..='\u{206F}' | '\u{FEFF}' | '\u{FFF9}'..='\u{FFFB}')
+        {
+            return Err(NameError::Invisible { code, at });
+        }
+    }
+    if name.trim() != name {
+        return Err(NameError::OuterWhitespace);
+    }
+    Ok(())
+}
+
 /// One keyframe: joint positions (rad, library joint order), the time to move there from the previous
 /// keyframe, and a pause after arriving.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -119,15 +169,81 @@ pub struct SaveJob {
 }
 
 impl SaveJob {
-    /// Move a corrupt file aside (once), then write atomically.
+    /// Move a corrupt file aside (once, to the first free `<path>.corrupt`, `<path>.corrupt.1`, …, so
+    /// an earlier copy is never overwritten), then write atomically.
     pub fn run(&self) -> Result<(), LibraryError> {
         let io = |source| LibraryError::Io { path: self.path.clone(), source };
         if self.move_corrupt_aside && self.path.exists() {
-            let mut aside = self.path.clone().into_os_string();
-            aside.push(".corrupt");
-            std::fs::rename(&self.path, PathBuf::from(aside)).map_err(io)?;
+            std::fs::rename(&self.path, free_corrupt_path(&self.path).map_err(io)?).map_err(io)?;
         }
         write_atomically(&self.path, self.text.as_bytes()).map_err(io)
+    }
+}
+
+/// The most copies of corrupt files kept beside the library.
+const MAX_CORRUPT_COPIES: usize = 1000;
+
+/// The first of `<path>.corrupt`, `<path>.corrupt.1`, … that does not exist.
+fn free_corrupt_path(path: &Path) -> std::io::Result<PathBuf> {
+    for n in 0..MAX_CORRUPT_COPIES {
+        let mut aside = path.as_os_str().to_os_string();
+        aside.push(if n == 0 { ".corrupt".to_string() } else { format!(".corrupt.{n}") });
+        let aside = PathBuf::from(aside);
+        match std::fs::symlink_metadata(&aside) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(aside),
+            Err(e) => return Err(e),
+            Ok(_) => {}
+        }
+    }
+    Err(std::io::Error::other(format!("{MAX_CORRUPT_COPIES} corrupt copies are already kept beside the library; remove some")))
+}
+
+/// The temp file name [`write_atomically`] uses for `file_name` in process `pid`.
+fn temp_file_name(file_name: &std::ffi::OsStr, pid: u32) -> std::ffi::OsString {
+    let mut temp_name = std::ffi::OsString::from(".");
+    temp_name.push(file_name);
+    temp_name.push(format!(".tmp-{pid}"));
+    temp_name
+}
+
+/// Removes the temp files a crashed save left beside `path`: exactly `.<file name>.tmp-<pid>` for a
+/// `pid` that is this process or (where `/proc` lists processes) no running process, so a save in
+/// progress elsewhere is left alone. Returns the files removed.
+pub fn remove_stale_temp_files(path: &Path) -> Result<Vec<PathBuf>, LibraryError> {
+    let io = |source| LibraryError::Io { path: path.to_path_buf(), source };
+    // Library paths that are not UTF-8 are not cleaned (nothing else is touched either).
+    let Some(file_name) = path.file_name().and_then(|n| n.to_str()) else { return Ok(Vec::new()) };
+    let prefix = format!(".{file_name}.tmp-");
+    let dir = directory_of(path);
+    let entries = match std::fs::read_dir(&dir) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(io(e)),
+    };
+    let proc = Path::new("/proc");
+    let mut removed = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(io)?;
+        let name = entry.file_name();
+        let Some(digits) = name.to_str().and_then(|n| n.strip_prefix(prefix.as_str())) else { continue };
+        if !digits.bytes().all(|b| b.is_ascii_digit()) {
+            continue;
+        }
+        let Ok(pid) = digits.parse::<u32>() else { continue };
+        let running_elsewhere = pid != std::process::id() && proc.is_dir() && proc.join(pid.to_string()).exists();
+        if running_elsewhere || !entry.file_type().map_err(io)?.is_file() {
+            continue;
+        }
+        std::fs::remove_file(entry.path()).map_err(io)?;
+        removed.push(entry.path());
+    }
+    Ok(removed)
+}
+
+fn directory_of(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
+        _ => PathBuf::from("."),
     }
 }
 
@@ -144,6 +260,8 @@ pub enum LibraryError {
     NotFound(String),
     #[error("invalid motion {name:?}: {message}")]
     Invalid { name: String, message: String },
+    #[error(transparent)]
+    InvalidName(#[from] NameError),
     #[error("cannot serialise motion library: {0}")]
     Serialize(String),
 }
@@ -165,13 +283,15 @@ impl MotionLibrary {
     }
 
     /// Load `path`; a missing file is an empty library. The file's joint order must equal `joints`.
+    /// A UTF-8 byte order mark at the start (some editors write one) is skipped.
     pub fn load(path: &Path, joints: &[String]) -> Result<Self, LibraryError> {
         let text = match std::fs::read_to_string(path) {
             Ok(text) => text,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::new(path, joints.to_vec())),
             Err(source) => return Err(LibraryError::Io { path: path.to_path_buf(), source }),
         };
-        let file = parse_library(&text, joints).map_err(|(location, message)| LibraryError::Malformed {
+        let text = text.strip_prefix('\u{FEFF}').unwrap_or(&text);
+        let file = parse_library(text, joints).map_err(|(location, message)| LibraryError::Malformed {
             path: path.to_path_buf(),
             location,
             message,
@@ -180,7 +300,8 @@ impl MotionLibrary {
     }
 
     /// Load, or on a malformed/unreadable file start empty (the node must still start) and keep the
-    /// file untouched until the next save moves it to `<path>.corrupt`. Returns the error for reporting.
+    /// file untouched until the next save moves it to the first free `<path>.corrupt`, `<path>.corrupt.1`, ….
+    /// Returns the error for reporting.
     pub fn load_or_empty(path: &Path, joints: &[String]) -> (Self, Option<LibraryError>) {
         match Self::load(path, joints) {
             Ok(library) => (library, None),
@@ -212,8 +333,9 @@ impl MotionLibrary {
         self.motions.iter().map(|m| m.name.clone()).collect()
     }
 
-    /// Add a motion (validated); names are unique.
+    /// Add a motion (validated); names are unique and follow [`validate_name`].
     pub fn insert(&mut self, motion: Motion) -> Result<(), LibraryError> {
+        validate_name(&motion.name)?;
         if self.get(&motion.name).is_some() {
             return Err(LibraryError::Duplicate(motion.name));
         }
@@ -225,6 +347,7 @@ impl MotionLibrary {
 
     /// Remove a motion by name.
     pub fn remove(&mut self, name: &str) -> Result<Motion, LibraryError> {
+        validate_name(name)?;
         let index = self.motions.iter().position(|m| m.name == name).ok_or_else(|| LibraryError::NotFound(name.to_string()))?;
         Ok(self.motions.remove(index))
     }
@@ -240,7 +363,7 @@ impl MotionLibrary {
     }
 
     /// Save atomically: write `<dir>/.<name>.tmp-<pid>`, fsync it, rename over the target, fsync the
-    /// directory. A corrupt file found at load time is first renamed to `<path>.corrupt`.
+    /// directory. A corrupt file found at load time is first renamed to the first free `<path>.corrupt[.N]`.
     pub fn save(&mut self) -> Result<(), LibraryError> {
         self.save_job()?.run()?;
         self.mark_saved();
@@ -261,16 +384,10 @@ impl MotionLibrary {
 
 /// Atomic replace of `path` with `bytes` (temp + fsync + rename + directory fsync).
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = match path.parent() {
-        Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
+    let dir = directory_of(path);
     let file_name =
         path.file_name().ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "library path has no file name"))?;
-    let mut temp_name = std::ffi::OsString::from(".");
-    temp_name.push(file_name);
-    temp_name.push(format!(".tmp-{}", std::process::id()));
-    let temp_path = dir.join(temp_name);
+    let temp_path = dir.join(temp_file_name(file_name, std::process::id()));
     let result = (|| {
         let mut file = std::fs::File::create(&temp_path)?;
         file.write_all(bytes)?;
@@ -358,8 +475,8 @@ fn parse_motion(entry: &Value, index: usize, joint_count: usize) -> Result<Motio
 
 /// Check patch parameters, keyframe sizes, finiteness and durations; returns (field, message).
 fn validate_motion(motion: &Motion, joint_count: usize) -> Result<(), (String, String)> {
-    if motion.name.trim().is_empty() {
-        return Err(("name".into(), "must not be empty".into()));
+    if let Err(e) = validate_name(&motion.name) {
+        return Err(("name".into(), e.to_string()));
     }
     if motion.keyframes.is_empty() {
         return Err(("keyframes".into(), "at least one keyframe is required".into()));
@@ -562,5 +679,103 @@ mod tests {
         // Saving into a missing directory fails cleanly and leaves nothing behind.
         let mut orphan = MotionLibrary::new(&dir.path().join("no/such/dir/m.yaml"), joints());
         assert!(matches!(orphan.save(), Err(LibraryError::Io { .. })));
+    }
+
+    #[test]
+    fn a_file_starting_with_a_utf8_bom_loads() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("rock1")).unwrap();
+        std::fs::write(&path, format!("\u{FEFF}{}", library.to_yaml().unwrap())).unwrap();
+        assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["rock1"]);
+    }
+
+    #[test]
+    fn stale_temp_files_of_ours_are_removed_and_nothing_else() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("rock1")).unwrap();
+        library.save().unwrap();
+        // A pid no process has (above the kernel's pid_max of 2^22) and this process's own pid.
+        let dead = dir.path().join(".motions.yaml.tmp-4194999");
+        let own = dir.path().join(format!(".motions.yaml.tmp-{}", std::process::id()));
+        // Not ours: other names, a live process's save (pid 1), a non-numeric suffix, a directory.
+        let keep = [
+            dir.path().join(".other.yaml.tmp-4194999"),
+            dir.path().join("motions.yaml.tmp-4194999"),
+            dir.path().join(".motions.yaml.tmp-1"),
+            dir.path().join(".motions.yaml.tmp-12x"),
+            dir.path().join(".motions.yaml.tmp-"),
+            dir.path().join("notes.txt"),
+        ];
+        for file in keep.iter().chain([&dead, &own]) {
+            std::fs::write(file, "garbage: [").unwrap();
+        }
+        let as_dir = dir.path().join(".motions.yaml.tmp-4194998");
+        std::fs::create_dir(&as_dir).unwrap();
+        let mut removed = remove_stale_temp_files(&path).unwrap();
+        removed.sort();
+        let mut expected = vec![dead.clone(), own.clone()];
+        expected.sort();
+        assert_eq!(removed, expected);
+        assert!(!dead.exists() && !own.exists());
+        assert!(keep.iter().all(|f| f.exists()) && as_dir.is_dir() && path.exists());
+        assert_eq!(remove_stale_temp_files(&path).unwrap(), Vec::<PathBuf>::new());
+        // A library in a directory that does not exist (yet) has nothing to clean.
+        assert!(remove_stale_temp_files(&dir.path().join("no/such/m.yaml")).unwrap().is_empty());
+    }
+
+    #[test]
+    fn a_second_corrupt_file_does_not_overwrite_the_first_copy() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        for (round, garbage) in ["first: [", "second: [", "third: ["].into_iter().enumerate() {
+            std::fs::write(&path, garbage).unwrap();
+            let (mut library, err) = MotionLibrary::load_or_empty(&path, &joints());
+            assert!(err.is_some());
+            library.insert(motion(&format!("fresh{round}"))).unwrap();
+            library.save().unwrap();
+        }
+        let read = |name: &str| std::fs::read_to_string(dir.path().join(name)).unwrap();
+        assert_eq!(read("motions.yaml.corrupt"), "first: [");
+        assert_eq!(read("motions.yaml.corrupt.1"), "second: [");
+        assert_eq!(read("motions.yaml.corrupt.2"), "third: [");
+        assert_eq!(MotionLibrary::load(&path, &joints()).unwrap().names(), vec!["fresh2"]);
+    }
+
+    #[test]
+    fn motion_names_are_checked_naming_the_rule() {
+        assert!(validate_name("rock 1 (left) – Grüße").is_ok());
+        assert!(validate_name(&"x".repeat(MAX_NAME_BYTES)).is_ok());
+        assert_eq!(validate_name(""), Err(NameError::Empty));
+        assert_eq!(validate_name(" \t "), Err(NameError::Empty));
+        assert_eq!(validate_name(" rock"), Err(NameError::OuterWhitespace));
+        assert_eq!(validate_name(&"x".repeat(MAX_NAME_BYTES + 1)), Err(NameError::TooLong { bytes: 129 }));
+        // 43 three-byte characters: 129 bytes.
+        assert_eq!(validate_name(&"€".repeat(43)), Err(NameError::TooLong { bytes: 129 }));
+        assert_eq!(validate_name("ab\ncd"), Err(NameError::Control { code: 0x0A, at: 2 }));
+        assert_eq!(validate_name("a\u{7F}"), Err(NameError::Control { code: 0x7F, at: 1 }));
+        assert_eq!(validate_name("a\u{85}"), Err(NameError::Control { code: 0x85, at: 1 }));
+        for code in (0x202A..=0x202E).chain(0x2066..=0x2069) {
+            let name = format!("step{}evil", char::from_u32(code).unwrap());
+            assert_eq!(validate_name(&name), Err(NameError::Bidi { code, at: 4 }), "U+{code:04X}");
+        }
+        assert_eq!(validate_name("a\u{200B}b"), Err(NameError::Invisible { code: 0x200B, at: 1 }));
+        assert_eq!(validate_name("\u{FEFF}a"), Err(NameError::Invisible { code: 0xFEFF, at: 0 }));
+        let message = validate_name("step\u{202E}lave").unwrap_err().to_string();
+        assert!(message.contains("U+202E") && message.contains("bidirectional") && message.starts_with("name "), "{message}");
+        // The library applies the rules on insert and remove, and when loading a file.
+        let mut library = MotionLibrary::new(Path::new("x.yaml"), joints());
+        assert!(matches!(library.insert(motion("a\u{202E}b")), Err(LibraryError::InvalidName(NameError::Bidi { .. }))));
+        assert!(matches!(library.remove(""), Err(LibraryError::InvalidName(NameError::Empty))));
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motions.yaml");
+        let mut library = MotionLibrary::new(&path, joints());
+        library.insert(motion("rock1")).unwrap();
+        std::fs::write(&path, library.to_yaml().unwrap().replace("name: rock1", "name: \"rock\\u202E1\"")).unwrap();
+        let err = MotionLibrary::load(&path, &joints()).unwrap_err().to_string();
+        assert!(err.contains("motions[0]") && err.contains("bidirectional"), "{err}");
     }
 }

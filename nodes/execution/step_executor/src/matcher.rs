@@ -64,7 +64,7 @@ impl Default for MatcherConfig {
 
 impl MatcherConfig {
     /// All tolerances must be positive and finite.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::config::InvalidSetting> {
         for (name, value) in [
             ("matcher.boundary_tolerance_m", self.boundary_tolerance_m),
             ("matcher.curvature_tolerance_per_m", self.curvature_tolerance_per_m),
@@ -72,7 +72,7 @@ impl MatcherConfig {
             ("matcher.position_tolerance_m", self.position_tolerance_m),
         ] {
             if !(value.is_finite() && value > 0.0) {
-                return Err(format!("{name}: must be positive, got {value}"));
+                return Err(crate::config::InvalidSetting { key: name, rule: "must be positive", value });
             }
         }
         Ok(())

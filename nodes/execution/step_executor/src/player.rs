@@ -41,12 +41,13 @@ impl Default for PlayerConfig {
 }
 
 impl PlayerConfig {
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), crate::config::InvalidSetting> {
+        use crate::config::InvalidSetting;
         if !(self.cycle_ms.is_finite() && (1.0..=100.0).contains(&self.cycle_ms)) {
-            return Err(format!("player.cycle_ms: must be within 1..=100, got {}", self.cycle_ms));
+            return Err(InvalidSetting { key: "player.cycle_ms", rule: "must be within 1..=100", value: self.cycle_ms });
         }
         if !(self.limit_margin_rad.is_finite() && self.limit_margin_rad >= 0.0) {
-            return Err("player.limit_margin_rad: must be ≥ 0".into());
+            return Err(InvalidSetting { key: "player.limit_margin_rad", rule: "must be finite and ≥ 0", value: self.limit_margin_rad });
         }
         Ok(())
     }

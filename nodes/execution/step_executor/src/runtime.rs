@@ -12,13 +12,14 @@ use patchwalk_spl::fit::neighbourhood::fit_neighbourhood;
 use patchwalk_spl::transform::transform_patch;
 
 use crate::config::{StepExecutorConfig, TrainingFitConfig};
-use crate::executor::{initialise_bus, Executor, Telemetry};
-use crate::library::{Keyframe, LibraryError, Motion, MotionLibrary};
+use crate::executor::{initialise_bus, Executor, ExecutorError, Telemetry};
+use crate::library::{remove_stale_temp_files, validate_name, Keyframe, LibraryError, Motion, MotionLibrary, NameError};
 use crate::matcher::{MatchReport, Matcher};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::ServoBus;
-use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
+use patchwalk_robot_model::kinematics::{positions_by_name, KinematicsError, RobotModel};
+use patchwalk_spl::fit::neighbourhood::NeighbourhoodFitError;
 use patchwalk_spl::patch::Patch;
 
 /// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
@@ -58,8 +59,66 @@ pub struct MotionInfo {
     pub duration: f64,
 }
 
-/// Why arming and playing are refused while an e-stop is latched.
-const ESTOPPED: &str = "e-stopped: call reset_estop first (arming does not clear an e-stop)";
+/// Why a command of the node was refused or failed. Every variant leaves the runtime as it was
+/// (nothing half done), so the caller may correct the request and send it again.
+#[derive(Debug, thiserror::Error)]
+pub enum CommandError {
+    /// The servo bus did not open or did not answer at start (the reason is the bus's own).
+    #[error("servo bus not available: {0}")]
+    BusUnavailable(String),
+    /// Arming and playing are refused while an e-stop is latched.
+    #[error("e-stopped: call reset_estop first (arming does not clear an e-stop)")]
+    EStopped,
+    /// The bus thread refused or failed the command.
+    #[error(transparent)]
+    Executor(#[from] ExecutorError),
+    #[error(transparent)]
+    Library(#[from] LibraryError),
+    /// A motion name breaking one of [`validate_name`]'s rules.
+    #[error(transparent)]
+    InvalidName(#[from] NameError),
+    /// A request field out of its range (`field` is the request's field name).
+    #[error("invalid {field}: {reason}")]
+    InvalidArgument { field: &'static str, reason: String },
+    /// A recorded pose outside the URDF limits.
+    #[error("{joint} at {value:.3} rad is outside its limits [{lower:.3}, {upper:.3}]")]
+    OutsideLimits { joint: String, value: f64, lower: f64, upper: f64 },
+    #[error("no target patch selected (call select_target first)")]
+    NoTarget,
+    #[error("no keyframes recorded (call record_keyframe first)")]
+    NoKeyframes,
+    #[error("no patch map received yet (or it was empty)")]
+    NoPatches,
+    #[error("no patch map received yet (its camera pose places the cloud)")]
+    NoPatchMap,
+    #[error(transparent)]
+    Fit(#[from] FitError),
+    /// Forward kinematics at the measured joint positions.
+    #[error("robot model: {0}")]
+    Model(#[from] KinematicsError),
+}
+
+/// Why a training fit ([`FitJob::run`]) gave no patch.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    #[error("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)")]
+    NoCloud,
+    #[error("birds-eye cloud: {0}")]
+    BadCloud(String),
+    #[error("only {found} cloud points within {radius_m} m of the point (need {needed})")]
+    TooFewPoints { found: usize, radius_m: f64, needed: usize },
+    #[error("fit: {0}")]
+    Fit(#[from] NeighbourhoodFitError),
+    #[error("fit: the patch could not be moved to base_link")]
+    NotMovable,
+}
+
+fn invalid(field: &'static str, reason: String) -> CommandError {
+    CommandError::InvalidArgument { field, reason }
+}
+
+/// How a servo bus is opened: the bus, or why not (a reason shown to the user).
+pub type BusResult = Result<Box<dyn ServoBus>, Box<dyn std::error::Error + Send + Sync>>;
 
 /// The ROS-free node core.
 pub struct Runtime {
@@ -70,6 +129,7 @@ pub struct Runtime {
     library: MotionLibrary,
     matcher: Matcher,
     bus: Option<Executor>,
+    /// Why there is no bus (the bus's own reason).
     bus_error: Option<String>,
     // training
     target: Option<Patch>,
@@ -108,17 +168,12 @@ impl Runtime {
         let baud = config.bus.baud;
         let timeout = std::time::Duration::from_secs_f64(config.bus.response_timeout_ms / 1000.0);
         Self::with_bus(config, move || {
-            DynamixelBus::open(&port, baud)
-                .map(|bus| Box::new(bus.with_response_timeout(timeout)) as Box<dyn ServoBus>)
-                .map_err(|e| e.to_string())
+            DynamixelBus::open(&port, baud).map(|bus| Box::new(bus.with_response_timeout(timeout)) as Box<dyn ServoBus>).map_err(Into::into)
         })
     }
 
     /// Build with a given bus factory (tests: mock or simulated chain). Returns warnings to log.
-    pub fn with_bus(
-        config: StepExecutorConfig,
-        open_bus: impl FnOnce() -> Result<Box<dyn ServoBus>, String>,
-    ) -> Result<(Self, Vec<String>), RuntimeError> {
+    pub fn with_bus(config: StepExecutorConfig, open_bus: impl FnOnce() -> BusResult) -> Result<(Self, Vec<String>), RuntimeError> {
         let mut warnings = Vec::new();
         let model = match RobotModel::from_file(&config.urdf_path) {
             Ok(model) => model,
@@ -135,6 +190,10 @@ impl Runtime {
             let limits = model.joint_limits(&servo.joint)?.ok_or_else(|| RuntimeError::NoLimits(servo.joint.clone()))?;
             joint_specs.push(JointSpec { servo: servo.clone(), limits });
         }
+        match remove_stale_temp_files(&config.library_path) {
+            Ok(removed) => warnings.extend(removed.iter().map(|f| format!("removed {} left by an interrupted save", f.display()))),
+            Err(e) => warnings.push(format!("cannot clean temp files beside the library: {e}")),
+        }
         let (library, library_error) = MotionLibrary::load_or_empty(&config.library_path, &joint_names);
         if let Some(err) = library_error {
             warnings.push(format!("{err}; starting with an empty library (the file is kept and moved aside on the next save)"));
@@ -142,17 +201,17 @@ impl Runtime {
         let matcher = Matcher::new(config.matcher.clone(), library.motions().iter().map(|m| &m.patch));
         let player = Player::new(config.player.clone(), joint_specs.clone());
         let (bus, bus_error) = match open_bus() {
-            Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+            Err(e) => (None, Some(e.to_string())),
             Ok(mut bus) => match initialise_bus(bus.as_mut(), &player, &config.bus) {
-                Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+                Err(e) => (None, Some(e.to_string())),
                 Ok(()) => match Executor::spawn(bus, player, config.player.cycle()) {
                     Ok(executor) => (Some(executor), None),
-                    Err(e) => (None, Some(format!("servo bus not available: {e}"))),
+                    Err(e) => (None, Some(e.to_string())),
                 },
             },
         };
-        if let Some(e) = &bus_error {
-            warnings.push(e.clone());
+        if let Some(reason) = &bus_error {
+            warnings.push(CommandError::BusUnavailable(reason.clone()).to_string());
         }
         let n = joint_names.len();
         let runtime = Self {
@@ -202,8 +261,8 @@ impl Runtime {
         &self.config
     }
 
-    fn bus(&self) -> Result<&Executor, String> {
-        self.bus.as_ref().ok_or_else(|| self.bus_error.clone().unwrap_or_else(|| "servo bus not available".into()))
+    fn bus(&self) -> Result<&Executor, CommandError> {
+        self.bus.as_ref().ok_or_else(|| CommandError::BusUnavailable(self.bus_error.clone().unwrap_or_else(|| "not opened".into())))
     }
 
     /// Drain the bus thread's telemetry (call every loop iteration); returns it for /joint_states.
@@ -238,14 +297,14 @@ impl Runtime {
     }
 
     /// `base_from_camera` at the measured joint positions.
-    pub fn base_from_camera(&self) -> Result<Isometry3<f64>, String> {
-        self.model.base_from_camera(&self.positions_map()).map_err(|e| e.to_string())
+    pub fn base_from_camera(&self) -> Result<Isometry3<f64>, CommandError> {
+        Ok(self.model.base_from_camera(&self.positions_map())?)
     }
 
     /// A new patch map (patches in the map frame, `map_from_camera` at the map's stamp). Expresses
     /// the patches in `base_link`, matches them (J 6.3) and, when armed and idle, plays the match.
     /// Returns the match report.
-    pub fn on_patch_map(&mut self, patches_in_map: &[Patch], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, String> {
+    pub fn on_patch_map(&mut self, patches_in_map: &[Patch], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, CommandError> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
         self.latest_base_from_map = Some(base_from_map);
         self.latest_map_in_base = patches_in_map.iter().filter_map(|p| pose_in(&base_from_map, p)).collect();
@@ -268,17 +327,17 @@ impl Runtime {
         Ok(report)
     }
 
-    fn start(&mut self, motion: Motion) -> Result<(), String> {
+    fn start(&mut self, motion: Motion) -> Result<(), CommandError> {
         let name = motion.name.clone();
-        self.bus()?.play(motion).map_err(|e| e.to_string())?;
+        self.bus()?.play(motion)?;
         self.current_motion = name.clone();
         self.player_state = PlayerState::Playing { name };
         self.torque = true;
         Ok(())
     }
 
-    pub fn set_torque(&mut self, on: bool) -> Result<String, String> {
-        self.bus()?.set_torque(on).map_err(|e| e.to_string())?;
+    pub fn set_torque(&mut self, on: bool) -> Result<String, CommandError> {
+        self.bus()?.set_torque(on)?;
         self.torque = on;
         if !on {
             self.last_fault = None;
@@ -288,17 +347,21 @@ impl Runtime {
     }
 
     /// Append the present pose as a keyframe of the motion being trained.
-    pub fn record_keyframe(&mut self, move_s: f64, pause_s: f64) -> Result<(usize, Vec<f64>), String> {
-        if !(move_s.is_finite() && move_s >= 0.0 && pause_s.is_finite() && pause_s >= 0.0) {
-            return Err(format!("duration {move_s} and pause {pause_s} must be finite and ≥ 0"));
+    pub fn record_keyframe(&mut self, move_s: f64, pause_s: f64) -> Result<(usize, Vec<f64>), CommandError> {
+        for (field, value) in [("duration", move_s), ("pause", pause_s)] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(invalid(field, format!("{value} s must be finite and ≥ 0")));
+            }
         }
-        let positions = self.bus()?.positions().map_err(|e| e.to_string())?;
+        let positions = self.bus()?.positions()?;
         for (spec, q) in self.joint_specs.iter().zip(&positions) {
             if *q < spec.limits.lower || *q > spec.limits.upper {
-                return Err(format!(
-                    "{} at {q:.3} rad is outside its limits [{:.3}, {:.3}]",
-                    spec.servo.joint, spec.limits.lower, spec.limits.upper
-                ));
+                return Err(CommandError::OutsideLimits {
+                    joint: spec.servo.joint.clone(),
+                    value: *q,
+                    lower: spec.limits.lower,
+                    upper: spec.limits.upper,
+                });
             }
         }
         self.recorded.push(Keyframe { positions: positions.clone(), move_s, pause_s });
@@ -306,7 +369,8 @@ impl Runtime {
     }
 
     /// Select the training target: the patch of the latest map whose centre is nearest `point_in_base`.
-    pub fn select_nearest(&mut self, point_in_base: [f64; 3]) -> Result<Patch, String> {
+    pub fn select_nearest(&mut self, point_in_base: [f64; 3]) -> Result<Patch, CommandError> {
+        check_point(point_in_base)?;
         let point = Point3::from(point_in_base);
         let nearest = self
             .latest_map_in_base
@@ -317,7 +381,7 @@ impl Runtime {
                 da.total_cmp(&db)
             })
             .cloned()
-            .ok_or_else(|| "no patch map received yet (or it was empty)".to_string())?;
+            .ok_or(CommandError::NoPatches)?;
         self.target = Some(nearest.clone());
         Ok(nearest)
     }
@@ -327,7 +391,7 @@ impl Runtime {
     /// (`cloud_in_map`, in the latest patch map's frame; non-finite points are ignored) within
     /// `radius_m` of `point_in_base`, fitted with the patch core (IROS IV, type by discrimination),
     /// boundaries sized as the mapper sizes them so the target compares with mapped patches.
-    pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<Patch, String> {
+    pub fn select_fit(&mut self, cloud_in_map: &[Vector3<f64>], point_in_base: [f64; 3], radius_m: f64) -> Result<Patch, CommandError> {
         let patch = self.fit_job(point_in_base, radius_m)?.run(cloud_in_map)?;
         self.set_target(patch.clone());
         Ok(patch)
@@ -335,14 +399,12 @@ impl Runtime {
 
     /// [`Runtime::select_fit`] in parts, so that the fit can run on another thread: the checked
     /// request (the point, the radius, where the cloud's frame is, the fit's configuration).
-    pub fn fit_job(&self, point_in_base: [f64; 3], radius_m: f64) -> Result<FitJob, String> {
+    pub fn fit_job(&self, point_in_base: [f64; 3], radius_m: f64) -> Result<FitJob, CommandError> {
+        check_point(point_in_base)?;
         if !(radius_m.is_finite() && radius_m > 0.0 && radius_m <= 0.5) {
-            return Err(format!("radius {radius_m} m must be in (0, 0.5]"));
+            return Err(invalid("radius", format!("{radius_m} m must be in (0, 0.5]")));
         }
-        if point_in_base.iter().any(|v| !v.is_finite()) {
-            return Err("point must be finite".into());
-        }
-        let base_from_map = self.latest_base_from_map.ok_or("no patch map received yet (its camera pose places the cloud)")?;
+        let base_from_map = self.latest_base_from_map.ok_or(CommandError::NoPatchMap)?;
         Ok(FitJob { point_in_base, radius_m, base_from_map, config: self.config.training_fit.clone() })
     }
 
@@ -352,37 +414,39 @@ impl Runtime {
     }
 
     /// Save the trained motion (target + recorded keyframes) atomically under `name`.
-    pub fn save_motion(&mut self, name: &str) -> Result<String, String> {
+    pub fn save_motion(&mut self, name: &str) -> Result<String, CommandError> {
         let change = self.prepare_save(name)?;
-        change.write().map_err(|e| e.to_string())?;
+        change.write()?;
         Ok(self.commit(change))
     }
 
-    pub fn delete_motion(&mut self, name: &str) -> Result<String, String> {
+    pub fn delete_motion(&mut self, name: &str) -> Result<String, CommandError> {
         let change = self.prepare_delete(name)?;
-        change.write().map_err(|e| e.to_string())?;
+        change.write()?;
         Ok(self.commit(change))
     }
 
     /// The library with the trained motion added, ready to be written ([`LibraryChange::write`],
     /// on any thread) and then committed ([`Runtime::commit`]); nothing changes until then.
-    pub fn prepare_save(&self, name: &str) -> Result<LibraryChange, String> {
-        let patch = self.target.clone().ok_or("no target patch selected (call select_target first)")?;
+    pub fn prepare_save(&self, name: &str) -> Result<LibraryChange, CommandError> {
+        validate_name(name)?;
+        let patch = self.target.clone().ok_or(CommandError::NoTarget)?;
         if self.recorded.is_empty() {
-            return Err("no keyframes recorded (call record_keyframe first)".into());
+            return Err(CommandError::NoKeyframes);
         }
         let count = self.recorded.len();
         let motion = Motion { name: name.to_string(), patch, keyframes: self.recorded.clone() };
         let mut library = self.library.clone();
-        library.insert(motion).map_err(|e| e.to_string())?;
+        library.insert(motion)?;
         let message = format!("saved {name:?} ({count} keyframes) to {}", library.path().display());
         Ok(LibraryChange { library, trained: true, message })
     }
 
     /// The library without `name`, ready to be written and committed like [`Runtime::prepare_save`].
-    pub fn prepare_delete(&self, name: &str) -> Result<LibraryChange, String> {
+    pub fn prepare_delete(&self, name: &str) -> Result<LibraryChange, CommandError> {
+        validate_name(name)?;
         let mut library = self.library.clone();
-        library.remove(name).map_err(|e| e.to_string())?;
+        library.remove(name)?;
         Ok(LibraryChange { library, trained: false, message: format!("deleted {name:?}") })
     }
 
@@ -418,12 +482,13 @@ impl Runtime {
             .collect()
     }
 
-    pub fn play_motion(&mut self, name: &str) -> Result<String, String> {
+    pub fn play_motion(&mut self, name: &str) -> Result<String, CommandError> {
+        validate_name(name)?;
         self.bus()?;
         if self.estopped {
-            return Err(ESTOPPED.into());
+            return Err(CommandError::EStopped);
         }
-        let motion = self.library.get(name).cloned().ok_or_else(|| format!("no motion named {name:?}"))?;
+        let motion = self.library.get(name).cloned().ok_or_else(|| LibraryError::NotFound(name.to_string()))?;
         self.start(motion)?;
         Ok(format!("playing {name:?}"))
     }
@@ -451,9 +516,9 @@ impl Runtime {
     }
 
     /// Arm/disarm automatic execution. Arming is refused while an e-stop is latched.
-    pub fn arm(&mut self, on: bool) -> Result<String, String> {
+    pub fn arm(&mut self, on: bool) -> Result<String, CommandError> {
         if on && self.estopped {
-            return Err(ESTOPPED.into());
+            return Err(CommandError::EStopped);
         }
         self.armed = on;
         Ok(if on { "armed".into() } else { "disarmed".into() })
@@ -476,7 +541,7 @@ impl Runtime {
         };
         let (fault_servo_id, last_fault) = match (&self.last_fault, &self.bus_error) {
             (Some((id, text)), _) => (*id, text.clone()),
-            (None, Some(e)) => (0, e.clone()),
+            (None, Some(reason)) => (0, CommandError::BusUnavailable(reason.clone()).to_string()),
             (None, None) => (0, String::new()),
         };
         RuntimeStatus {
@@ -514,17 +579,17 @@ impl FitJob {
     /// the neighbourhood, sensor model, boundary sizing), in a virtual birds-eye camera 1 m above the
     /// point looking down (map z is up, REP-103), so the target compares with mapped patches under
     /// J 6.3's thresholds. The patch comes back in `base_link`.
-    pub fn run(&self, cloud_in_map: &[Vector3<f64>]) -> Result<Patch, String> {
+    pub fn run(&self, cloud_in_map: &[Vector3<f64>]) -> Result<Patch, FitError> {
         let (base_from_map, radius_m, config) = (&self.base_from_map, self.radius_m, &self.config);
         if cloud_in_map.is_empty() {
-            return Err("no birds-eye cloud received yet (is patch_mapper publishing ros.publish_birds_eye_cloud?)".into());
+            return Err(FitError::NoCloud);
         }
         let point_in_map = (base_from_map.inverse() * Point3::from(self.point_in_base)).coords;
         // NaN and infinite points fail the distance test.
         let points: Vec<Vector3<f64>> = cloud_in_map.iter().filter(|p| (*p - point_in_map).norm() <= radius_m).copied().collect();
         let min_points = config.min_points.max(1);
         if points.len() < min_points {
-            return Err(format!("only {} cloud points within {radius_m} m of the point (need {min_points})", points.len()));
+            return Err(FitError::TooFewPoints { found: points.len(), radius_m, needed: min_points });
         }
         let map_from_camera = Isometry3::from_parts(
             Translation3::from(point_in_map + Vector3::z()),
@@ -534,9 +599,8 @@ impl FitJob {
         let nf = config.fit_points.clamp(1, points_in_camera.len());
         let fit_points: Vec<Vector3<f64>> =
             (0..nf).filter_map(|i| points_in_camera.get(i * points_in_camera.len() / nf).copied()).collect();
-        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit).map_err(|e| format!("fit: {e}"))?;
-        transform_patch(&fitted_in_camera, &(base_from_map * map_from_camera))
-            .ok_or_else(|| "fit: the patch could not be moved to base_link".into())
+        let fitted_in_camera = fit_neighbourhood(&fit_points, &points_in_camera, &config.fit)?;
+        transform_patch(&fitted_in_camera, &(base_from_map * map_from_camera)).ok_or(FitError::NotMovable)
     }
 }
 
@@ -554,6 +618,14 @@ impl LibraryChange {
     pub fn write(&self) -> Result<(), LibraryError> {
         self.library.save_job()?.run()
     }
+}
+
+/// A request's point (m, `base_link`) must be finite: a NaN would be stored as a target nothing matches.
+fn check_point(point_in_base: [f64; 3]) -> Result<(), CommandError> {
+    if point_in_base.iter().any(|v| !v.is_finite()) {
+        return Err(invalid("point", format!("{point_in_base:?} must be finite")));
+    }
+    Ok(())
 }
 
 /// A map patch expressed in `base_link` for matching (J 6.3 compares parameters and poses, not
@@ -594,12 +666,12 @@ mod tests {
     fn select_fit_fits_the_cloud_around_a_point_in_base_link() {
         let dir = tempfile::tempdir().unwrap();
         let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no bus".into())).unwrap();
-        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no patch map"));
+        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().to_string().contains("no patch map"));
         // Any map frame: here the map is 1 m to the side and turned 30° about its up axis.
         let map_from_camera =
             Isometry3::new(Vector3::new(1.0, 0.5, 0.0), Vector3::z() * 0.5) * runtime.base_from_camera().unwrap().inverse();
         runtime.on_patch_map(&[], &map_from_camera).unwrap();
-        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().contains("no birds-eye cloud"));
+        assert!(runtime.select_fit(&[], [0.28, 0.0, -0.25], 0.05).unwrap_err().to_string().contains("no birds-eye cloud"));
         let base_from_map = runtime.base_from_camera().unwrap() * map_from_camera.inverse();
         let apex_in_base = Vector3::new(0.28, 0.0, -0.25);
         let kappa = 10.0;
@@ -618,10 +690,67 @@ mod tests {
         assert!((patch.center - apex_in_base).norm() < 0.003, "{patch:?}");
         assert!(patch.normal().z > 0.99, "{patch:?}");
         // Nothing there, or a nonsense radius: errors, and the target is kept.
-        assert!(runtime.select_fit(&cloud_in_map, [2.0, 0.0, -0.25], 0.05).unwrap_err().contains("only 0 cloud points"));
+        assert!(runtime.select_fit(&cloud_in_map, [2.0, 0.0, -0.25], 0.05).unwrap_err().to_string().contains("only 0 cloud points"));
         assert!(runtime.select_fit(&cloud_in_map, [0.28, 0.0, -0.25], 0.0).is_err());
         assert!(runtime.select_fit(&cloud_in_map, [f64::NAN, 0.0, -0.25], 0.05).is_err());
         assert_eq!(runtime.target.as_ref(), Some(&patch));
+    }
+
+    #[test]
+    fn commands_are_refused_with_typed_errors_naming_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no such port".into())).unwrap();
+        // A non-finite point is refused before anything is looked at, also with a map to pick from.
+        let patch = Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.03],
+            nalgebra::Vector2::zeros(),
+            Vector3::zeros(),
+            Vector3::new(0.0, 0.1, 0.4),
+        )
+        .unwrap();
+        assert!(matches!(runtime.select_nearest([0.0; 3]), Err(CommandError::NoPatches)));
+        runtime.on_patch_map(&[patch], &Isometry3::identity()).unwrap();
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let err = runtime.select_nearest([0.2, bad, 0.0]).unwrap_err();
+            assert!(matches!(err, CommandError::InvalidArgument { field: "point", .. }), "{err:?}");
+            assert!(err.to_string().contains("finite"), "{err}");
+            assert!(matches!(runtime.fit_job([bad, 0.0, 0.0], 0.05), Err(CommandError::InvalidArgument { field: "point", .. })));
+        }
+        assert!(runtime.target.is_none(), "no target stored at a non-finite point");
+        assert!(runtime.select_nearest([0.0; 3]).is_ok());
+        assert!(matches!(runtime.fit_job([0.0; 3], 0.6), Err(CommandError::InvalidArgument { field: "radius", .. })));
+        for (duration, pause, field) in [(f64::NAN, 0.0, "duration"), (-1.0, 0.0, "duration"), (1.0, f64::INFINITY, "pause")] {
+            let err = runtime.record_keyframe(duration, pause).unwrap_err();
+            assert!(matches!(err, CommandError::InvalidArgument { field: f, .. } if f == field), "{err:?}");
+        }
+        // Names: the rule is named, before the state (no target, no bus) is looked at.
+        for name in ["", "a\u{202E}b", "a\nb"] {
+            assert!(matches!(runtime.prepare_save(name), Err(CommandError::InvalidName(_))), "{name:?}");
+            assert!(matches!(runtime.prepare_delete(name), Err(CommandError::InvalidName(_))), "{name:?}");
+            assert!(matches!(runtime.play_motion(name), Err(CommandError::InvalidName(_))), "{name:?}");
+        }
+        assert!(matches!(runtime.prepare_save("ok"), Err(CommandError::NoKeyframes)));
+        runtime.target = None;
+        assert!(matches!(runtime.prepare_save("ok"), Err(CommandError::NoTarget)));
+        assert!(matches!(runtime.prepare_delete("ok"), Err(CommandError::Library(LibraryError::NotFound(_)))));
+        assert!(matches!(runtime.play_motion("ok"), Err(CommandError::BusUnavailable(reason)) if reason == "no such port"));
+        runtime.stop();
+        assert!(matches!(runtime.arm(true), Err(CommandError::EStopped)));
+        assert!(runtime.arm(false).is_ok());
+    }
+
+    #[test]
+    fn stale_temp_files_beside_the_library_are_removed_at_start() {
+        let dir = tempfile::tempdir().unwrap();
+        let stale = dir.path().join(".motions.yaml.tmp-4194999");
+        let other = dir.path().join(".other.yaml.tmp-4194999");
+        std::fs::write(&stale, "garbage: [").unwrap();
+        std::fs::write(&other, "garbage: [").unwrap();
+        let (_runtime, warnings) = Runtime::with_bus(config(dir.path()), || Err("no bus".into())).unwrap();
+        assert!(!stale.exists() && other.exists());
+        assert!(warnings.iter().any(|w| w.contains(".motions.yaml.tmp-4194999") && w.contains("interrupted save")), "{warnings:?}");
     }
 
     #[test]
@@ -639,8 +768,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (mut runtime, warnings) = Runtime::with_bus(config(dir.path()), || Err("no such port".into())).unwrap();
         assert!(warnings.iter().any(|w| w.contains("servo bus not available")));
-        assert!(runtime.play_motion("x").unwrap_err().contains("not available"));
-        assert!(runtime.record_keyframe(1.0, 0.0).unwrap_err().contains("not available"));
+        assert!(runtime.play_motion("x").unwrap_err().to_string().contains("not available"));
+        assert!(runtime.record_keyframe(1.0, 0.0).unwrap_err().to_string().contains("not available"));
         assert!(runtime.status().last_fault.contains("not available"));
     }
 
@@ -710,8 +839,8 @@ mod tests {
         // E-stop latches: play and arming are refused until reset_estop, which does not arm.
         runtime.stop();
         assert_eq!(runtime.status().state, RunState::EStopped);
-        assert!(runtime.play_motion("rock1").unwrap_err().contains("reset_estop"));
-        assert!(runtime.arm(true).unwrap_err().contains("reset_estop"));
+        assert!(runtime.play_motion("rock1").unwrap_err().to_string().contains("reset_estop"));
+        assert!(runtime.arm(true).unwrap_err().to_string().contains("reset_estop"));
         assert_eq!(runtime.status().state, RunState::EStopped);
         runtime.reset_estop();
         assert_eq!(runtime.status().state, RunState::Idle);

@@ -105,6 +105,14 @@ pub enum PipelineError {
     TooFewValid { valid: usize, total: usize },
     #[error("non-finite timestamp {0}")]
     BadStamp(f64),
+    #[error(
+        "{input} stamp {stamp:.6} s is {ahead:.3} s ahead of the node clock ({now:.6} s); at most {max_future_s} s allowed (ros.max_stamp_skew_s.future)"
+    )]
+    FutureStamp { input: &'static str, stamp: f64, now: f64, ahead: f64, max_future_s: f64 },
+    #[error(
+        "{input} stamp {stamp:.6} s is {behind:.3} s behind the node clock ({now:.6} s); at most {max_past_s} s allowed (ros.max_stamp_skew_s.past)"
+    )]
+    PastStamp { input: &'static str, stamp: f64, now: f64, behind: f64, max_past_s: f64 },
     #[error(transparent)]
     Gravity(#[from] AcquireError),
     #[error(transparent)]
@@ -113,6 +121,59 @@ pub enum PipelineError {
     Mapper(#[from] MapperError),
     #[error("invalid pipeline configuration: {0}")]
     Config(String),
+}
+
+/// The plausible stamps of an input around the clock of the node that receives it
+/// (`ros.max_stamp_skew_s` in config/patch_mapper.yaml).
+///
+/// The pipeline orders frames and IMU samples by their stamps, so one stamp far in the future would
+/// make every later, correctly stamped input look out of order; such stamps are refused where the
+/// input enters. The future bound is small (a clock offset between hosts, transport delay). The past
+/// bound is unlimited by default: an old stamp cannot hold later inputs back (the next newer input is
+/// used), and recorded data replayed with its own stamps (bags, datasets) or a simulator's clock
+/// starting at 0 is legitimately far behind the wall clock. A robot with synchronised clocks may set
+/// it (e.g. 3600 s) to refuse stale input.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StampWindow {
+    /// Stamps more than this (s) ahead of the node clock are refused.
+    pub future: f64,
+    /// Stamps more than this (s) behind the node clock are refused (`.inf`: none).
+    pub past: f64,
+}
+
+impl Default for StampWindow {
+    fn default() -> Self {
+        Self { future: 10.0, past: f64::INFINITY }
+    }
+}
+
+impl StampWindow {
+    /// Checks the bounds themselves (non-negative; the past bound may be infinite).
+    pub fn validate(&self) -> Result<(), PipelineError> {
+        if !(self.future.is_finite() && self.future >= 0.0 && self.past >= 0.0) {
+            return Err(PipelineError::Config(format!(
+                "max_stamp_skew_s: future must be finite and >= 0, past >= 0 (got future {}, past {})",
+                self.future, self.past
+            )));
+        }
+        Ok(())
+    }
+
+    /// Whether `stamp` (s) of an input (`input`: "depth", "IMU") is plausible at the node clock `now` (s).
+    pub fn check(&self, input: &'static str, stamp: f64, now: f64) -> Result<(), PipelineError> {
+        if !stamp.is_finite() {
+            return Err(PipelineError::BadStamp(stamp));
+        }
+        let ahead = stamp - now;
+        if ahead > self.future {
+            return Err(PipelineError::FutureStamp { input, stamp, now, ahead, max_future_s: self.future });
+        }
+        if -ahead > self.past {
+            return Err(PipelineError::PastStamp { input, stamp, now, behind: -ahead, max_past_s: self.past });
+        }
+        Ok(())
+    }
 }
 
 /// Wall time of each stage of one frame (ms), in pipeline order.
@@ -253,12 +314,25 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Forgets the volume, the patch map and the stamp order (the IMU buffer is kept). The next frame
+    /// Forgets the volume, the patch map and every piece of time state: the depth stamp order and the
+    /// buffered IMU samples (whose order the next sample is checked against). Whether an IMU has been
+    /// heard is kept, so a frame after the reset waits for gravity instead of guessing it. The next frame
     /// re-initialises the volume at the camera (J 5.2 reset).
     pub fn reset(&mut self) {
         self.tracker.reset();
         self.mapper.map.retain(|_| false);
         self.last_stamp = None;
+        self.imu.clear();
+    }
+
+    /// The stamp of the last processed frame (s), `None` after a reset.
+    pub fn last_stamp(&self) -> Option<f64> {
+        self.last_stamp
+    }
+
+    /// The number of buffered accelerometer samples.
+    pub fn imu_samples(&self) -> usize {
+        self.imu.len()
     }
 
     /// One depth frame (metres, stamp in s) through the whole pipeline.
@@ -568,10 +642,12 @@ mod tests {
         pipeline.push_imu(t0 + 0.02, g).unwrap();
         let second = pipeline.process(&depth, t0 + 0.03).unwrap();
         assert_eq!(second.tracking, TrackingStatus::Tracked);
-        // Reset: empty map, the stamp order starts over, the volume is re-initialised.
+        // Reset: empty map, the stamp order of frames and IMU samples starts over, the volume is
+        // re-initialised.
         pipeline.reset();
         assert!(pipeline.map().is_empty());
         assert_eq!(new().map().len(), 0);
+        pipeline.push_imu(t0 - 0.01, g).unwrap();
         let again = pipeline.process(&depth, t0).unwrap();
         assert_eq!(again.tracking, TrackingStatus::Initialized);
         // Mismatched volume edges are a configuration error.
@@ -580,5 +656,59 @@ mod tests {
             Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics),
             Err(PipelineError::Config(_))
         ));
+    }
+
+    #[test]
+    fn reset_clears_every_piece_of_time_state() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let (depth, down) = robot_scene(&intrinsics);
+        let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
+        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        let g = -down * 9.81;
+        // A frame and an IMU sample stamped 2^31 - 2 s (e.g. a sensor clock gone wrong) are used...
+        let far = f64::from(i32::MAX) - 1.0;
+        pipeline.push_imu(far, g).unwrap();
+        pipeline.process(&depth, far).unwrap();
+        assert_eq!(pipeline.last_stamp(), Some(far));
+        // ... and every correctly stamped input after them looks out of order.
+        let t0 = 1_700_000_000.0;
+        assert!(matches!(pipeline.push_imu(t0, g), Err(PipelineError::ImuStampOrder { .. })));
+        assert!(matches!(pipeline.process(&depth, t0), Err(PipelineError::StampOrder { .. })));
+        // Reset forgets the stamp order of both the frames and the IMU.
+        pipeline.reset();
+        assert_eq!((pipeline.last_stamp(), pipeline.imu_samples()), (None, 0));
+        // The IMU has been heard: without a sample near the stamp the frame waits for one.
+        assert!(matches!(pipeline.process(&depth, t0), Err(PipelineError::ImuGap { .. })));
+        pipeline.push_imu(t0 - 0.005, g).unwrap();
+        assert_eq!(pipeline.process(&depth, t0).unwrap().tracking, TrackingStatus::Initialized);
+        pipeline.push_imu(t0 + 0.03, g).unwrap();
+        assert_eq!(pipeline.process(&depth, t0 + 0.033).unwrap().tracking, TrackingStatus::Tracked);
+    }
+
+    #[test]
+    fn stamps_outside_the_window_around_the_node_clock_are_refused() {
+        let window = StampWindow::default();
+        window.validate().unwrap();
+        let now = 1_700_000_000.0;
+        window.check("depth", now, now).unwrap();
+        window.check("depth", now + 9.5, now).unwrap();
+        // Recorded or simulated stamps far behind the clock are accepted by default.
+        window.check("depth", 1_305_031_102.0, now).unwrap();
+        window.check("IMU", 0.5, now).unwrap();
+        let future = window.check("IMU", f64::from(i32::MAX), now).unwrap_err();
+        assert!(matches!(future, PipelineError::FutureStamp { input: "IMU", max_future_s, .. } if max_future_s == 10.0), "{future:?}");
+        assert!(future.to_string().contains("ahead of the node clock"), "{future}");
+        assert!(future.to_string().contains("ros.max_stamp_skew_s.future"), "{future}");
+        assert!(matches!(window.check("depth", f64::NAN, now), Err(PipelineError::BadStamp(_))));
+        // A bounded past.
+        let strict = StampWindow { future: 1.0, past: 3600.0 };
+        strict.check("depth", now - 3599.0, now).unwrap();
+        let past = strict.check("depth", now - 3601.0, now).unwrap_err();
+        assert!(matches!(past, PipelineError::PastStamp { input: "depth", .. }), "{past:?}");
+        assert!(matches!(strict.check("depth", now + 1.5, now), Err(PipelineError::FutureStamp { .. })));
+        // Nonsense bounds are a configuration error.
+        assert!(StampWindow { future: f64::INFINITY, past: 1.0 }.validate().is_err());
+        assert!(StampWindow { future: -1.0, past: 1.0 }.validate().is_err());
+        assert!(StampWindow { future: 1.0, past: f64::NAN }.validate().is_err());
     }
 }

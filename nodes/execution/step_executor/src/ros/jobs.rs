@@ -10,7 +10,8 @@ use crossbeam_channel::{Receiver, Sender};
 use patchwalk_msgs::sensor_msgs::msg::PointCloud2;
 use patchwalk_spl::patch::Patch;
 use ros2_client::service::RmwRequestId;
-use step_executor::runtime::{FitJob, LibraryChange};
+use step_executor::library::LibraryError;
+use step_executor::runtime::{FitError, FitJob, LibraryChange};
 
 use super::convert;
 
@@ -24,9 +25,14 @@ pub enum Job {
 
 /// A finished job, to be answered by the loop.
 pub enum Finished {
-    Fit { request_id: RmwRequestId, result: Result<Patch, String> },
-    Write { request_id: RmwRequestId, save: bool, name: String, change: LibraryChange, result: Result<(), String> },
+    Fit { request_id: RmwRequestId, result: Result<Patch, FitError> },
+    Write { request_id: RmwRequestId, save: bool, name: String, change: LibraryChange, result: Result<(), LibraryError> },
 }
+
+/// The worker thread is gone (it ends only when the node shuts down or a job panicked).
+#[derive(Debug, thiserror::Error)]
+#[error("the job worker has stopped")]
+pub struct WorkerStopped;
 
 /// The worker thread and its channels.
 pub struct Jobs {
@@ -44,13 +50,11 @@ impl Jobs {
             for job in jobs {
                 let result = match job {
                     Job::Fit { request_id, job, cloud } => {
-                        let result = convert::points_from_cloud(&cloud)
-                            .map_err(|e| format!("birds-eye cloud: {e}"))
-                            .and_then(|points| job.run(&points));
+                        let result = convert::points_from_cloud(&cloud).map_err(FitError::BadCloud).and_then(|points| job.run(&points));
                         Finished::Fit { request_id, result }
                     }
                     Job::Write { request_id, save, name, change } => {
-                        let result = change.write().map_err(|e| e.to_string());
+                        let result = change.write();
                         Finished::Write { request_id, save, name, change, result }
                     }
                 };
@@ -64,8 +68,8 @@ impl Jobs {
     }
 
     /// Queue a job (it runs after the ones before it).
-    pub fn submit(&self, job: Job) -> Result<(), String> {
-        self.submit.as_ref().ok_or("the job worker has stopped")?.send(job).map_err(|_| "the job worker has stopped".to_string())
+    pub fn submit(&self, job: Job) -> Result<(), WorkerStopped> {
+        self.submit.as_ref().ok_or(WorkerStopped)?.send(job).map_err(|_| WorkerStopped)
     }
 
     /// Jobs finished since the last call.

@@ -29,7 +29,7 @@ use patchwalk_ros::patch_msg;
 use patchwalk_ros::wait::Wakeup;
 use patchwalk_spl::patch::Patch;
 use ros2_client::service::RmwRequestId;
-use step_executor::runtime::{FitJob, LibraryChange, RunState, Runtime};
+use step_executor::runtime::{CommandError, FitJob, LibraryChange, RunState, Runtime};
 
 use jobs::{Finished, Job, Jobs};
 
@@ -176,34 +176,40 @@ impl Executor {
         let p = &request.point;
         let point = [p.x, p.y, p.z];
         let selected = match request.mode {
-            srv::SelectTargetRequest::MODE_NEAREST_POINT => self.runtime.select_nearest(point),
+            srv::SelectTargetRequest::MODE_NEAREST_POINT => self.runtime.select_nearest(point).map_err(|e| e.to_string()),
             srv::SelectTargetRequest::MODE_FIT_AT_POINT => {
-                let started = match (&self.latest_cloud, self.jobs_pending.fit) {
-                    (_, true) => Err("a fit is in progress; call again when it is answered".to_string()),
-                    (None, _) => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
-                    (Some(cloud), false) => self.runtime.fit_job(point, request.radius).map(|job| Later::Fit(job, Arc::clone(cloud))),
+                // The request is checked before the node's state: a bad point is named as such.
+                let started = match (self.runtime.fit_job(point, request.radius), &self.latest_cloud, self.jobs_pending.fit) {
+                    (Err(e), _, _) => Err(e.to_string()),
+                    (Ok(_), _, true) => Err("a fit is in progress; call again when it is answered".to_string()),
+                    (Ok(_), None, _) => Err(format!("no birds-eye cloud received on {CLOUD_TOPIC} yet")),
+                    (Ok(job), Some(cloud), false) => Ok(Later::Fit(job, Arc::clone(cloud))),
                 };
                 return match started {
                     Ok(later) => Handled::Later(Box::new(later)),
                     Err(e) => Handled::Answer(select_target_response(Err(e))),
                 };
             }
-            mode => Err(format!("unknown mode {mode} (0 = nearest point, 1 = fit at point)")),
+            mode => Err(CommandError::InvalidArgument {
+                field: "mode",
+                reason: format!("{mode} is unknown (0 = nearest point, 1 = fit at point)"),
+            }
+            .to_string()),
         };
         Handled::Answer(select_target_response(selected))
     }
 
     /// `save_motion`: the new library is prepared now and written by a job.
     fn save_motion(&mut self, request: srv::SaveMotionRequest) -> Handled<srv::SaveMotionResponse> {
-        let failed = |e: String| {
+        let failed = |e: &dyn std::fmt::Display| {
             Handled::Answer(srv::SaveMotionResponse { success: false, message: format!("save_motion({:?}): {e}", request.name) })
         };
         if let Some(busy) = self.jobs_pending.library_busy() {
-            return failed(busy.into());
+            return failed(&busy);
         }
         match self.runtime.prepare_save(&request.name) {
             Ok(change) => Handled::Later(Box::new(Later::Write { save: true, name: request.name.clone(), change })),
-            Err(e) => failed(e),
+            Err(e) => failed(&e),
         }
     }
 
@@ -231,7 +237,7 @@ impl Executor {
         }
         match self.runtime.prepare_delete(&request.name) {
             Ok(change) => Handled::Later(Box::new(Later::Write { save: false, name: request.name.clone(), change })),
-            Err(e) => failed(e),
+            Err(e) => failed(format!("delete_motion({:?}): {e}", request.name)),
         }
     }
 
@@ -243,7 +249,7 @@ impl Executor {
                 if let Ok(patch) = &result {
                     self.runtime.set_target(patch.clone());
                 }
-                FinishedAnswer::SelectTarget(request_id, Box::new(select_target_response(result)))
+                FinishedAnswer::SelectTarget(request_id, Box::new(select_target_response(result.map_err(|e| e.to_string()))))
             }
             Finished::Write { request_id, save, name, change, result } => {
                 self.jobs_pending.write = false;
@@ -617,6 +623,41 @@ mod tests {
         let response = executor.select_target(srv::SelectTargetRequest::default()).answer();
         assert!(response.success, "{}", response.message);
         assert_eq!(response.patch.surface, patchwalk_msgs::msg::Patch::PLANE);
+    }
+
+    #[test]
+    fn non_finite_points_and_camera_poses_are_refused() {
+        let (mut executor, _dir) = without_bus();
+        let patch = patchwalk_spl::patch::Patch::new(
+            patchwalk_spl::patch::SurfaceType::Plane,
+            patchwalk_spl::patch::BoundaryType::Circle,
+            vec![0.03],
+            nalgebra::Vector2::zeros(),
+            nalgebra::Vector3::zeros(),
+            nalgebra::Vector3::new(0.0, 0.1, 0.4),
+        )
+        .unwrap();
+        let map =
+            PatchArray { patches: vec![patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default())], ..Default::default() };
+        executor.on_patches(map.clone());
+        for mode in [srv::SelectTargetRequest::MODE_NEAREST_POINT, srv::SelectTargetRequest::MODE_FIT_AT_POINT] {
+            for bad in [f64::NAN, f64::INFINITY] {
+                let mut request = srv::SelectTargetRequest { mode, radius: 0.05, ..Default::default() };
+                request.point.y = bad;
+                let response = executor.select_target(request).answer();
+                assert!(!response.success, "mode {mode}: {}", response.message);
+                assert!(response.message.contains("invalid point") && response.message.contains("finite"), "{}", response.message);
+            }
+        }
+        let response = executor.select_target(srv::SelectTargetRequest { mode: 7, ..Default::default() }).answer();
+        assert!(!response.success && response.message.contains("invalid mode"), "{}", response.message);
+        // A map whose camera pose is not finite is ignored as a whole: the previous map stays.
+        let mut nan_pose = PatchArray { patches: Vec::new(), ..map };
+        nan_pose.camera_pose.position.x = f64::NAN;
+        executor.on_patches(nan_pose);
+        assert_eq!(executor.maps_received, 2);
+        let response = executor.select_target(srv::SelectTargetRequest::default()).answer();
+        assert!(response.success, "{}", response.message);
     }
 
     #[test]

@@ -8,7 +8,8 @@
 //! waits for the next input (`patchwalk_ros::wait`). The worker runs the pipeline at the sensor rate
 //! and publishes its outputs.
 //! Every bad input (wrong encoding or size, NaN/zero depth, missing CameraInfo, IMU gaps, out-of-order
-//! or duplicate stamps) is counted, logged once per period, and skipped — the node keeps running.
+//! or duplicate stamps, stamps far ahead of the node clock) is counted, logged once per period, and
+//! skipped — the node keeps running.
 
 mod convert;
 mod publish;
@@ -30,7 +31,7 @@ use serde::{Deserialize, Serialize};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_mapping::mapper::MapperConfig;
-use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, MAP_FRAME};
+use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, StampWindow, MAP_FRAME};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
@@ -116,6 +117,9 @@ pub struct MapperRosParams {
     pub publish_birds_eye_cloud: bool,
     /// Publish RViz markers on /patch_mapper/markers.
     pub publish_markers: bool,
+    /// Depth and IMU stamps farther than this from the node clock are refused where they enter
+    /// ([`StampWindow`]: 10 s into the future, any age by default, so bags and simulators work).
+    pub max_stamp_skew_s: StampWindow,
 }
 
 impl Default for MapperRosParams {
@@ -128,6 +132,7 @@ impl Default for MapperRosParams {
             log_period_s: 2.0,
             publish_birds_eye_cloud: true,
             publish_markers: true,
+            max_stamp_skew_s: StampWindow::default(),
         }
     }
 }
@@ -169,11 +174,31 @@ struct State {
     /// The ROS loop's own end of the job queue, to replace a waiting frame by a newer one.
     stale_jobs: Receiver<DepthJob>,
     imu: Sender<WorkerInput>,
+    stamp_window: StampWindow,
 }
 
 impl State {
-    fn new(status: SharedStatus, jobs: Sender<DepthJob>, stale_jobs: Receiver<DepthJob>, imu: Sender<WorkerInput>) -> Self {
-        Self { status, intrinsics: None, jobs, stale_jobs, imu }
+    fn new(
+        status: SharedStatus,
+        jobs: Sender<DepthJob>,
+        stale_jobs: Receiver<DepthJob>,
+        imu: Sender<WorkerInput>,
+        stamp_window: StampWindow,
+    ) -> Self {
+        Self { status, intrinsics: None, jobs, stale_jobs, imu, stamp_window }
+    }
+
+    /// Whether a message stamp is within [`StampWindow`] of the node clock; a refusal is reported once
+    /// per period for each input (`key`).
+    fn stamp_plausible(&mut self, log: &mut RateLimitedLog, key: &str, input: &'static str, stamp: &Time) -> bool {
+        let now = publish::seconds_from_time(&node::now_stamp());
+        match self.stamp_window.check(input, publish::seconds_from_time(stamp), now) {
+            Ok(()) => true,
+            Err(e) => {
+                self.fail(log, key, format!("{input} message rejected: {e}"));
+                false
+            }
+        }
     }
 
     fn count(&self, update: impl FnOnce(&mut MapperStatus)) {
@@ -209,6 +234,10 @@ impl State {
         }
         // An unset stamp (0) means "now" (publishers that do not stamp their images).
         let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
+        if !self.stamp_plausible(log, "depth_stamp", "depth", &stamp) {
+            self.count(|s| s.frames_rejected += 1);
+            return;
+        }
         let job = DepthJob { depth, intrinsics, stamp, received };
         if let Err(TrySendError::Full(job)) = self.jobs.try_send(job) {
             // Keep-latest: the waiting frame is dropped for the newer one.
@@ -235,6 +264,9 @@ impl State {
         let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
         if !acceleration_in_imu.iter().all(|v| v.is_finite()) {
             self.fail(log, "imu", format!("IMU sample rejected: non-finite acceleration {acceleration_in_imu:?}"));
+            return;
+        }
+        if !self.stamp_plausible(log, "imu_stamp", "IMU", &stamp) {
             return;
         }
         let _ = self.imu.send(WorkerInput::Imu { stamp: publish::seconds_from_time(&stamp), acceleration_in_imu });
@@ -294,9 +326,12 @@ impl Worker {
         while !stop.load(Ordering::Relaxed) {
             let job = jobs.recv_timeout(Duration::from_millis(50));
             if let Some(mark) = self.reset_request.lock().ok().and_then(|mut r| r.take()) {
+                // Every piece of time state goes: the pipeline's stamp order and IMU buffer, and the
+                // samples kept for a pipeline built later.
                 if let Some(pipeline) = self.pipeline.as_mut() {
                     pipeline.reset();
                 }
+                self.recent_imu.clear();
                 self.last_reset = Some(mark);
                 with_status(&self.status, |s| s.patches_in_map = 0);
             }
@@ -417,6 +452,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
     let log_period = Duration::try_from_secs_f64(params.log_period_s)
         .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
+    params.max_stamp_skew_s.validate().context("invalid ros.max_stamp_skew_s")?;
     // Check the pipeline sections now, so a bad config fails at start and not at the first frame.
     Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), Intrinsics::primesense_default())
         .context("invalid pipeline/tracker/mapper configuration")?;
@@ -449,7 +485,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Two logs so the middleware's and the messages' warnings are limited independently.
     let mut dds_log = RateLimitedLog::new(log_period);
     let mut log = RateLimitedLog::new(log_period);
-    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx);
+    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s);
     let mut next_status = Instant::now();
     tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
 
@@ -514,7 +550,7 @@ mod tests {
     fn state() -> (State, Receiver<DepthJob>, Receiver<WorkerInput>) {
         let (jobs, job_rx) = crossbeam_channel::bounded(1);
         let (imu, imu_rx) = crossbeam_channel::unbounded();
-        (State::new(SharedStatus::default(), jobs, job_rx.clone(), imu), job_rx, imu_rx)
+        (State::new(SharedStatus::default(), jobs, job_rx.clone(), imu, StampWindow::default()), job_rx, imu_rx)
     }
 
     #[test]
@@ -563,5 +599,36 @@ mod tests {
         state.on_imu(&msg, &mut log);
         assert!(imu.try_recv().is_err());
         assert_eq!(state.status.lock().unwrap().imu_received, 2);
+    }
+
+    #[test]
+    fn stamps_far_ahead_of_the_node_clock_are_refused_where_they_enter() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        let (mut state, jobs, imu) = state();
+        let far = Time { sec: i32::MAX, nanosec: 0 };
+        let mut sample = Imu::default();
+        sample.header.stamp = far.clone();
+        sample.linear_acceleration.z = 9.81;
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_err());
+        assert!(state.status.lock().unwrap().last_error.contains("ahead of the node clock"));
+        let mut info = CameraInfo { width: 2, height: 1, ..Default::default() };
+        info.k = [1.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        state.on_camera_info(&info, &mut log);
+        let mut depth =
+            Image { encoding: "16UC1".into(), width: 2, height: 1, step: 4, data: vec![0xE8, 0x03, 0xE8, 0x03], ..Default::default() };
+        depth.header.stamp = Time { sec: i32::MAX - 1, nanosec: 0 };
+        state.on_depth(&depth, &mut log);
+        assert!(jobs.try_recv().is_err());
+        let status = state.status.lock().unwrap().clone();
+        assert_eq!((status.frames_received, status.frames_rejected), (1, 1));
+        assert!(status.last_error.starts_with("depth message rejected: depth stamp 2147483646"), "{}", status.last_error);
+        // Correctly stamped input still goes through.
+        depth.header.stamp = node::now_stamp();
+        state.on_depth(&depth, &mut log);
+        assert_eq!(jobs.len(), 1);
+        sample.header.stamp = node::now_stamp();
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_ok());
     }
 }

@@ -37,7 +37,7 @@ use crate::{
     discovery_db::DiscoveryDB,
     sedp_messages::{DiscoveredReaderData, DiscoveredTopicData, DiscoveredWriterData},
   },
-  network::{constant::*, udp_listener::UDPListener},
+  network::{constant::*, udp_listener::UDPListener, util as network_util},
   polling::{
     ready_channel, wake_channel, wake_channel_unbounded, LoopWaker, ReadySender, WakeReceiver,
     WakeSender, WakeUnboundedSender,
@@ -108,8 +108,13 @@ impl DomainParticipantBuilder {
   /// When set, only interfaces whose IP address appears in `addrs` are used for
   /// multicast joins, multicast sends, and unicast locator advertisement.
   ///
-  /// This is not a hard transport-level ACL: unicast sockets still bind to
-  /// wildcard addresses for the selected ports.
+  /// When every address in `addrs` is an IPv4 loopback address (e.g.
+  /// `127.0.0.1`), the participant is loopback-only: every socket binds to
+  /// that address, multicast is not used, and nothing is sent to a
+  /// non-loopback address; same-host peers are found through the localhost
+  /// SPDP peers (see [`Self::same_host_loopback`], which must stay enabled).
+  /// Otherwise this is not a hard transport-level ACL: unicast sockets still
+  /// bind to wildcard addresses for the selected ports.
   pub fn with_only_networks(mut self, addrs: impl IntoIterator<Item = impl Into<IpAddr>>) -> Self {
     self.only_networks = Some(addrs.into_iter().map(Into::into).collect());
     self
@@ -1244,19 +1249,31 @@ impl DomainParticipantInner {
 
     let only_networks: Option<Arc<[IpAddr]>> = only_networks.map(|v| v.into());
 
+    // A loopback-only participant binds every listener to the loopback address
+    // and has no multicast listeners (receiving multicast needs a socket bound
+    // to the wildcard address); peers find it through the localhost SPDP peers.
+    let loopback_only = network_util::loopback_only(only_networks.as_deref());
+    let bind_host = network_util::bind_address(only_networks.as_deref()).to_string();
+    let bind_host = bind_host.as_str();
+    if loopback_only {
+      info!("Loopback-only participant: sockets bound to {bind_host}, no multicast.");
+    }
+
     let mut listeners = HashMap::new();
 
-    match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
-      spdp_well_known_multicast_port(domain_id),
-      Ipv4Addr::new(239, 255, 0, 1),
-      socket_receive_buffer_size,
-      only_networks.as_deref(),
-    ) {
-      Ok(l) => {
-        listeners.insert(DISCOVERY_MUL_LISTENER_TOKEN, l);
+    if !loopback_only {
+      match UDPListener::new_multicast_with_buf_size(
+        "0.0.0.0",
+        spdp_well_known_multicast_port(domain_id),
+        Ipv4Addr::new(239, 255, 0, 1),
+        socket_receive_buffer_size,
+        only_networks.as_deref(),
+      ) {
+        Ok(l) => {
+          listeners.insert(DISCOVERY_MUL_LISTENER_TOKEN, l);
+        }
+        Err(e) => warn!("Cannot get multicast discovery listener: {e:?}"),
       }
-      Err(e) => warn!("Cannot get multicast discovery listener: {e:?}"),
     }
 
     let mut participant_id = 0;
@@ -1267,7 +1284,7 @@ impl DomainParticipantInner {
     // Numbers"
     while discovery_listener.is_none() && participant_id < 120 {
       discovery_listener = UDPListener::new_unicast_with_buf_size(
-        "0.0.0.0",
+        bind_host,
         spdp_well_known_unicast_port(domain_id, participant_id),
         socket_receive_buffer_size,
       )
@@ -1288,21 +1305,23 @@ impl DomainParticipantInner {
 
     // Now the user traffic listeners
 
-    match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
-      user_traffic_multicast_port(domain_id),
-      Ipv4Addr::new(239, 255, 0, 1),
-      socket_receive_buffer_size,
-      only_networks.as_deref(),
-    ) {
-      Ok(l) => {
-        listeners.insert(USER_TRAFFIC_MUL_LISTENER_TOKEN, l);
+    if !loopback_only {
+      match UDPListener::new_multicast_with_buf_size(
+        "0.0.0.0",
+        user_traffic_multicast_port(domain_id),
+        Ipv4Addr::new(239, 255, 0, 1),
+        socket_receive_buffer_size,
+        only_networks.as_deref(),
+      ) {
+        Ok(l) => {
+          listeners.insert(USER_TRAFFIC_MUL_LISTENER_TOKEN, l);
+        }
+        Err(e) => warn!("Cannot get multicast user traffic listener: {e:?}"),
       }
-      Err(e) => warn!("Cannot get multicast user traffic listener: {e:?}"),
     }
 
     let user_traffic_listener = UDPListener::new_unicast_with_buf_size(
-      "0.0.0.0",
+      bind_host,
       user_traffic_unicast_port(domain_id, participant_id),
       socket_receive_buffer_size,
     )
@@ -1310,7 +1329,7 @@ impl DomainParticipantInner {
       if matches!(e.kind(), ErrorKind::AddrInUse) {
         // If we do not get the preferred listening port,
         // try again, with "any" port number.
-        UDPListener::new_unicast_with_buf_size("0.0.0.0", 0, socket_receive_buffer_size).or_else(
+        UDPListener::new_unicast_with_buf_size(bind_host, 0, socket_receive_buffer_size).or_else(
           |e| {
             create_error_out_of_resources!(
               "Could not open unicast user traffic listener, any port number: {:?}",
@@ -1774,6 +1793,36 @@ mod tests {
     test::{random_data::RandomData, test_domain::test_domain_id},
   };
   use super::DomainParticipant;
+
+  // A participant restricted to 127.0.0.1 advertises only loopback unicast
+  // locators and no multicast ones (it has no multicast listeners).
+  #[test]
+  fn loopback_only_participant_has_only_loopback_locators() {
+    use std::net::Ipv4Addr;
+
+    use super::DomainParticipantBuilder;
+    use crate::rtps::constant::{DISCOVERY_MUL_LISTENER_TOKEN, USER_TRAFFIC_MUL_LISTENER_TOKEN};
+
+    let dp = DomainParticipantBuilder::new(test_domain_id(18))
+      .with_only_networks([Ipv4Addr::LOCALHOST])
+      .build()
+      .expect("participant");
+    let locators = dp.self_locators();
+    assert!(locators
+      .get(&DISCOVERY_MUL_LISTENER_TOKEN)
+      .is_none_or(Vec::is_empty));
+    assert!(locators
+      .get(&USER_TRAFFIC_MUL_LISTENER_TOKEN)
+      .is_none_or(Vec::is_empty));
+    let unicast: Vec<&Locator> = locators.values().flatten().collect();
+    assert!(!unicast.is_empty());
+    for locator in unicast {
+      match locator {
+        Locator::UdpV4(sa) => assert!(sa.ip().is_loopback(), "{locator:?}"),
+        other => panic!("unexpected locator {other:?}"),
+      }
+    }
+  }
 
   // TODO: improve basic test when more or the structure is known
   #[test]

@@ -14,7 +14,7 @@ use log::{debug, error, info, trace, warn};
 use socket2::{Domain, Protocol, SockAddr, Socket, Type};
 
 use crate::{
-  network::util::get_local_multicast_ip_addrs_filtered,
+  network::util::{bind_address, get_local_multicast_ip_addrs_filtered, loopback_only},
   rtps::{
     outbound::{ControlQueue, Datagram, SendOutcome, SocketId, CONTROL_QUEUE_WARN_LEN},
     transmit::InterfaceSelector,
@@ -38,6 +38,11 @@ pub struct UDPSender {
   // sent immediately. Drained on write readiness by `flush_control`.
   // (see src/rtps/nonblocking_transmit_design.md)
   control_queues: RefCell<HashMap<SocketId, ControlQueue>>,
+
+  // Loopback-only participant (`only_networks` names loopback addresses only):
+  // the unicast socket is bound to the loopback address, there are no
+  // multicast sockets, and non-loopback destinations are dropped.
+  loopback_only: bool,
 }
 
 impl UDPSender {
@@ -76,8 +81,9 @@ impl UDPSender {
     only_networks: Option<&[IpAddr]>,
     send_buffer_size: usize,
   ) -> io::Result<Self> {
+    let loopback_only = loopback_only(only_networks);
     let unicast_socket = {
-      let saddr: SocketAddr = SocketAddr::new("0.0.0.0".parse().unwrap(), sender_port);
+      let saddr = SocketAddr::new(IpAddr::V4(bind_address(only_networks)), sender_port);
       let raw_socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
       Self::set_and_verify_send_buffer(&raw_socket, send_buffer_size);
       raw_socket.bind(&SockAddr::from(saddr))?;
@@ -96,7 +102,12 @@ impl UDPSender {
       });
 
     let mut multicast_sockets = Vec::with_capacity(1);
-    for multicast_if_ipaddr in get_local_multicast_ip_addrs_filtered(only_networks)? {
+    let multicast_if_ipaddrs = if loopback_only {
+      Vec::new()
+    } else {
+      get_local_multicast_ip_addrs_filtered(only_networks)?
+    };
+    for multicast_if_ipaddr in multicast_if_ipaddrs {
       // beef: specify output interface
       trace!("UDPSender: Multicast sender on interface {multicast_if_ipaddr:?}");
 
@@ -160,6 +171,7 @@ impl UDPSender {
       unicast_socket,
       multicast_sockets,
       control_queues: RefCell::new(HashMap::new()),
+      loopback_only,
     };
     info!("UDPSender::new() --> {sender:?}");
     Ok(sender)
@@ -199,9 +211,10 @@ impl UDPSender {
   /// instead of letting them turn into a per-datagram warning. Peers legally
   /// announce locators we cannot reach (a remote IPv6 locator, or our own
   /// IPv6 interface addresses seen via loopback discovery), so this is normal.
+  /// A loopback-only sender reaches loopback destinations only.
   fn socket_can_reach(&self, id: SocketId, addr: SocketAddr) -> bool {
     match id {
-      SocketId::Unicast => addr.is_ipv4(),
+      SocketId::Unicast => addr.is_ipv4() && (!self.loopback_only || addr.ip().is_loopback()),
       SocketId::Multicast(i) => match self.multicast_sockets.get(i) {
         Some((InterfaceSelector::Ip(iface_ip), _)) => iface_ip.is_ipv4() == addr.is_ipv4(),
         None => false,
@@ -216,7 +229,7 @@ impl UDPSender {
       return SendOutcome::Dropped;
     };
     if !self.socket_can_reach(id, addr) {
-      trace!("raw_send: {id:?} cannot reach {addr} (address family mismatch), dropping");
+      trace!("raw_send: {id:?} cannot reach {addr} (address family or loopback-only), dropping");
       return SendOutcome::Dropped;
     }
     match socket.send_to(buffer, addr) {
@@ -540,6 +553,33 @@ impl UDPSender {
 mod tests {
   use super::*;
   use crate::network::udp_listener::*;
+
+  #[test]
+  fn loopback_only_sender_binds_loopback_and_sends_only_there() {
+    let lo = [IpAddr::V4(Ipv4Addr::LOCALHOST)];
+    let sender = UDPSender::new_with_networks(0, Some(&lo), 0).unwrap();
+    let local = sender.unicast_socket.local_addr().unwrap();
+    assert_eq!(local.ip(), IpAddr::V4(Ipv4Addr::LOCALHOST));
+    assert!(sender.multicast_sockets.is_empty());
+    assert!(sender.socket_can_reach(SocketId::Unicast, SocketAddr::from(([127, 0, 0, 1], 7410))));
+    assert!(!sender.socket_can_reach(SocketId::Unicast, SocketAddr::from(([10, 0, 0, 1], 7410))));
+    assert!(!sender.socket_can_reach(
+      SocketId::Unicast,
+      SocketAddr::from(([239, 255, 0, 1], 7400))
+    ));
+
+    let listener = UDPListener::new_unicast("127.0.0.1", 10231).unwrap();
+    sender.send_to_locator(
+      &[1, 2, 3],
+      &Locator::from(SocketAddr::from(([127, 0, 0, 1], 10231))),
+    );
+    assert_eq!(listener.get_message(), vec![1, 2, 3]);
+
+    let all = UDPSender::new_with_networks(0, None, 0).unwrap();
+    let local = all.unicast_socket.local_addr().unwrap();
+    assert_eq!(local.ip(), IpAddr::V4(Ipv4Addr::UNSPECIFIED));
+    assert!(all.socket_can_reach(SocketId::Unicast, SocketAddr::from(([10, 0, 0, 1], 7410))));
+  }
 
   #[test]
   fn udps_single_send() {

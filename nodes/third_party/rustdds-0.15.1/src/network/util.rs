@@ -220,6 +220,35 @@ fn get_local_unicast_locators_inner(
     .collect()
 }
 
+/// True when `only_networks` names IPv4 loopback addresses only (e.g.
+/// `[127.0.0.1]`): then every socket binds to the loopback address, there is
+/// no multicast (a multicast receive socket must bind the wildcard address),
+/// and nothing is sent to a non-loopback destination. Discovery then relies on
+/// the unicast localhost SPDP peers.
+pub fn loopback_only(only_networks: Option<&[IpAddr]>) -> bool {
+  only_networks.is_some_and(|nets| {
+    !nets.is_empty()
+      && nets
+        .iter()
+        .all(|ip| matches!(ip, IpAddr::V4(v4) if v4.is_loopback()))
+  })
+}
+
+/// The address the listener and sender sockets bind to: the (first) loopback
+/// address when [`loopback_only`], else the wildcard address.
+pub fn bind_address(only_networks: Option<&[IpAddr]>) -> Ipv4Addr {
+  match only_networks {
+    Some(nets) if loopback_only(only_networks) => nets
+      .iter()
+      .find_map(|ip| match ip {
+        IpAddr::V4(v4) => Some(*v4),
+        IpAddr::V6(_) => None,
+      })
+      .unwrap_or(Ipv4Addr::LOCALHOST),
+    _ => Ipv4Addr::UNSPECIFIED,
+  }
+}
+
 /// Enumerates local interfaces that we may use for multicasting.
 ///
 /// The result of this function is used to set up senders and listeners.
@@ -290,8 +319,9 @@ mod tests {
   use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 
   use super::{
-    build_ifindex_map_inner, get_local_multicast_ip_addrs_inner, get_local_unicast_locators_inner,
-    localhost_spdp_peer_locators, path_mtu_payload_for_peer, IfAddr, InterfaceSelector,
+    bind_address, build_ifindex_map_inner, get_local_multicast_ip_addrs_inner,
+    get_local_unicast_locators_inner, localhost_spdp_peer_locators, loopback_only,
+    path_mtu_payload_for_peer, IfAddr, InterfaceSelector,
   };
   use crate::{
     network::constant::spdp_well_known_unicast_port,
@@ -554,5 +584,18 @@ mod tests {
     assert!(peers
       .iter()
       .all(|l| SocketAddr::from(*l).ip().is_loopback()));
+  }
+
+  #[test]
+  fn loopback_only_networks_bind_to_loopback() {
+    let lo = IpAddr::V4(Ipv4Addr::LOCALHOST);
+    let lan = IpAddr::V4(Ipv4Addr::new(10, 0, 0, 10));
+    assert!(loopback_only(Some(&[lo])));
+    assert_eq!(bind_address(Some(&[lo])), Ipv4Addr::LOCALHOST);
+    for nets in [None, Some(&[][..]), Some(&[lan][..]), Some(&[lo, lan][..])] {
+      assert!(!loopback_only(nets), "{nets:?}");
+      assert_eq!(bind_address(nets), Ipv4Addr::UNSPECIFIED, "{nets:?}");
+    }
+    assert!(!loopback_only(Some(&[IpAddr::V6(Ipv6Addr::LOCALHOST)])));
   }
 }

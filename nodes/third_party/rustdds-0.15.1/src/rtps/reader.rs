@@ -137,12 +137,13 @@ pub(crate) struct Reader {
   fragment_assemblers: BTreeMap<GUID, FragmentAssembler>,
   last_fragment_garbage_collect: Timestamp,
   matched_writers: BTreeMap<GUID, RtpsWriterProxy>,
-  // Highest sequence number of user data received from each writer that is not
-  // matched yet, and when it came. A remote writer may match us (and send) before
-  // our own discovery of it is complete; such data is dropped, and is requested
-  // with a NACK as soon as the writer matches, instead of waiting for its next
-  // periodic HEARTBEAT (3 s in Fast DDS).
-  early_writer_data: BTreeMap<GUID, (SequenceNumber, Timestamp)>,
+  // User data received from each writer that is not matched yet. A remote writer
+  // may match us (and send) before our own discovery of it is complete. Such
+  // samples are kept (bounded) and delivered when the writer matches; whatever
+  // is still missing then (samples not kept, or lost) is requested with a NACK
+  // right away instead of waiting for the writer's next periodic HEARTBEAT (3 s
+  // in Fast DDS).
+  early_writer_data: BTreeMap<GUID, EarlyWriterData>,
   writer_match_count_total: i32, // total count, never decreases
 
   requested_deadline_missed_count: i32,
@@ -170,6 +171,27 @@ const MIN_FRAGMENT_GC_INTERVAL: Duration = Duration::from_secs(2);
 const MAX_EARLY_WRITERS: usize = 64;
 // ... and an entry older than this is not acted on when its writer matches.
 const EARLY_WRITER_DATA_RETENTION: Duration = Duration::from_secs(10);
+// Samples kept per not-yet-matched writer, and payload bytes kept over all of
+// them; a sample beyond either bound is only remembered by its sequence number
+// (and requested again on match).
+const MAX_EARLY_SAMPLES_PER_WRITER: usize = 16;
+const MAX_EARLY_SAMPLE_BYTES: usize = 1024 * 1024;
+
+// A sample received from a writer before it was matched.
+struct EarlySample {
+  data: DDSData,
+  receive_timestamp: Timestamp,
+  write_options: WriteOptions,
+  writer_sn: SequenceNumber,
+}
+
+// What a not-yet-matched writer sent: the highest sequence number, when the
+// last sample came, and the samples kept for delivery on match.
+struct EarlyWriterData {
+  last_sn: SequenceNumber,
+  received: Timestamp,
+  samples: Vec<EarlySample>,
+}
 
 impl Reader {
   pub(crate) fn new(
@@ -435,14 +457,27 @@ impl Reader {
           // reader withholds all samples received in the meantime.
           // If the writer already sent us data that was dropped because it was not
           // matched yet, request that data right away instead.
+          // Samples the writer sent before the match are delivered now (a NACK for
+          // them would be ignored by a writer that still counts them as in flight,
+          // e.g. under Fast DDS's NACK suppression, and recovery would wait for
+          // its next periodic HEARTBEAT).
           if self.reliability != policy::Reliability::BestEffort {
-            let early_data = self
-              .early_writer_data
-              .remove(&writer)
-              .filter(|(_, at)| Timestamp::now().duration_since(*at) < EARLY_WRITER_DATA_RETENTION);
+            let early_data = self.early_writer_data.remove(&writer).filter(|early| {
+              Timestamp::now().duration_since(early.received) < EARLY_WRITER_DATA_RETENTION
+            });
+            let early_last_sn = early_data.as_ref().map(|early| early.last_sn);
+            for sample in early_data.into_iter().flat_map(|early| early.samples) {
+              self.process_received_data(
+                sample.data,
+                sample.receive_timestamp,
+                sample.write_options,
+                writer,
+                sample.writer_sn,
+              );
+            }
             if let Some(mut writer_proxy) = self.matched_writers.remove(&writer) {
-              match early_data {
-                Some((last_sn, _)) => self.send_early_data_nack_to(&mut writer_proxy, last_sn),
+              match early_last_sn {
+                Some(last_sn) => self.send_early_data_nack_to(&mut writer_proxy, last_sn),
                 None => self.send_preemptive_acknack_to(&mut writer_proxy),
               }
               self.matched_writers.insert(writer, writer_proxy);
@@ -778,7 +813,15 @@ impl Reader {
           // Or the writer has matched us before we matched it: remember what it
           // sent, to request it again once it is matched.
           if self.reliability != policy::Reliability::BestEffort {
-            self.remember_early_writer_data(writer_guid, writer_sn, receive_timestamp);
+            self.remember_early_writer_data(
+              writer_guid,
+              EarlySample {
+                data: dds_data,
+                receive_timestamp,
+                write_options,
+                writer_sn,
+              },
+            );
           }
           return;
         }
@@ -1448,39 +1491,56 @@ impl Reader {
 
   // An ACKNACK without the final flag requests an immediate HEARTBEAT from the
   // writer.
-  fn remember_early_writer_data(
-    &mut self,
-    writer_guid: GUID,
-    writer_sn: SequenceNumber,
-    received: Timestamp,
-  ) {
+  fn remember_early_writer_data(&mut self, writer_guid: GUID, sample: EarlySample) {
     if !self.early_writer_data.contains_key(&writer_guid)
       && self.early_writer_data.len() >= MAX_EARLY_WRITERS
     {
       let oldest = self
         .early_writer_data
         .iter()
-        .min_by_key(|(_, (_, at))| *at)
+        .min_by_key(|(_, early)| early.received)
         .map(|(guid, _)| *guid);
       if let Some(oldest) = oldest {
         self.early_writer_data.remove(&oldest);
       }
     }
+    let kept_bytes: usize = self
+      .early_writer_data
+      .values()
+      .flat_map(|early| early.samples.iter())
+      .map(|kept| kept.data.payload_size())
+      .sum();
     let entry = self
       .early_writer_data
       .entry(writer_guid)
-      .or_insert((writer_sn, received));
-    entry.0 = entry.0.max(writer_sn);
-    entry.1 = received;
+      .or_insert(EarlyWriterData {
+        last_sn: sample.writer_sn,
+        received: sample.receive_timestamp,
+        samples: Vec::new(),
+      });
+    entry.last_sn = entry.last_sn.max(sample.writer_sn);
+    entry.received = sample.receive_timestamp;
+    let duplicate = entry
+      .samples
+      .iter()
+      .any(|kept| kept.writer_sn == sample.writer_sn);
+    if !duplicate
+      && entry.samples.len() < MAX_EARLY_SAMPLES_PER_WRITER
+      && kept_bytes + sample.data.payload_size() <= MAX_EARLY_SAMPLE_BYTES
+    {
+      entry.samples.push(sample);
+    }
   }
 
   // ACKNACK to a just-matched writer that sent us samples up to `last_sn` before
-  // it was matched (they were dropped): NACK them (at most the 256 a
-  // SequenceNumberSet can name, the newest ones), so the writer resends them or
-  // answers with a GAP for those it no longer has.
+  // it was matched, after those that were kept have been delivered: NACK the
+  // rest (at most the 256 a SequenceNumberSet can name, the newest ones), so
+  // the writer resends them or answers with a GAP for those it no longer has;
+  // if nothing is missing, acknowledge everything up to `last_sn`.
   fn send_early_data_nack_to(&self, writer_proxy: &mut RtpsWriterProxy, last_sn: SequenceNumber) {
     let flags = BitFlags::<ACKNACK_Flags>::from_flag(ACKNACK_Flags::Endianness);
     let acknack_count = writer_proxy.next_ack_nack_sequence_number();
+    let reader_sn_state = early_data_reader_sn_state(writer_proxy, last_sn);
     let RtpsWriterProxy {
       remote_writer_guid,
       unicast_locator_list,
@@ -1491,7 +1551,7 @@ impl Reader {
       AckNack {
         reader_id: self.entity_id(),
         writer_id: remote_writer_guid.entity_id,
-        reader_sn_state: early_data_reader_sn_state(last_sn),
+        reader_sn_state,
         count: acknack_count,
       },
       InfoDestination {
@@ -1540,16 +1600,26 @@ impl Reader {
   }
 } // impl Reader
 
-// The readerSNState NACKing everything up to `last_sn` that one SequenceNumberSet
-// can name: the newest 256 sequence numbers (from 1 at the earliest).
-fn early_data_reader_sn_state(last_sn: SequenceNumber) -> SequenceNumberSet {
-  let first_sn = max(
-    SequenceNumber::new(1),
-    last_sn - SequenceNumber::new(255),
-  );
-  let missing: BTreeSet<SequenceNumber> =
-    SequenceNumber::range_inclusive(first_sn, last_sn).collect();
-  SequenceNumberSet::from_base_and_set(first_sn, &missing)
+// The readerSNState of the ACKNACK sent when a writer that sent us data up to
+// `last_sn` before its match is matched: the sequence numbers up to `last_sn`
+// still missing from `writer_proxy`, within the newest 256 (from 1 at the
+// earliest), or, when none is missing, an acknowledgement up to `last_sn`.
+fn early_data_reader_sn_state(
+  writer_proxy: &RtpsWriterProxy,
+  last_sn: SequenceNumber,
+) -> SequenceNumberSet {
+  let first_sn = max(SequenceNumber::new(1), last_sn - SequenceNumber::new(255));
+  let missing: BTreeSet<SequenceNumber> = writer_proxy
+    .missing_seqnums(first_sn, last_sn)
+    .into_iter()
+    .collect();
+  match missing.first() {
+    Some(&base) => SequenceNumberSet::from_base_and_set(base, &missing),
+    None => SequenceNumberSet::new_empty(max(
+      writer_proxy.all_ackable_before(),
+      last_sn + SequenceNumber::new(1),
+    )),
+  }
 }
 
 impl HasQoSPolicy for Reader {
@@ -1784,27 +1854,40 @@ mod tests {
   }
 
   #[test]
-  fn early_data_nack_names_the_newest_sequence_numbers() {
-    let set = early_data_reader_sn_state(SequenceNumber::new(1));
-    assert_eq!(set.base(), SequenceNumber::new(1));
-    assert_eq!(set.iter().collect::<Vec<_>>(), vec![SequenceNumber::new(1)]);
-    let set = early_data_reader_sn_state(SequenceNumber::new(3));
+  fn early_data_acknack_names_what_is_still_missing() {
+    let writer_guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    let mut proxy = RtpsWriterProxy::new(writer_guid, vec![], vec![], EntityId::UNKNOWN);
+    // Nothing kept: everything up to last_sn is requested, the newest 256 at most.
+    let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(3));
     assert_eq!(
       set.iter().collect::<Vec<_>>(),
       (1..=3).map(SequenceNumber::new).collect::<Vec<_>>()
     );
-    let set = early_data_reader_sn_state(SequenceNumber::new(1000));
+    let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(1000));
     assert_eq!(set.base(), SequenceNumber::new(745));
     assert_eq!(set.iter().count(), 256);
     assert_eq!(set.iter().last(), Some(SequenceNumber::new(1000)));
+    // Sample 2 was kept and delivered: only 1 and 3 are requested.
+    proxy.received_changes_add(SequenceNumber::new(2), Timestamp::now());
+    let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(3));
+    assert_eq!(
+      set.iter().collect::<Vec<_>>(),
+      vec![SequenceNumber::new(1), SequenceNumber::new(3)]
+    );
+    // All delivered: an acknowledgement up to last_sn, nothing requested.
+    proxy.received_changes_add(SequenceNumber::new(1), Timestamp::now());
+    proxy.received_changes_add(SequenceNumber::new(3), Timestamp::now());
+    let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(3));
+    assert_eq!(set.base(), SequenceNumber::new(4));
+    assert_eq!(set.iter().count(), 0);
   }
 
   // A writer that matched us first may send data before we have matched it; the
-  // data is dropped but remembered, and the match sends a NACK for it (the first
-  // ACKNACK to that writer, so with count 1, which every writer accepts) instead
-  // of the empty preemptive ACKNACK.
+  // data is kept, not delivered, and is delivered when the writer matches (then
+  // the first ACKNACK to that writer, with count 1, acknowledges it). A copy the
+  // writer resends later is not delivered again.
   #[test]
-  fn data_from_a_writer_before_its_match_is_requested_on_match() {
+  fn data_from_a_writer_before_its_match_is_delivered_on_match() {
     let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
     let topic_name = "test_name";
     let reliable_qos = QosPolicyBuilder::new()
@@ -1817,8 +1900,7 @@ mod tests {
       TypeDesc::new("test_type".to_string()),
       &reliable_qos,
     );
-    let (notification_sender, notification_receiver) =
-      crate::mio_source::notification_channel(100);
+    let (notification_sender, notification_receiver) = crate::mio_source::notification_channel(100);
     let (_notification_event_source, notification_event_sender) =
       mio_source::make_poll_channel().unwrap();
     let (status_sender, _status_receiver) = sync_status_channel::<DataReaderStatus>(4).unwrap();
@@ -1855,14 +1937,24 @@ mod tests {
     let data = Data {
       reader_id: reader_guid.entity_id,
       writer_id: writer_guid.entity_id,
-      writer_sn: SequenceNumber::new(2),
+      writer_sn: SequenceNumber::new(1),
       ..Data::default()
     };
-    reader.handle_data_msg(data, BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data), &mr_state);
-    assert!(notification_receiver.try_recv().is_err(), "data from an unmatched writer was delivered");
+    reader.handle_data_msg(
+      data,
+      BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data),
+      &mr_state,
+    );
+    assert!(
+      notification_receiver.try_recv().is_err(),
+      "data from an unmatched writer was delivered"
+    );
     assert_eq!(
-      reader.early_writer_data.get(&writer_guid).map(|(sn, _)| *sn),
-      Some(SequenceNumber::new(2))
+      reader
+        .early_writer_data
+        .get(&writer_guid)
+        .map(|early| early.last_sn),
+      Some(SequenceNumber::new(1))
     );
 
     reader.matched_writer_add(
@@ -1873,18 +1965,42 @@ mod tests {
       &reliable_qos,
     );
     assert!(reader.early_writer_data.is_empty());
+    assert!(
+      notification_receiver.try_recv().is_ok(),
+      "the kept sample was not delivered on match"
+    );
     let writer_proxy = reader.matched_writer(writer_guid).expect("writer matched");
     assert_eq!(writer_proxy.sent_ack_nack_count, 1);
+    assert_eq!(writer_proxy.all_ackable_before(), SequenceNumber::new(2));
 
-    // The writer then resends the sample, which is delivered.
+    // A resent copy of the sample is a duplicate.
     let data = Data {
       reader_id: reader_guid.entity_id,
       writer_id: writer_guid.entity_id,
-      writer_sn: SequenceNumber::new(2),
+      writer_sn: SequenceNumber::new(1),
       ..Data::default()
     };
-    reader.handle_data_msg(data, BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data), &mr_state);
-    assert!(notification_receiver.try_recv().is_ok());
+    reader.handle_data_msg(
+      data,
+      BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data),
+      &mr_state,
+    );
+    assert!(
+      notification_receiver.try_recv().is_err(),
+      "a duplicate was delivered"
+    );
+  }
+
+  fn early_sample(sn: i64, payload_bytes: usize) -> EarlySample {
+    EarlySample {
+      data: DDSData::new(SerializedPayload::new(
+        RepresentationIdentifier::CDR_LE,
+        vec![0; payload_bytes],
+      )),
+      receive_timestamp: Timestamp::now(),
+      write_options: WriteOptions::default(),
+      writer_sn: SequenceNumber::new(sn),
+    }
   }
 
   #[test]
@@ -1931,9 +2047,36 @@ mod tests {
     for i in 0..(MAX_EARLY_WRITERS as u8 + 10) {
       let mut guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
       guid.prefix = GuidPrefix::new(&[i; 12]);
-      reader.remember_early_writer_data(guid, SequenceNumber::new(1), Timestamp::now());
+      reader.remember_early_writer_data(guid, early_sample(1, 10));
     }
     assert_eq!(reader.early_writer_data.len(), MAX_EARLY_WRITERS);
+    // Per writer: at most MAX_EARLY_SAMPLES_PER_WRITER samples, the highest
+    // sequence number always remembered.
+    let guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    for sn in 1..=(MAX_EARLY_SAMPLES_PER_WRITER as i64 + 5) {
+      reader.remember_early_writer_data(guid, early_sample(sn, 10));
+    }
+    let early = reader.early_writer_data.get(&guid).expect("remembered");
+    assert_eq!(early.samples.len(), MAX_EARLY_SAMPLES_PER_WRITER);
+    assert_eq!(
+      early.last_sn,
+      SequenceNumber::new(MAX_EARLY_SAMPLES_PER_WRITER as i64 + 5)
+    );
+    // Over all writers: at most MAX_EARLY_SAMPLE_BYTES of payload.
+    reader.early_writer_data.clear();
+    for i in 0..8u8 {
+      let mut guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+      guid.prefix = GuidPrefix::new(&[i; 12]);
+      reader.remember_early_writer_data(guid, early_sample(1, MAX_EARLY_SAMPLE_BYTES / 4));
+    }
+    let kept: usize = reader
+      .early_writer_data
+      .values()
+      .flat_map(|early| early.samples.iter())
+      .map(|sample| sample.data.payload_size())
+      .sum();
+    assert!(kept <= MAX_EARLY_SAMPLE_BYTES, "{kept} bytes kept");
+    assert_eq!(reader.early_writer_data.len(), 8);
   }
 
   #[test]

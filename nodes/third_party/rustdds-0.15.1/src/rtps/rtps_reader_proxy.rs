@@ -511,6 +511,13 @@ impl RtpsReaderProxy {
     self.pending_gap.extend(gap_sn_set);
   }
 
+  /// Send `sequence_number` to this reader after all, although it was written
+  /// before the match (it is taken out of `pending_gap`).
+  pub fn send_despite_pending_gap(&mut self, sequence_number: SequenceNumber) {
+    self.pending_gap.remove(&sequence_number);
+    self.unsent_changes.insert(sequence_number);
+  }
+
   pub fn get_pending_gap(&self) -> &BTreeSet<SequenceNumber> {
     &self.pending_gap
   }

@@ -2101,7 +2101,25 @@ impl Writer {
           // With Durabilty::Volatile QoS we won't send the sequence numbers which existed
           // before matching with this reader. Therefore we set the reader as pending GAP
           // for all existing sequence numbers
-          new_proxy.set_pending_gap_up_to(self.send_buffer.last_change_sequence_number());
+          let last = self.send_buffer.last_change_sequence_number();
+          new_proxy.set_pending_gap_up_to(last);
+          // ... except samples addressed to this very reader: a service reply names
+          // the client's reply reader in its related sample identity (rmw_fastrtps
+          // and ros2-client clients), and a server may answer a request before it
+          // has matched that reader. Such a reply is not history the reader joined
+          // too late for; dropping it would leave the call unanswered for good.
+          let reader_guid = new_proxy.remote_reader_guid;
+          let first = self.send_buffer.first_change_sequence_number();
+          for sn in SequenceNumber::range_inclusive(first, last) {
+            let addressed_here = self.send_buffer.get_by_sn(sn).is_some_and(|cc| {
+              cc.write_options
+                .related_sample_identity()
+                .is_some_and(|id| id.writer_guid == reader_guid)
+            });
+            if addressed_here {
+              new_proxy.send_despite_pending_gap(sn);
+            }
+          }
         }
         new_proxy.resolve_send_route(
           &self.interface_observations.borrow(),
@@ -3013,6 +3031,78 @@ mod tests {
     }
 
     // A repeated ACKNACK count is a copy and changes nothing; a new count does.
+    // A volatile writer does not send what it held before a reader matched,
+    // except a sample addressed to that reader (a service reply written before
+    // the client's reply reader matched).
+    #[test]
+    fn volatile_writer_sends_a_reply_written_before_its_reader_matched() {
+      let qos = QosPolicyBuilder::new()
+        .reliability(Reliability::Reliable {
+          max_blocking_time: Duration::from_millis(100),
+        })
+        .durability(Durability::Volatile)
+        .build();
+      let writer_id = EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED);
+      let reader_guid = GUID::new(
+        GuidPrefix::new(&[2; 12]),
+        EntityId::new([0, 0, 2], EntityKind::READER_NO_KEY_USER_DEFINED),
+      );
+      let guid = GUID::new(GuidPrefix::new(&[1; 12]), writer_id);
+      let send_buffer = WriterSendBuffer::new(
+        guid,
+        "reply_test".to_string(),
+        true,
+        false,
+        false,
+        DEFAULT_WRITER_MAX_SAMPLES,
+        DEFAULT_WRITER_MAX_SAMPLES,
+        DEFAULT_WRITER_MAX_SAMPLES,
+      );
+      let other_reader = GUID::new(GuidPrefix::new(&[3; 12]), reader_guid.entity_id);
+      for addressee in [other_reader, reader_guid, other_reader] {
+        let options = crate::dds::with_key::datawriter::WriteOptionsBuilder::new()
+          .related_sample_identity(crate::structure::rpc::SampleIdentity {
+            writer_guid: addressee,
+            sequence_number: SequenceNumber::new(1),
+          })
+          .build();
+        let data = DDSData::new(SerializedPayload::new(
+          RepresentationIdentifier::CDR_LE,
+          vec![0; 8],
+        ));
+        assert!(matches!(
+          send_buffer.admit_blocking(options, data, Some(StdDuration::ZERO)),
+          Admission::Admitted(_)
+        ));
+      }
+      let (status_sender, _status) = sync_status_channel(4).unwrap();
+      let (participant_status_sender, _participant_status) = sync_status_channel(16).unwrap();
+      let mut writer = Writer::new(
+        WriterIngredients {
+          guid,
+          send_buffer,
+          topic_name: "reply_test".to_string(),
+          like_stateless: false,
+          qos_policies: qos.clone(),
+          status_sender,
+          security_plugins: None,
+        },
+        Rc::new(UDPSender::new(0).unwrap()),
+        new_shared_timer(),
+        participant_status_sender,
+        Rc::new(RefCell::new(InterfaceObservations::default())),
+        Rc::from(Vec::<IfAddr>::new()),
+      );
+      let reader_proxy = RtpsReaderProxy::new(reader_guid, qos.clone(), false);
+      writer.update_reader_proxy(&reader_proxy, &qos);
+      let proxy = &writer.readers[&reader_guid];
+      assert_eq!(proxy.unsent_changes_debug(), vec![SequenceNumber::new(2)]);
+      assert_eq!(
+        proxy.get_pending_gap().iter().copied().collect::<Vec<_>>(),
+        vec![SequenceNumber::new(1), SequenceNumber::new(3)]
+      );
+    }
+
     #[test]
     fn duplicate_acknack_count_is_ignored() {
       let mut f = Fixture::user(5, 8, None);

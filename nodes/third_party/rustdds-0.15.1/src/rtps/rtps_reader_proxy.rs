@@ -437,7 +437,7 @@ impl RtpsReaderProxy {
         // Ignore ACKNACK whose readerSNState.base claims ack beyond last_seq + 1 (the
         // writer's last change sequence number). Matches reliable writer/reader
         // semantics; a forged base would otherwise pin all_acked_before and
-        // block real ACKNACKs (issue #405).
+        // block real ACKNACKs.
         let max_plausible_acked_before = last_available.plus_1();
         if new_all_acked_before > max_plausible_acked_before {
           warn!(

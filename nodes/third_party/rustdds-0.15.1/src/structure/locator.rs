@@ -75,7 +75,7 @@ impl<'a, C: Context> Readable<'a, C> for Locator {
 
   /// Wire size of [`repr::Locator`]. Used by `speedy` when deserializing
   /// `Vec<Locator>` so the length prefix is checked against the remaining
-  /// buffer *before* allocating (see e.g. issue #404).
+  /// buffer *before* allocating (a forged length would otherwise allocate unbounded memory).
   fn minimum_bytes_needed() -> usize {
     std::mem::size_of::<repr::Locator>()
   }
@@ -305,7 +305,7 @@ mod tests {
   }
 
   /// Regression: `Vec<Locator>` must not call `with_capacity` from a forged
-  /// length alone (issue #404).
+  /// length alone.
   #[test]
   fn vec_rejects_length_prefix_inconsistent_with_buffer() {
     let count_only = [0x80u8, 0x94, 0x20, 0x44];

@@ -374,6 +374,31 @@ fn select_target_response(selected: Result<Patch, String>) -> srv::SelectTargetR
     }
 }
 
+/// Take up to [`REQUESTS_PER_PASS`] requests of a service whose work may take long: each is answered
+/// now, or its job is queued and answered when it finishes. Returns whether requests may be left.
+fn serve_or_start<Req, Resp>(
+    server: &ros2_client::Server<Req, Resp>,
+    name: &str,
+    executor: &mut Executor,
+    jobs: &Jobs,
+    log: &mut RateLimitedLog,
+    handle: fn(&mut Executor, Req) -> Handled<Resp>,
+) -> bool
+where
+    Req: ros2_client::Message + Clone + 'static,
+    Resp: ros2_client::Message + 'static,
+{
+    let requests = node::take_requests(server, name, REQUESTS_PER_PASS, log);
+    let more = requests.len() >= REQUESTS_PER_PASS;
+    for (request_id, request) in requests {
+        match handle(executor, request) {
+            Handled::Answer(response) => node::respond(server, name, request_id, response, log),
+            Handled::Later(later) => start(executor, jobs, request_id, later, log),
+        }
+    }
+    more
+}
+
 /// Queue a handler's job; if the worker is gone, answer the request with the failure at once.
 fn start(executor: &mut Executor, jobs: &Jobs, request_id: RmwRequestId, later: Box<Later>, log: &mut RateLimitedLog) {
     let job = match *later {
@@ -481,30 +506,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= full(node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r)));
         more |= full(node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r)));
         // Services whose work may take long: answered now, or by a job when it finishes.
-        let requests = node::take_requests(&select_target_srv, SELECT_TARGET, REQUESTS_PER_PASS, &mut log);
-        more |= full(requests.len());
-        for (request_id, request) in requests {
-            match executor.select_target(request) {
-                Handled::Answer(response) => node::respond(&select_target_srv, SELECT_TARGET, request_id, response, &mut log),
-                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
-            }
-        }
-        let requests = node::take_requests(&save_motion_srv, SAVE_MOTION, REQUESTS_PER_PASS, &mut log);
-        more |= full(requests.len());
-        for (request_id, request) in requests {
-            match executor.save_motion(request) {
-                Handled::Answer(response) => node::respond(&save_motion_srv, SAVE_MOTION, request_id, response, &mut log),
-                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
-            }
-        }
-        let requests = node::take_requests(&delete_motion_srv, DELETE_MOTION, REQUESTS_PER_PASS, &mut log);
-        more |= full(requests.len());
-        for (request_id, request) in requests {
-            match executor.delete_motion(request) {
-                Handled::Answer(response) => node::respond(&delete_motion_srv, DELETE_MOTION, request_id, response, &mut log),
-                Handled::Later(later) => start(&mut executor, &jobs, request_id, later, &mut log),
-            }
-        }
+        more |= serve_or_start(&select_target_srv, SELECT_TARGET, &mut executor, &jobs, &mut log, Executor::select_target);
+        more |= serve_or_start(&save_motion_srv, SAVE_MOTION, &mut executor, &jobs, &mut log, Executor::save_motion);
+        more |= serve_or_start(&delete_motion_srv, DELETE_MOTION, &mut executor, &jobs, &mut log, Executor::delete_motion);
         let finished: Vec<Finished> = jobs.finished().collect();
         for done in finished {
             match executor.finish(done) {

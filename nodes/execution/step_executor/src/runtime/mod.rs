@@ -524,6 +524,18 @@ fn check_point(point_in_base: [f64; 3]) -> Result<(), CommandError> {
 /// A map patch expressed in `base_link` for matching (J 6.3 compares parameters and poses, not
 /// their uncertainty, so the covariance is not propagated); `None` for a patch that cannot be moved.
 fn pose_in(base_from_map: &Isometry3<f64>, patch_in_map: &Patch) -> Option<Patch> {
-    let bare = Patch { covariance: nalgebra::DMatrix::zeros(0, 0), ..patch_in_map.clone() };
+    // Built field by field: cloning the patch would copy the covariance only to drop it.
+    let p = patch_in_map;
+    let bare = Patch {
+        surface: p.surface,
+        boundary: p.boundary,
+        boundary_params: p.boundary_params.clone(),
+        curvatures: p.curvatures,
+        rotation: p.rotation,
+        center: p.center,
+        covariance: nalgebra::DMatrix::zeros(0, 0),
+        residual: p.residual,
+        num_points: p.num_points,
+    };
     transform_patch(&bare, base_from_map)
 }

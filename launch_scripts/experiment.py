@@ -127,19 +127,7 @@ class Services:
         client = self.clients.get(name)
         if client is None:
             client = self.clients[name] = self.ros.client(srv_type, name)
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise TimeoutError(f"service {name} not available within {timeout} s")
-        request = request if request is not None else srv_type.Request()
-        deadline = time.monotonic() + timeout
-        while True:
-            done = threading.Event()
-            future = client.call_async(request)
-            future.add_done_callback(lambda _: done.set())
-            if done.wait(min(attempt_s, max(0.0, deadline - time.monotonic()))):
-                return future.result()
-            client.remove_pending_request(future)
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no response from {name} within {timeout} s")
+        return pw.call_on(client, srv_type, name, request, timeout, attempt_s, error=TimeoutError)
 
     def close(self) -> None:
         with self.ros._lock:

@@ -307,22 +307,30 @@ class RosHarness:
         sent again after `attempt_s` (the services used here are idempotent)."""
         client = self.client(srv_type, name)
         try:
-            if not client.wait_for_service(timeout_sec=timeout):
-                raise AssertionError(f"service {name} not available within {timeout} s")
-            request = request if request is not None else srv_type.Request()
-            deadline = time.monotonic() + timeout
-            while True:
-                done = threading.Event()
-                future = client.call_async(request)
-                future.add_done_callback(lambda _: done.set())
-                if done.wait(min(attempt_s, max(0.0, deadline - time.monotonic()))):
-                    return future.result()
-                client.remove_pending_request(future)
-                if time.monotonic() > deadline:
-                    raise AssertionError(f"no response from {name} within {timeout} s")
+            return call_on(client, srv_type, name, request, timeout, attempt_s)
         finally:
             with self._lock:
                 self.node.destroy_client(client)
+
+
+def call_on(client, srv_type, name: str, request=None, timeout: float = DEFAULT_TIMEOUT_S, attempt_s: float = 5.0,
+            error: type[Exception] = AssertionError):
+    """The response of `client` (service `name`): wait for the service, send, and send again after
+    `attempt_s` when no answer came (a request lost while discovery settles); `error` when the
+    service does not appear or answer within `timeout`."""
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise error(f"service {name} not available within {timeout} s")
+    request = request if request is not None else srv_type.Request()
+    deadline = time.monotonic() + timeout
+    while True:
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _: done.set())
+        if done.wait(min(attempt_s, max(0.0, deadline - time.monotonic()))):
+            return future.result()
+        client.remove_pending_request(future)
+        if time.monotonic() > deadline:
+            raise error(f"no response from {name} within {timeout} s")
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout: float = DEFAULT_TIMEOUT_S, period: float = 0.05):

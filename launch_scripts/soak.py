@@ -12,7 +12,9 @@ mapper's dropped/rejected frames, the executor's faults, and the ERROR/WARN line
 Output (in `--out`, default build/soak): `soak.csv` (one row per sample), `soak.png` (RSS, CPU, rate and
 latency over time), `summary.json`, and the logs. The summary checks the goals: output rate drop <= 1 %
 (the last 10 % of the run against the first 10 % after warm-up), RSS growth < 5 % after warm-up, no
-error; the exit code is 0 when they hold.
+error; the exit code is 0 when they hold. Ctrl-C ends the run early (after the current trial) with the
+summary of what was sampled. The rate and latency figures mean something only on an otherwise quiet
+machine.
 
     .venv/bin/python launch_scripts/soak.py                     # 60 min
     .venv/bin/python launch_scripts/soak.py --minutes 5         # a short one
@@ -26,6 +28,7 @@ import argparse
 import csv
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -228,6 +231,10 @@ def main() -> int:
 
     import experiment as ex
 
+    # Ctrl-C / SIGTERM end the run after the current trial; the summary is still written.
+    stop_requested = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop_requested.set())
     processes: dict[str, pw.NodeProcess] = {}
     bus_log = open(args.out / "sim_bus.log", "w")
     bus = subprocess.Popen([str(pw.binary("step_executor")), "sim-bus"], stdin=subprocess.PIPE,
@@ -261,7 +268,7 @@ def main() -> int:
         end = time.monotonic() + 60.0 * args.minutes
         order = [*trained, *[r for r in rocks if not r.trained]]
         i = 0
-        while time.monotonic() < end:
+        while time.monotonic() < end and not stop_requested.is_set():
             if not all(p.alive() for p in processes.values()):
                 dead = [n for n, p in processes.items() if not p.alive()]
                 raise RuntimeError(f"node(s) exited during the soak: {dead}")

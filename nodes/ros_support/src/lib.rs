@@ -7,6 +7,7 @@
 //! - [`process`]: process CPU time for the benchmarks.
 //! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
 //! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
+//! - [`security`]: DDS Security from an SROS2 keystore, configured by `ROS_SECURITY_*` as rcl does.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
 //! against other ROS 2 implementations.
@@ -15,4 +16,5 @@ pub mod node;
 pub mod params;
 pub mod patch_msg;
 pub mod process;
+pub mod security;
 pub mod wait;

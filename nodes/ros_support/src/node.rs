@@ -44,6 +44,8 @@ pub enum NodeError {
     Signal(#[from] std::io::Error),
     #[error("cannot wait for input readiness: {0}")]
     Wait(std::io::Error),
+    #[error("DDS Security: {0}")]
+    Security(#[from] crate::security::SecurityError),
 }
 
 /// Which network interfaces DDS discovery and traffic use.
@@ -149,6 +151,17 @@ impl RosNode {
         if network == DdsNetwork::Loopback {
             builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
         }
+        let security = crate::security::resolve(&crate::security::SecuritySettings::from_env(), None)?;
+        match &security {
+            crate::security::Security::Off => {}
+            crate::security::Security::Permissive { reason } => {
+                tracing::warn!("DDS Security asked for but not used (ROS_SECURITY_STRATEGY is not Enforce): {reason}")
+            }
+            crate::security::Security::On { enclave, dir } => tracing::info!(enclave, dir = %dir.display(), "DDS Security on"),
+        }
+        if let Some(files) = security.config_files() {
+            builder = builder.builtin_security(files);
+        }
         let participant = builder.build().map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
         let context =
             Context::from_domain_participant(participant).map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
@@ -214,6 +227,20 @@ impl RosNode {
                 service_qos(),
             )
             .map_err(|e| NodeError::Endpoint { what: "service", name: name.to_string(), reason: format!("{e:?}") })
+    }
+
+    /// Typed service client of `name` (ServiceMapping::Enhanced, as [`RosNode::server`]).
+    pub fn client<S: RosService>(&mut self, name: &str) -> Result<ros2_client::Client<S::Request, S::Response>, NodeError> {
+        let service_name = ros_name(name)?;
+        self.node(name)?
+            .create_client::<S::Request, S::Response>(
+                ServiceMapping::Enhanced,
+                &service_name,
+                &S::type_name(),
+                service_qos(),
+                service_qos(),
+            )
+            .map_err(|e| NodeError::Endpoint { what: "client", name: name.to_string(), reason: format!("{e:?}") })
     }
 
     /// Escape hatch for what this wrapper does not cover (clients, actions, graph queries).

@@ -2,9 +2,11 @@
 //!
 //! A trained library of (patch relative to the robot -> keyframe motion), a matcher with the
 //! thresholds of J 6.3, a keyframe player on the servo bus thread, and the node's logic without
-//! ROS ([`runtime`]). The servos are reached through `patchwalk_dynamixel`, the robot through
+//! ROS ([`runtime`]), and ROBOTIS action files read and written as library motions ([`action_file`]).
+//! The servos are reached through `patchwalk_dynamixel`, the robot through
 //! `patchwalk_robot_model`.
 
+pub mod action_file;
 pub mod config;
 pub mod executor;
 pub mod library;

@@ -1,5 +1,6 @@
 //! `step_executor` binary: the ROS 2 execution node (`step_executor run`, the default) and the
-//! simulated MX-28 servo chain on a pty (`step_executor sim-bus`).
+//! simulated MX-28 servo chain on a pty (`step_executor sim-bus`), and ROBOTIS action file pages
+//! imported into and exported from the motion library (`import-motion`, `export-motion`).
 
 mod cli;
 mod ros;
@@ -19,6 +20,11 @@ enum Command {
     Run(ros::RunArgs),
     /// Start a simulated MX-28 (Protocol 2.0) servo chain on a pty and print its device path.
     SimBus(cli::sim_bus::SimBusArgs),
+    /// Add one page of a ROBOTIS action file (DARwIn-OP motion_4096.bin, OP3 motion_4095.bin) to the
+    /// motion library as a new motion.
+    ImportMotion(cli::import_motion::ImportMotionArgs),
+    /// Write a library motion as one page of a ROBOTIS action file (existing or new).
+    ExportMotion(cli::export_motion::ExportMotionArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -27,6 +33,8 @@ fn main() -> std::process::ExitCode {
         None => ros::run(ros::RunArgs::default()),
         Some(Command::Run(args)) => ros::run(args),
         Some(Command::SimBus(args)) => cli::sim_bus::run(args),
+        Some(Command::ImportMotion(args)) => cli::import_motion::run(args),
+        Some(Command::ExportMotion(args)) => cli::export_motion::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -118,7 +118,11 @@ impl Workspace {
             .current_dir(self.dir.path())
             .output()
             .unwrap();
-        (output.status.success(), String::from_utf8_lossy(&output.stdout).into_owned(), String::from_utf8_lossy(&output.stderr).into_owned())
+        (
+            output.status.success(),
+            String::from_utf8_lossy(&output.stdout).into_owned(),
+            String::from_utf8_lossy(&output.stderr).into_owned(),
+        )
     }
 
     fn snapshot(&self) -> Vec<(String, Vec<u8>)> {
@@ -223,7 +227,10 @@ fn every_refusal_names_the_problem_and_writes_nothing() {
         (vec!["export-motion", "--name", "nope", "--out", "out_4096.bin", "--page", "9"], "no motion named \"nope\""),
         (vec!["export-motion", "--name", "long", "--out", "out_4096.bin", "--page", "9"], "8 keyframes"),
         (vec!["export-motion", "--name", "rock1", "--out", "short.bin", "--page", "9"], "not an action file"),
-        (vec!["export-motion", "--name", "rock1", "--out", "out_4096.bin", "--page", "9", "--page-name", "far too long a name"], "page name"),
+        (
+            vec!["export-motion", "--name", "rock1", "--out", "out_4096.bin", "--page", "9", "--page-name", "far too long a name"],
+            "page name",
+        ),
     ];
     for (args, expected) in cases {
         let (ok, stdout, stderr) = ws.run(&args);

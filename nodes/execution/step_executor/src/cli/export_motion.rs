@@ -51,7 +51,9 @@ pub fn run(args: ExportMotionArgs) -> anyhow::Result<()> {
         ),
         Ok(page) => page,
         Err(ActionFileError::Page { source: PageError::Checksum { .. }, .. }) if args.replace => Page::empty(),
-        Err(e) => return Err(e).with_context(|| format!("{out}{}", if existing { " (pass --replace to overwrite a corrupt page)" } else { "" })),
+        Err(e) => {
+            return Err(e).with_context(|| format!("{out}{}", if existing { " (pass --replace to overwrite a corrupt page)" } else { "" }))
+        }
     };
     let name = match &args.page_name {
         Some(text) => page_name(text)?,

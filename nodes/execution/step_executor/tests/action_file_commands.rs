@@ -1,3 +1,4 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)] // an integration test
 //! `step_executor import-motion` / `export-motion` run as a user runs them, on action files written
 //! byte by byte from the published ROBOTIS layout: the round trip, and every refusal leaving the
 //! library and the action file as they were.

@@ -86,9 +86,9 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     fi
 
     # --- 3. patchwalk_msgs built with plain cmake into the venv ----------------------------------------
-    MSGS_HASH=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" msgs/CMakeLists.txt msgs/package.xml msgs/msg/* msgs/srv/*)
+    MSGS_HASH=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" msgs/CMakeLists.txt msgs/package.xml msgs/msg/* msgs/srv/* msgs/action/*)
     if [ "$(cat "$VENV/.patchwalk-msgs" 2>/dev/null)" != "$MSGS_HASH" ] \
-        || ! "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv' 2>/dev/null; then
+        || ! "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv, patchwalk_msgs.action' 2>/dev/null; then
         log "building msgs/ (patchwalk_msgs) into $VENV"
         rm -rf "$BUILD_DIR/msgs"
         (
@@ -99,7 +99,7 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
                 cmake --build "$BUILD_DIR/msgs" -j "$(nproc)" &&
                 cmake --install "$BUILD_DIR/msgs"
         ) >"$LOG_DIR/msgs-build.log" 2>&1 || { tail -40 "$LOG_DIR/msgs-build.log"; die "msgs/ build failed (log: $LOG_DIR/msgs-build.log)"; }
-        "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv' \
+        "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv, patchwalk_msgs.action' \
             || die "patchwalk_msgs built but does not import"
         echo "$MSGS_HASH" > "$VENV/.patchwalk-msgs"
     fi

@@ -2,9 +2,9 @@
 //! create typed endpoints from the Rust type alone (`RosMessage::type_name()`,
 //! `RosService::type_name()`), for our own interfaces and for the standard ones we use.
 
-use ros2_client::{Message, MessageTypeName, ServiceTypeName};
+use ros2_client::{ActionTypeName, Message, MessageTypeName, ServiceTypeName};
 
-use crate::{msg, sensor_msgs, srv, std_srvs, visualization_msgs};
+use crate::{action, diagnostic_msgs, msg, sensor_msgs, srv, std_msgs, std_srvs, visualization_msgs};
 
 /// A message type with its ROS 2 name `package/msg/Name`.
 pub trait RosMessage: Message + Clone + Send + 'static {
@@ -25,6 +25,19 @@ pub trait RosService {
 
     fn type_name() -> ServiceTypeName {
         ServiceTypeName::new(Self::PACKAGE, Self::NAME)
+    }
+}
+
+/// An action type with its ROS 2 name `package/action/Name` and its goal/result/feedback structs.
+pub trait RosAction {
+    type Goal: Message + Clone + Send + 'static;
+    type Result: Message + Clone + Send + 'static;
+    type Feedback: Message + Clone + Send + 'static;
+    const PACKAGE: &'static str;
+    const NAME: &'static str;
+
+    fn type_name() -> ActionTypeName {
+        ActionTypeName::new(Self::PACKAGE, Self::NAME)
     }
 }
 
@@ -74,6 +87,9 @@ impl_message!(
     srv::DeleteMotionResponse,
     srv::PlayMotionRequest,
     srv::PlayMotionResponse,
+    action::PlayMotionGoal,
+    action::PlayMotionResult,
+    action::PlayMotionFeedback,
 );
 
 ros_message!("patchwalk_msgs",
@@ -90,6 +106,15 @@ ros_message!("sensor_msgs",
     sensor_msgs::msg::Imu => "Imu",
     sensor_msgs::msg::JointState => "JointState",
     sensor_msgs::msg::PointCloud2 => "PointCloud2",
+);
+
+ros_message!("std_msgs",
+    std_msgs::msg::Bool => "Bool",
+    std_msgs::msg::Empty => "Empty",
+);
+
+ros_message!("diagnostic_msgs",
+    diagnostic_msgs::msg::DiagnosticArray => "DiagnosticArray",
 );
 
 ros_message!("visualization_msgs",
@@ -109,3 +134,11 @@ ros_service!("std_srvs",
     std_srvs::srv::Trigger => ("Trigger", std_srvs::srv::TriggerRequest, std_srvs::srv::TriggerResponse),
     std_srvs::srv::SetBool => ("SetBool", std_srvs::srv::SetBoolRequest, std_srvs::srv::SetBoolResponse),
 );
+
+impl RosAction for action::PlayMotion {
+    type Goal = action::PlayMotionGoal;
+    type Result = action::PlayMotionResult;
+    type Feedback = action::PlayMotionFeedback;
+    const PACKAGE: &'static str = "patchwalk_msgs";
+    const NAME: &'static str = "PlayMotion";
+}

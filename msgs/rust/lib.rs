@@ -1,15 +1,16 @@
 //! Rust side of the `patchwalk_msgs` ROS 2 interface package.
 //!
-//! - [`msg`], [`srv`]: our interfaces. The `.msg`/`.srv` files next to this crate are the single source
+//! - [`msg`], [`srv`], [`action`]: our interfaces. The `.msg`/`.srv`/`.action` files next to this crate are the single source
 //!   of truth; the structs mirror them field by field (the CDR wire format is positional) and
 //!   `rust/tests/interface_files.rs` parses the files and checks every struct against them.
 //! - [`builtin_interfaces`], [`std_msgs`], [`geometry_msgs`], [`sensor_msgs`], [`std_srvs`],
-//!   [`visualization_msgs`]: the standard ROS 2 Jazzy types, re-exported from
+//!   [`visualization_msgs`], [`diagnostic_msgs`]: the standard ROS 2 Jazzy types, re-exported from
 //!   `ros2-interfaces-jazzy-serde`.
-//! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`).
+//! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`, `RosAction`).
 
+pub mod action;
 pub mod interface;
 pub mod msg;
 pub mod srv;
 
-pub use ros2_interfaces_jazzy_serde::{builtin_interfaces, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs};
+pub use ros2_interfaces_jazzy_serde::{builtin_interfaces, diagnostic_msgs, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs};

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 
 use serde::de::{self, DeserializeOwned, DeserializeSeed, Visitor};
 
-use patchwalk_msgs::{msg, srv};
+use patchwalk_msgs::{action, msg, srv};
 
 // ---------------------------------------------------------------------------------------------------
 // Type tree shared by both sides.
@@ -277,6 +277,17 @@ impl Definitions {
         let context = format!("srv/{name}");
         (self.fields(request, "patchwalk_msgs", &context), self.fields(response, "patchwalk_msgs", &context))
     }
+
+    /// Goal, result and feedback type trees of `action/<name>.action`.
+    fn action(&self, name: &str) -> (Ty, Ty, Ty) {
+        let path = package_dir().join("action").join(format!("{name}.action"));
+        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let parts: Vec<&str> = text.split("\n---").collect();
+        assert_eq!(parts.len(), 3, "{name}.action must have exactly two --- separators (goal, result, feedback)");
+        let context = format!("action/{name}");
+        let part = |i: usize| self.fields(parts[i], "patchwalk_msgs", &context);
+        (part(0), part(1), part(2))
+    }
 }
 
 fn assert_same(context: &str, from_file: &Ty, from_rust: &Ty) {
@@ -326,13 +337,26 @@ fn services_match_their_srv_files() {
     check_service::<srv::PlayMotionRequest, srv::PlayMotionResponse>("PlayMotion");
 }
 
+fn check_action<G: DeserializeOwned, R: DeserializeOwned, F: DeserializeOwned>(name: &str) {
+    let defs = Definitions::load();
+    let (goal, result, feedback) = defs.action(name);
+    assert_same(&format!("{name}.goal"), &goal, &rust_schema::<G>());
+    assert_same(&format!("{name}.result"), &result, &rust_schema::<R>());
+    assert_same(&format!("{name}.feedback"), &feedback, &rust_schema::<F>());
+}
+
+#[test]
+fn actions_match_their_action_files() {
+    check_action::<action::PlayMotionGoal, action::PlayMotionResult, action::PlayMotionFeedback>("PlayMotion");
+}
+
 #[test]
 fn every_interface_file_is_checked_and_built() {
-    // A new .msg/.srv must be added to CMakeLists.txt and to the two tests above.
+    // A new .msg/.srv/.action must be added to CMakeLists.txt and to the three tests above.
     let cmake = std::fs::read_to_string(package_dir().join("CMakeLists.txt")).expect("CMakeLists.txt");
     let this = std::fs::read_to_string(file!())
         .unwrap_or_else(|_| std::fs::read_to_string(package_dir().join("rust/tests/interface_files.rs")).expect("this test file"));
-    for dir in ["msg", "srv"] {
+    for dir in ["msg", "srv", "action"] {
         for entry in std::fs::read_dir(package_dir().join(dir)).expect("interface dir") {
             let path = entry.expect("entry").path();
             let file = path.file_name().and_then(|f| f.to_str()).expect("utf-8 name").to_string();

@@ -115,9 +115,15 @@ pub fn reliable_qos() -> QosProfile {
         .history(History::KeepLast { depth: 10 })
 }
 
-/// Service QoS (rmw `services_default`): reliable, volatile, keep last 10.
+/// Requests (and replies) a service endpoint holds before the loop takes them.
+pub const SERVICE_QUEUE_DEPTH: usize = 1024;
+
+/// Service QoS: reliable, volatile, keep last [`SERVICE_QUEUE_DEPTH`]. rmw's `services_default`
+/// keeps 10, which drops requests of an unpaced burst that arrive between two loop passes (a
+/// burst of 100 calls had 20-32 answered); the deeper queue holds a burst of 1,000 calls, and a
+/// reliable writer still blocks (not drops) beyond it.
 pub fn service_qos() -> QosProfile {
-    reliable_qos()
+    reliable_qos().history(History::KeepLast { depth: SERVICE_QUEUE_DEPTH })
 }
 
 /// Split an absolute or relative ROS name (`/camera/depth/image_raw`) into a `ros2_client::Name`.
@@ -487,6 +493,7 @@ mod tests {
         assert!(matches!(reliable_qos().reliability, Reliability::Reliable { .. }));
         assert_eq!(reliable_qos().history, History::KeepLast { depth: 10 });
         assert_eq!(reliable_qos().durability, Durability::Volatile);
+        assert_eq!(service_qos().history, History::KeepLast { depth: SERVICE_QUEUE_DEPTH });
     }
 
     #[test]

@@ -128,11 +128,14 @@ pub struct RosConfig {
     pub joint_state_rate_hz: f64,
     /// /step_executor/status rate, Hz.
     pub status_rate_hz: f64,
+    /// Automatic execution stays armed only while heartbeats arrive on /step_executor/heartbeat at
+    /// most this far apart, s (the operator's deadman).
+    pub heartbeat_timeout_s: f64,
 }
 
 impl Default for RosConfig {
     fn default() -> Self {
-        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0 }
+        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0, heartbeat_timeout_s: 0.5 }
     }
 }
 

@@ -11,7 +11,11 @@
 //! thread); this layer converts messages (`convert`). Without a servo bus (port missing) the node
 //! still starts: bus services answer `success = false` with the reason, the status carries it too.
 
+mod action;
 mod convert;
+mod diagnostics;
+mod estop;
+mod heartbeat;
 mod jobs;
 
 use std::sync::Arc;
@@ -31,7 +35,13 @@ use patchwalk_spl::patch::Patch;
 use ros2_client::service::RmwRequestId;
 use step_executor::runtime::{CommandError, FitJob, LibraryChange, RunState, Runtime};
 
+use action::PlayMotionAction;
+use diagnostics::{CycleWindow, Snapshot, DIAGNOSTICS_PERIOD, DIAGNOSTICS_TOPIC};
+use estop::EStopTopic;
+use heartbeat::{Deadman, HEARTBEAT_TOPIC};
 use jobs::{Finished, Job, Jobs};
+use patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray;
+use patchwalk_msgs::std_msgs::msg::Empty;
 
 /// Arguments of `step_executor run`.
 #[derive(clap::Args, Debug, Default)]
@@ -77,10 +87,12 @@ struct Executor {
     jobs_pending: JobsPending,
     /// Stops taken in the current loop pass (see [`Executor::reset_estop`]).
     stops_in_pass: usize,
+    /// The operator's heartbeat, required to arm (see `heartbeat`).
+    deadman: Deadman,
 }
 
 impl Executor {
-    fn new(runtime: Runtime) -> Self {
+    fn new(runtime: Runtime, heartbeat_timeout: Duration) -> Self {
         Self {
             runtime,
             maps_received: 0,
@@ -88,6 +100,21 @@ impl Executor {
             latest_cloud: None,
             jobs_pending: JobsPending::default(),
             stops_in_pass: 0,
+            deadman: Deadman::new(heartbeat_timeout),
+        }
+    }
+
+    /// The deadman after this pass's heartbeats and bus cycles: the armed step ends when the
+    /// executor is neither armed nor playing; heartbeats missing for longer than the timeout
+    /// disarm and hold.
+    fn check_deadman(&mut self, now: Instant) {
+        let status = self.runtime.status();
+        if self.deadman.engaged() && !status.armed && status.state != RunState::Playing {
+            self.deadman.disengage();
+        }
+        if let Some(reason) = self.deadman.expired(now) {
+            tracing::warn!("{reason}");
+            self.runtime.deadman_lost(reason);
         }
     }
 
@@ -287,6 +314,7 @@ impl Executor {
     /// `STATE_ESTOPPED` until an explicit `reset_estop` (arming does not clear it).
     fn stop(&mut self) -> TriggerResponse {
         self.stops_in_pass += 1;
+        self.deadman.disengage();
         let message = self.runtime.stop();
         tracing::warn!("e-stop requested");
         TriggerResponse { success: true, message }
@@ -311,11 +339,22 @@ impl Executor {
         TriggerResponse { success: true, message }
     }
 
-    /// Arm/disarm automatic execution on match; refused while an e-stop is latched.
+    /// Arm/disarm automatic execution on match; refused while an e-stop is latched or without a
+    /// recent heartbeat (the deadman).
     fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
+        if request.data {
+            if let Err(reason) = self.deadman.check_arm(Instant::now()) {
+                return failure_bool(format!("arm(true): refused: {reason}"));
+            }
+        }
         match self.runtime.arm(request.data) {
             Ok(message) => {
                 tracing::info!("{message}");
+                if request.data {
+                    self.deadman.engage();
+                } else {
+                    self.deadman.disengage();
+                }
                 SetBoolResponse { success: true, message }
             }
             Err(e) => failure_bool(format!("arm({}): {e}", request.data)),
@@ -434,6 +473,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     config.validate()?;
     let params = config.ros.clone();
     let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
+    let heartbeat_timeout = match Duration::try_from_secs_f64(params.heartbeat_timeout_s) {
+        Ok(timeout) if timeout > Duration::ZERO => timeout,
+        _ => anyhow::bail!("ros.heartbeat_timeout_s = {} must be a positive duration in s", params.heartbeat_timeout_s),
+    };
     let joint_state_period = period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
     // Library, URDF and the servo bus thread (a missing bus or a broken library file is reported, not fatal).
     let (runtime, warnings) = Runtime::new(config)?;
@@ -459,10 +502,17 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut stop_srv = ros.server::<Trigger>(STOP)?;
     let mut arm_srv = ros.server::<SetBool>(ARM)?;
     let mut reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
+    let mut estop_topic = EStopTopic::new(&mut ros)?;
+    let mut heartbeat_sub = ros.subscription::<Empty>(HEARTBEAT_TOPIC, heartbeat::heartbeat_qos())?;
+    let mut play_action = PlayMotionAction::new(&mut ros)?;
+    let diagnostics_pub = ros.publisher::<DiagnosticArray>(DIAGNOSTICS_TOPIC, node::reliable_qos())?;
 
     // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
     // an event, or a periodic output is due.
     let mut wakeup = Wakeup::new()?;
+    wakeup.watch(estop_topic.source())?;
+    wakeup.watch(&mut heartbeat_sub)?;
+    play_action.watch(&wakeup)?;
     wakeup.watch(&mut patches_sub)?;
     wakeup.watch(&mut cloud_sub)?;
     wakeup.watch(&mut stop_srv)?;
@@ -482,7 +532,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     .context("cannot start the job worker")?;
 
     let mut log = RateLimitedLog::default();
-    let mut executor = Executor::new(runtime);
+    let mut executor = Executor::new(runtime, heartbeat_timeout);
     let bus_waker = wakeup.waker();
     executor.runtime.set_bus_notify(Box::new(move || {
         let _ = bus_waker.wake();
@@ -491,20 +541,32 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let joint_names = executor.runtime.joint_names().to_vec();
     let mut next_status = Instant::now();
     let mut next_joint_state = Instant::now();
+    let mut next_diagnostics = Instant::now();
+    let mut cycles = CycleWindow::default();
+    let servos = executor.runtime.config().servos.clone();
+    let cycle = executor.runtime.config().player.cycle();
     tracing::info!("step_executor running");
 
     while !shutdown.requested() {
         let full = |n: usize| n >= REQUESTS_PER_PASS;
-        // E-stop first: it never waits behind other requests; then the resets of this pass
-        // (refused when a stop came in the same pass, see `Executor::reset_estop`).
+        // E-stop first, the topic and then the service: it never waits behind other work; then the
+        // resets of this pass (refused when a stop came in the same pass, see `Executor::reset_estop`).
         executor.begin_pass();
+        for _ in 0..estop_topic.take_stops(&mut log) {
+            executor.stop();
+        }
         let mut more = full(node::serve(&stop_srv, STOP, &mut log, |_| executor.stop()));
+        let beats = node::drain(&heartbeat_sub, HEARTBEAT_TOPIC, 1024, &mut log, |_, _| {});
+        if beats > 0 {
+            executor.deadman.beat(Instant::now());
+        }
         more |= full(node::serve(&reset_estop_srv, RESET_ESTOP, &mut log, |_| executor.reset_estop()));
         more |= full(node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r)));
         more |= full(node::serve(&set_torque_srv, SET_TORQUE, &mut log, |r| executor.set_torque(r)));
         more |= full(node::serve(&record_keyframe_srv, RECORD_KEYFRAME, &mut log, |r| executor.record_keyframe(r)));
         more |= full(node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r)));
         more |= full(node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r)));
+        more |= play_action.serve(&mut executor.runtime, &mut log);
         // Services whose work may take long: answered now, or by a job when it finishes.
         more |= serve_or_start(&select_target_srv, SELECT_TARGET, &mut executor, &jobs, &mut log, Executor::select_target);
         more |= serve_or_start(&save_motion_srv, SAVE_MOTION, &mut executor, &jobs, &mut log, Executor::save_motion);
@@ -520,7 +582,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= node::drain(&patches_sub, PATCHES_TOPIC, 8, &mut log, |map, _| executor.on_patches(map)) >= 8;
         more |= node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(Arc::new(cloud))) >= 4;
         // Every control cycle while playing, at joint_state_rate_hz otherwise.
-        for telemetry in executor.runtime.poll() {
+        let telemetry = executor.runtime.poll();
+        play_action.on_telemetry(&telemetry, &executor.runtime, &mut log);
+        cycles.add(&telemetry);
+        executor.check_deadman(Instant::now());
+        for telemetry in telemetry {
             let playing = telemetry.goal.is_some();
             let now = Instant::now();
             if playing || now >= next_joint_state {
@@ -532,11 +598,32 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             }
         }
         let now = Instant::now();
+        let status = executor.runtime.status();
+        estop_topic.publish_state(status.state == RunState::EStopped, &mut log);
+        play_action.publish_status(&mut log);
         if now >= next_status {
             node::publish(&status_pub, STATUS_TOPIC, executor.status(), &mut log);
             next_status = now + status_period;
         }
-        let mut due = next_status.min(now + MAX_WAIT);
+        if now >= next_diagnostics {
+            let snapshot = Snapshot {
+                status: &status,
+                has_bus,
+                servos: &servos,
+                cycle,
+                heartbeat_age: executor.deadman.age(now),
+                heartbeat_timeout,
+                deadman_engaged: executor.deadman.engaged(),
+                action_goal_active: play_action.active_goal(),
+            };
+            node::publish(&diagnostics_pub, DIAGNOSTICS_TOPIC, diagnostics::diagnostics(&snapshot, &mut cycles, now), &mut log);
+            next_diagnostics = now + DIAGNOSTICS_PERIOD;
+        }
+        let mut due = next_status.min(next_diagnostics).min(now + MAX_WAIT);
+        if let Some(deadline) = executor.deadman.deadline() {
+            // Just after the deadline, so the expiry is seen in that pass.
+            due = due.min(deadline + Duration::from_millis(1));
+        }
         if has_bus {
             due = due.min(next_joint_state);
         }
@@ -568,7 +655,9 @@ mod tests {
         config.urdf_path = root.join("urdf/rpbp.urdf");
         config.library_path = dir.path().join("motions.yaml");
         let (runtime, _) = Runtime::with_bus(config, || Err("no bus in this test".into())).unwrap();
-        (Executor::new(runtime), dir)
+        let mut executor = Executor::new(runtime, Duration::from_millis(500));
+        executor.deadman.beat(Instant::now());
+        (executor, dir)
     }
 
     #[test]

@@ -454,6 +454,26 @@ impl Runtime {
         "stopped; disarmed; latched until reset_estop".into()
     }
 
+    /// Stop a running motion and hold the measured pose (within one cycle), without latching the
+    /// e-stop: a new motion may start at once. Returns whether a motion was running.
+    pub fn hold(&mut self) -> bool {
+        let playing = matches!(self.player_state, PlayerState::Playing { .. });
+        if playing {
+            if let Some(bus) = &self.bus {
+                bus.estop();
+            }
+        }
+        playing
+    }
+
+    /// The operator's deadman (heartbeat) was lost: disarm, hold a running motion and report
+    /// `reason` as the last fault. Not latched: arming again (with heartbeats) is allowed.
+    pub fn deadman_lost(&mut self, reason: String) {
+        self.armed = false;
+        self.hold();
+        self.last_fault = Some((0, reason));
+    }
+
     /// Clear a latched e-stop. Does not arm: automatic execution needs a separate `arm`.
     pub fn reset_estop(&mut self) -> String {
         let was = std::mem::replace(&mut self.estopped, false);

@@ -1,0 +1,296 @@
+//! `/diagnostics` (`diagnostic_msgs/DiagnosticArray`, 1 Hz) of the step_executor, hardware id
+//! `step_executor`: the servo bus, one status per servo, the control cycle, the motion library and
+//! the safety state (e-stop, armed, deadman heartbeat). Levels: OK, WARN (works, but a person
+//! should look: e-stop latched, empty library, slow cycle), ERROR (cannot move: no bus, a bus fault).
+
+use std::time::{Duration, Instant};
+
+use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
+use patchwalk_msgs::std_msgs::msg::Header;
+use patchwalk_ros::node;
+use step_executor::config::ServoConfig;
+use step_executor::executor::Telemetry;
+use step_executor::runtime::{RunState, RuntimeStatus};
+
+/// The diagnostics topic (REP-107).
+pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
+/// How often the array is published.
+pub const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
+/// The hardware id of every status: the node's name.
+pub const HARDWARE_ID: &str = "step_executor";
+
+const OK: u8 = DiagnosticStatus::OK;
+const WARN: u8 = DiagnosticStatus::WARN;
+const ERROR: u8 = DiagnosticStatus::ERROR;
+
+/// What the bus thread's telemetry showed since the last publication.
+#[derive(Debug, Clone, Default)]
+pub struct CycleWindow {
+    cycles: u64,
+    max_busy: Duration,
+    since: Option<Instant>,
+    /// Latest telemetry (per-servo readings).
+    latest: Option<Telemetry>,
+    /// Cycles in the window in which a servo gave no position, per servo (joint order).
+    missed: Vec<u64>,
+}
+
+impl CycleWindow {
+    /// Account the cycles of one loop pass.
+    pub fn add(&mut self, telemetry: &[Telemetry]) {
+        for t in telemetry {
+            self.cycles += 1;
+            self.max_busy = self.max_busy.max(t.busy);
+            if self.missed.len() < t.positions.len() {
+                self.missed.resize(t.positions.len(), 0);
+            }
+            for (missed, p) in self.missed.iter_mut().zip(&t.positions) {
+                *missed += u64::from(p.is_none());
+            }
+        }
+        if let Some(last) = telemetry.last() {
+            self.latest = Some(last.clone());
+        }
+    }
+
+    /// Start a new window at `now` (keeps the latest telemetry).
+    fn restart(&mut self, now: Instant) {
+        self.cycles = 0;
+        self.max_busy = Duration::ZERO;
+        self.since = Some(now);
+        self.missed.iter_mut().for_each(|m| *m = 0);
+    }
+}
+
+/// The node state the diagnostics describe (gathered by the loop).
+pub struct Snapshot<'a> {
+    pub status: &'a RuntimeStatus,
+    pub has_bus: bool,
+    pub servos: &'a [ServoConfig],
+    /// Nominal control cycle.
+    pub cycle: Duration,
+    pub heartbeat_age: Option<Duration>,
+    pub heartbeat_timeout: Duration,
+    pub deadman_engaged: bool,
+    pub action_goal_active: bool,
+}
+
+fn kv(key: &str, value: impl ToString) -> KeyValue {
+    KeyValue { key: key.to_string(), value: value.to_string() }
+}
+
+fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
+    DiagnosticStatus { level, name: format!("{HARDWARE_ID}: {name}"), message: message.into(), hardware_id: HARDWARE_ID.to_string(), values }
+}
+
+/// The whole array for `snapshot` and the cycles of `window` (which is restarted).
+pub fn diagnostics(snapshot: &Snapshot<'_>, window: &mut CycleWindow, now: Instant) -> DiagnosticArray {
+    let mut statuses = vec![bus_status(snapshot)];
+    statuses.extend(servo_statuses(snapshot, window));
+    statuses.push(cycle_status(snapshot, window, now));
+    statuses.push(library_status(snapshot));
+    statuses.push(safety_status(snapshot));
+    window.restart(now);
+    DiagnosticArray { header: Header { stamp: node::now_stamp(), frame_id: String::new() }, status: statuses }
+}
+
+fn bus_status(s: &Snapshot<'_>) -> DiagnosticStatus {
+    let st = s.status;
+    let values = vec![
+        kv("state", format!("{:?}", st.state)),
+        kv("torque", st.torque_enabled),
+        kv("current_motion", &st.current_motion),
+        kv("fault_servo_id", st.fault_servo_id),
+        kv("last_fault", &st.last_fault),
+    ];
+    if !s.has_bus {
+        return status(ERROR, "servo bus", format!("no servo bus: {}", st.last_fault), values);
+    }
+    match st.state {
+        RunState::HoldingFault => {
+            let servo = if st.fault_servo_id == 0 { String::new() } else { format!(" (servo {})", st.fault_servo_id) };
+            status(ERROR, "servo bus", format!("bus fault{servo}, holding: {}; set_torque false clears it", st.last_fault), values)
+        }
+        RunState::Playing => status(OK, "servo bus", format!("playing {:?}", st.current_motion), values),
+        RunState::EStopped => status(OK, "servo bus", "holding (e-stop latched)", values),
+        RunState::Idle => status(OK, "servo bus", if st.torque_enabled { "idle, torque on" } else { "idle, torque off" }, values),
+    }
+}
+
+/// One status per servo from what the telemetry carries today (whether the servo answered its
+/// position read, the position). Per-servo bus health (communication errors, hardware-error bits,
+/// temperature, voltage) is added here when the telemetry carries it.
+pub fn servo_statuses(s: &Snapshot<'_>, window: &CycleWindow) -> Vec<DiagnosticStatus> {
+    if !s.has_bus {
+        return Vec::new();
+    }
+    let latest = window.latest.as_ref();
+    s.servos
+        .iter()
+        .enumerate()
+        .map(|(i, servo)| {
+            let position = latest.and_then(|t| t.positions.get(i).copied().flatten());
+            let missed = window.missed.get(i).copied().unwrap_or(0);
+            let name = format!("servo {} ({})", servo.id, servo.joint);
+            let mut values = vec![kv("id", servo.id), kv("joint", &servo.joint), kv("missed_position_reads", missed)];
+            if let Some(q) = position {
+                values.push(kv("position_rad", format!("{q:.4}")));
+            }
+            let faulted = s.status.state == RunState::HoldingFault && s.status.fault_servo_id == servo.id;
+            match (faulted, position, missed) {
+                (true, _, _) => status(ERROR, &name, format!("faulted: {}", s.status.last_fault), values),
+                (false, None, _) => status(WARN, &name, "no position reading in the last cycle", values),
+                (false, Some(_), m) if m > 0 => status(WARN, &name, format!("{m} position reads failed in the last second"), values),
+                _ => status(OK, &name, "answering", values),
+            }
+        })
+        .collect()
+}
+
+fn cycle_status(s: &Snapshot<'_>, window: &CycleWindow, now: Instant) -> DiagnosticStatus {
+    let nominal_hz = 1.0 / s.cycle.as_secs_f64();
+    let seconds = window.since.map_or(0.0, |since| now.duration_since(since).as_secs_f64());
+    let rate = if seconds > 0.0 { window.cycles as f64 / seconds } else { 0.0 };
+    let values = vec![
+        kv("rate_hz", format!("{rate:.1}")),
+        kv("nominal_hz", format!("{nominal_hz:.1}")),
+        kv("max_bus_time_ms", format!("{:.2}", window.max_busy.as_secs_f64() * 1e3)),
+    ];
+    if !s.has_bus {
+        return status(OK, "control cycle", "not running (no servo bus)", values);
+    }
+    if seconds > 0.0 && rate < 0.9 * nominal_hz {
+        return status(WARN, "control cycle", format!("{rate:.0} Hz, below the nominal {nominal_hz:.0} Hz"), values);
+    }
+    status(OK, "control cycle", format!("{rate:.0} Hz"), values)
+}
+
+fn library_status(s: &Snapshot<'_>) -> DiagnosticStatus {
+    let st = s.status;
+    let values = vec![kv("motions", st.library_size), kv("recorded_keyframes", st.recorded_keyframes), kv("last_match", &st.last_match)];
+    if st.library_size == 0 {
+        return status(WARN, "motion library", "empty: nothing to match (train and save_motion)", values);
+    }
+    status(OK, "motion library", format!("{} motions", st.library_size), values)
+}
+
+fn safety_status(s: &Snapshot<'_>) -> DiagnosticStatus {
+    let st = s.status;
+    let age = s.heartbeat_age.map_or("never".to_string(), |a| format!("{:.2}", a.as_secs_f64()));
+    let values = vec![
+        kv("estop_latched", st.state == RunState::EStopped),
+        kv("armed", st.armed),
+        kv("deadman_engaged", s.deadman_engaged),
+        kv("heartbeat_age_s", age),
+        kv("heartbeat_timeout_s", format!("{:.2}", s.heartbeat_timeout.as_secs_f64())),
+        kv("action_goal_active", s.action_goal_active),
+    ];
+    if st.state == RunState::EStopped {
+        return status(WARN, "safety", "e-stop latched: motions refused until reset_estop", values);
+    }
+    if st.last_fault.starts_with("deadman") {
+        return status(WARN, "safety", st.last_fault.clone(), values);
+    }
+    let message = if st.armed { "armed (heartbeats arriving)" } else { "disarmed" };
+    status(OK, "safety", message, values)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use step_executor::player::PlayerState;
+
+    fn runtime_status(state: RunState) -> RuntimeStatus {
+        RuntimeStatus {
+            state,
+            armed: false,
+            torque_enabled: true,
+            current_motion: String::new(),
+            keyframe_index: 0,
+            last_match: String::new(),
+            fault_servo_id: 0,
+            last_fault: String::new(),
+            library_size: 2,
+            recorded_keyframes: 0,
+        }
+    }
+
+    fn servos() -> Vec<ServoConfig> {
+        (1..=2).map(|id| ServoConfig { joint: format!("j{id}"), id, zero_offset: 0.0, direction: 1 }).collect()
+    }
+
+    fn telemetry(positions: Vec<Option<f64>>) -> Telemetry {
+        Telemetry {
+            started: Instant::now(),
+            busy: Duration::from_millis(2),
+            cycle_index: 0,
+            keyframe_index: 0,
+            positions,
+            goal: None,
+            state: PlayerState::Idle,
+            torque: true,
+            event: None,
+        }
+    }
+
+    fn snapshot<'a>(status: &'a RuntimeStatus, servos: &'a [ServoConfig]) -> Snapshot<'a> {
+        Snapshot {
+            status,
+            has_bus: true,
+            servos,
+            cycle: Duration::from_millis(8),
+            heartbeat_age: None,
+            heartbeat_timeout: Duration::from_millis(500),
+            deadman_engaged: false,
+            action_goal_active: false,
+        }
+    }
+
+    fn find<'a>(array: &'a DiagnosticArray, name: &str) -> &'a DiagnosticStatus {
+        array.status.iter().find(|s| s.name == format!("{HARDWARE_ID}: {name}")).unwrap()
+    }
+
+    #[test]
+    fn a_bus_fault_is_an_error_naming_the_servo() {
+        let mut st = runtime_status(RunState::HoldingFault);
+        st.fault_servo_id = 2;
+        st.last_fault = "j2: servo 2: hardware error: overheating".into();
+        let servos = servos();
+        let mut window = CycleWindow::default();
+        window.add(&[telemetry(vec![Some(0.1), None])]);
+        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now());
+        let bus = find(&array, "servo bus");
+        assert_eq!(bus.level, ERROR);
+        assert!(bus.message.contains("servo 2") && bus.message.contains("overheating"), "{}", bus.message);
+        assert_eq!(find(&array, "servo 2 (j2)").level, ERROR);
+        assert_eq!(find(&array, "servo 1 (j1)").level, OK);
+        assert!(array.status.iter().all(|s| s.hardware_id == HARDWARE_ID));
+    }
+
+    #[test]
+    fn missing_readings_warn_and_a_latched_estop_is_reported() {
+        let st = runtime_status(RunState::EStopped);
+        let servos = servos();
+        let mut window = CycleWindow::default();
+        window.add(&[telemetry(vec![Some(0.1), None])]);
+        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now());
+        assert_eq!(find(&array, "servo 2 (j2)").level, WARN);
+        let safety = find(&array, "safety");
+        assert_eq!(safety.level, WARN);
+        assert!(safety.message.contains("reset_estop"), "{}", safety.message);
+        assert!(safety.values.iter().any(|v| v.key == "heartbeat_age_s" && v.value == "never"));
+    }
+
+    #[test]
+    fn without_a_bus_the_bus_is_an_error_and_no_servo_is_listed() {
+        let mut st = runtime_status(RunState::Idle);
+        st.last_fault = "servo bus not available: /dev/ttyUSB0: no such file".into();
+        st.library_size = 0;
+        let servos = servos();
+        let snap = Snapshot { has_bus: false, ..snapshot(&st, &servos) };
+        let array = diagnostics(&snap, &mut CycleWindow::default(), Instant::now());
+        assert_eq!(find(&array, "servo bus").level, ERROR);
+        assert!(!array.status.iter().any(|s| s.name.contains("servo 1")));
+        assert_eq!(find(&array, "motion library").level, WARN);
+    }
+}

@@ -201,6 +201,9 @@ class Experiment:
             raise ValueError(f"full_motions {config.full_motions!r}: 'first' or 'all'")
         self.ros, self.hand, self.rocks, self.config = harness, hand, rocks, config
         self.services = Services(harness)
+        # The trainer watches the robot: the executor arms only while this heartbeat arrives (its
+        # deadman disarms and holds within ros.heartbeat_timeout_s when it stops).
+        self.heartbeat = harness.heartbeat()
         self.log = config.log
         self.rng = random.Random(config.seed)
         self.t0 = time.monotonic()
@@ -269,6 +272,17 @@ class Experiment:
 
     def arm(self, on: bool) -> None:
         from std_srvs.srv import SetBool
+        if on:
+            self.heartbeat.wait_for_executor()
+            # Arming is refused until a heartbeat has arrived: retry briefly after discovery.
+            deadline = time.monotonic() + 5.0
+            while True:
+                response = self.services.call(SetBool, "/step_executor/arm", SetBool.Request(data=True))
+                if response.success:
+                    return
+                if "heartbeat" not in response.message or time.monotonic() > deadline:
+                    raise RuntimeError(f"/step_executor/arm: {response.message}")
+                time.sleep(0.05)
         self._call(SetBool, "/step_executor/arm", SetBool.Request(data=on))
 
     def reset_mapper(self) -> float:

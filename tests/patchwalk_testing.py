@@ -296,6 +296,10 @@ class RosHarness:
                 if time.monotonic() > deadline:
                     return collector.wait_for(predicate, timeout=0.0)
 
+    def heartbeat(self, period: float = 0.05) -> "Heartbeat":
+        """Start publishing the operator's heartbeat (step_executor arms only while it arrives)."""
+        return Heartbeat(self.node, self._lock, period)
+
     # --- services ------------------------------------------------------------------------------------
 
     def client(self, srv_type, name: str):
@@ -311,6 +315,49 @@ class RosHarness:
         finally:
             with self._lock:
                 self.node.destroy_client(client)
+
+
+HEARTBEAT_TOPIC = "/step_executor/heartbeat"
+
+
+class Heartbeat:
+    """std_msgs/Empty on /step_executor/heartbeat every `period` s from a thread of its own (an rclpy
+    timer would share the spin thread with the test's callbacks), until `stop()`. The executor's
+    deadman disarms and holds when heartbeats stop for `ros.heartbeat_timeout_s` (0.5 s)."""
+
+    def __init__(self, node, lock: threading.Lock, period: float = 0.05):
+        from std_msgs.msg import Empty
+
+        self._node, self._lock, self._period = node, lock, period
+        with lock:
+            self._publisher = node.create_publisher(Empty, HEARTBEAT_TOPIC, 10)
+        self._msg = Empty()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period):
+            try:
+                self._publisher.publish(self._msg)
+            except Exception:  # the node is being destroyed
+                return
+
+    def wait_for_executor(self, timeout: float = DEFAULT_TIMEOUT_S) -> None:
+        """Until the executor's subscription has matched (the first heartbeats can then arrive)."""
+        wait_until(lambda: self._publisher.get_subscription_count() > 0, f"a subscriber on {HEARTBEAT_TOPIC}", timeout)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        with self._lock:
+            self._node.destroy_publisher(self._publisher)
+
+    def __enter__(self) -> "Heartbeat":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
 
 
 def call_on(client, srv_type, name: str, request=None, timeout: float = DEFAULT_TIMEOUT_S, attempt_s: float = 5.0,

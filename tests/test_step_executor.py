@@ -2,6 +2,7 @@
 the services that are not connected yet."""
 
 import threading
+import time
 
 from std_srvs.srv import SetBool, Trigger
 from patchwalk_msgs.msg import ExecutorStatus, Patch, PatchArray
@@ -25,8 +26,23 @@ def test_list_motions_is_empty(ros, step_executor):
     assert list(response.motions) == []
 
 
+def _heartbeat(ros):
+    """Heartbeats running and seen by the executor (arming needs them)."""
+    heartbeat = ros.heartbeat()
+    heartbeat.wait_for_executor()
+    time.sleep(0.3)
+    return heartbeat
+
+
+def test_arm_is_refused_without_a_heartbeat(ros, step_executor):
+    response = ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True))
+    assert not response.success and "heartbeat" in response.message, response.message
+    assert not _status(ros).latest().armed
+
+
 def test_arm_then_stop_latches_estop(ros, step_executor):
     status = _status(ros)
+    heartbeat = _heartbeat(ros)
     assert ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True)).success
     status.wait_for(lambda s: s.armed)
     response = ros.call(Trigger, "/step_executor/stop")
@@ -39,6 +55,7 @@ def test_arm_then_stop_latches_estop(ros, step_executor):
     assert ros.call(Trigger, "/step_executor/reset_estop").success
     got = _status(ros).wait_for(lambda s: s.state == ExecutorStatus.STATE_IDLE)  # a fresh collector: after the reset
     assert not got.armed
+    heartbeat.stop()
 
 
 def _clients(ros, srv_type, name, count):
@@ -76,6 +93,7 @@ def test_an_acknowledged_stop_is_not_undone_by_an_arm_sent_just_before_it(ros, s
     (arm_a, arm_b), (stop_a,), (reset,) = (_clients(ros, SetBool, "/step_executor/arm", 2),
                                            _clients(ros, Trigger, "/step_executor/stop", 1),
                                            _clients(ros, Trigger, "/step_executor/reset_estop", 1))
+    heartbeat = _heartbeat(ros)
     for trial in range(40):
         arm_client = arm_a if trial % 2 == 0 else arm_b
         armed = _send(arm_client, SetBool.Request(data=True))
@@ -95,6 +113,7 @@ def test_an_acknowledged_stop_is_not_undone_by_an_arm_sent_just_before_it(ros, s
     assert not probe.success and "reset_estop" in probe.message
     got = _status(ros).wait_for(lambda s: s.state == ExecutorStatus.STATE_ESTOPPED)
     assert not got.armed
+    heartbeat.stop()
 
 
 def test_a_reset_racing_a_stop_never_clears_it(ros, step_executor):

@@ -99,6 +99,9 @@ def test_train_then_match_plays_keyframes_in_order_and_mismatch_moves_nothing(ro
     pub = train_rock1(ros, sim_bus)
     joints = ros.collect(JointState, "/joint_states")
     joints.wait_for(lambda m: len(m.position) == 12)
+    heartbeat = ros.heartbeat()
+    heartbeat.wait_for_executor()
+    time.sleep(0.3)
     assert ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True)).success
 
     # A patch 5 cm away from the trained one: nothing moves.
@@ -124,6 +127,7 @@ def test_train_then_match_plays_keyframes_in_order_and_mismatch_moves_nothing(ro
     assert abs(r_knee[peak] - 0.4) < 0.02, "keyframe 1 reached"
     assert abs(r_knee[-1]) < 0.02, "keyframe 2 reached after keyframe 1"
     assert all(abs(q - 0.4) < 0.02 for q in l_knee[peak:]), "left knee held at 0.4"
+    heartbeat.stop()
 
 
 def test_fault_mid_motion_stops_holds_and_reports_the_servo(ros, sim_bus, executor_on_sim_bus):

@@ -342,7 +342,8 @@ impl Executor {
     /// Arm/disarm automatic execution on match; refused while an e-stop is latched or without a
     /// recent heartbeat (the deadman).
     fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
-        if request.data {
+        // A latched e-stop is named first (the deadman is the second reason not to arm).
+        if request.data && self.runtime.status().state != RunState::EStopped {
             if let Err(reason) = self.deadman.check_arm(Instant::now()) {
                 return failure_bool(format!("arm(true): refused: {reason}"));
             }

@@ -12,6 +12,7 @@
 //! skipped — the node keeps running.
 
 mod convert;
+mod diagnostics;
 mod publish;
 
 /// The longest the loop sleeps without input (a shutdown request is seen within this).
@@ -441,6 +442,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let birds_eye_pub = ros.publisher::<PointCloud2>(BIRDS_EYE_TOPIC, node::reliable_qos())?;
     let status_pub = ros.publisher::<MapperStatus>(STATUS_TOPIC, node::reliable_qos())?;
     let mut reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+    let diagnostics_pub =
+        ros.publisher::<patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray>(diagnostics::DIAGNOSTICS_TOPIC, node::reliable_qos())?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;
     wakeup.watch(&mut depth_sub)?;
@@ -487,6 +490,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut log = RateLimitedLog::new(log_period);
     let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s);
     let mut next_status = Instant::now();
+    let mut diagnostics_window = diagnostics::MapperWindow::default();
+    let mut next_diagnostics = Instant::now() + diagnostics::DIAGNOSTICS_PERIOD;
     tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
 
     while !shutdown.requested() {
@@ -514,11 +519,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             }
             next_status = now + status_period;
         }
+        if let Ok(s) = status.lock() {
+            diagnostics_window.sample(&s, now);
+            if now >= next_diagnostics {
+                let array = diagnostics_window.diagnostics(&s, now);
+                node::publish(&diagnostics_pub, diagnostics::DIAGNOSTICS_TOPIC, array, &mut dds_log);
+                next_diagnostics = now + diagnostics::DIAGNOSTICS_PERIOD;
+            }
+        }
         if worker_thread.is_finished() {
             anyhow::bail!("the pipeline thread ended unexpectedly");
         }
         let timeout =
-            if more { Duration::ZERO } else { next_status.min(Instant::now() + MAX_WAIT).saturating_duration_since(Instant::now()) };
+            if more { Duration::ZERO } else { next_status.min(next_diagnostics).min(Instant::now() + MAX_WAIT).saturating_duration_since(Instant::now()) };
         wakeup.wait(timeout);
     }
     stop.store(true, Ordering::Relaxed);

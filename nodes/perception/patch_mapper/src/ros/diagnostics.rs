@@ -1,0 +1,218 @@
+//! `/diagnostics` (`diagnostic_msgs/DiagnosticArray`, 1 Hz) of patch_mapper, hardware id
+//! `patch_mapper`: input rates (depth, IMU, camera info), processing latency (depth received →
+//! patches published, p50/p99 over the last second), frames dropped and why, whether frames are
+//! being mapped (tracking), and the map size. Levels: OK, WARN (an input missing or no frame mapped
+//! while frames arrive, frames dropped), ERROR (no depth frames at all).
+//!
+//! The numbers come from the node's `MapperStatus` counters, sampled by the loop on every pass. The
+//! latency is the one of the latest mapped frame at each pass: when two frames finish between two
+//! passes only the later one is sampled.
+
+use std::time::{Duration, Instant};
+
+use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
+use patchwalk_msgs::msg::MapperStatus;
+use patchwalk_msgs::std_msgs::msg::Header;
+use patchwalk_ros::node;
+
+pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
+pub const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
+pub const HARDWARE_ID: &str = "patch_mapper";
+/// The timing entry that holds the end-to-end latency (`MapperStatus.timing_names`).
+const LATENCY_NAME: &str = "depth_in_to_patches_out";
+
+const OK: u8 = DiagnosticStatus::OK;
+const WARN: u8 = DiagnosticStatus::WARN;
+const ERROR: u8 = DiagnosticStatus::ERROR;
+
+/// Counters at the start of the window and the latencies sampled in it.
+#[derive(Debug, Default)]
+pub struct MapperWindow {
+    start: Option<(Instant, MapperStatus)>,
+    last_processed: u64,
+    latencies_ms: Vec<f64>,
+}
+
+impl MapperWindow {
+    /// Sample the status (every loop pass): the latency of a newly mapped frame.
+    pub fn sample(&mut self, status: &MapperStatus, now: Instant) {
+        if self.start.is_none() {
+            self.start = Some((now, status.clone()));
+            self.last_processed = status.frames_processed;
+        }
+        if status.frames_processed > self.last_processed {
+            self.last_processed = status.frames_processed;
+            let latency = status.timing_names.iter().position(|n| n == LATENCY_NAME).and_then(|i| status.timing_ms.get(i));
+            if let Some(ms) = latency {
+                self.latencies_ms.push(*ms);
+            }
+        }
+    }
+
+    /// The array for the window ending at `now` (then a new window starts).
+    pub fn diagnostics(&mut self, status: &MapperStatus, now: Instant) -> DiagnosticArray {
+        let (since, before) = self.start.take().unwrap_or_else(|| (now, status.clone()));
+        let seconds = now.duration_since(since).as_secs_f64();
+        let rate = |after: u64, before: u64| if seconds > 0.0 { after.saturating_sub(before) as f64 / seconds } else { 0.0 };
+        let rates = Rates {
+            depth_hz: rate(status.frames_received, before.frames_received),
+            imu_hz: rate(status.imu_received, before.imu_received),
+            camera_info_hz: rate(status.camera_infos_received, before.camera_infos_received),
+            processed_hz: rate(status.frames_processed, before.frames_processed),
+            skipped: status.frames_skipped.saturating_sub(before.frames_skipped),
+            rejected: status.frames_rejected.saturating_sub(before.frames_rejected),
+        };
+        let mut latencies = std::mem::take(&mut self.latencies_ms);
+        latencies.sort_by(f64::total_cmp);
+        let statuses = vec![
+            inputs_status(&rates),
+            latency_status(&latencies),
+            dropped_status(status, &rates),
+            tracking_status(status, &rates),
+            map_status(status),
+        ];
+        self.start = Some((now, status.clone()));
+        DiagnosticArray { header: Header { stamp: node::now_stamp(), frame_id: String::new() }, status: statuses }
+    }
+}
+
+struct Rates {
+    depth_hz: f64,
+    imu_hz: f64,
+    camera_info_hz: f64,
+    processed_hz: f64,
+    skipped: u64,
+    rejected: u64,
+}
+
+fn kv(key: &str, value: impl ToString) -> KeyValue {
+    KeyValue { key: key.to_string(), value: value.to_string() }
+}
+
+fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
+    DiagnosticStatus { level, name: format!("{HARDWARE_ID}: {name}"), message: message.into(), hardware_id: HARDWARE_ID.to_string(), values }
+}
+
+/// The `q` quantile (0..1) of sorted values, nearest rank.
+fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+    let last = sorted.len().checked_sub(1)?;
+    let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    sorted.get(rank.min(last)).copied()
+}
+
+fn inputs_status(r: &Rates) -> DiagnosticStatus {
+    let values =
+        vec![kv("depth_hz", format!("{:.1}", r.depth_hz)), kv("imu_hz", format!("{:.1}", r.imu_hz)), kv("camera_info_hz", format!("{:.1}", r.camera_info_hz))];
+    let missing: Vec<&str> = [("depth", r.depth_hz), ("IMU", r.imu_hz), ("camera info", r.camera_info_hz)]
+        .iter()
+        .filter(|(_, hz)| *hz <= 0.0)
+        .map(|(name, _)| *name)
+        .collect();
+    if r.depth_hz <= 0.0 {
+        return status(ERROR, "inputs", format!("no depth frames in the last second (also missing: {})", missing.join(", ")), values);
+    }
+    if !missing.is_empty() {
+        return status(WARN, "inputs", format!("no {} in the last second", missing.join(", ")), values);
+    }
+    status(OK, "inputs", format!("depth {:.0} Hz, IMU {:.0} Hz, camera info {:.0} Hz", r.depth_hz, r.imu_hz, r.camera_info_hz), values)
+}
+
+fn latency_status(sorted: &[f64]) -> DiagnosticStatus {
+    let (Some(p50), Some(p99)) = (quantile(sorted, 0.5), quantile(sorted, 0.99)) else {
+        return status(OK, "latency", "no frame mapped in the last second", vec![kv("samples", 0)]);
+    };
+    let values = vec![kv("p50_ms", format!("{p50:.1}")), kv("p99_ms", format!("{p99:.1}")), kv("samples", sorted.len())];
+    status(OK, "latency", format!("depth to patches p50 {p50:.1} ms, p99 {p99:.1} ms"), values)
+}
+
+fn dropped_status(s: &MapperStatus, r: &Rates) -> DiagnosticStatus {
+    let values = vec![
+        kv("skipped_last_second", r.skipped),
+        kv("rejected_last_second", r.rejected),
+        kv("skipped_total", s.frames_skipped),
+        kv("rejected_total", s.frames_rejected),
+        kv("last_error", &s.last_error),
+    ];
+    if r.skipped + r.rejected == 0 {
+        return status(OK, "dropped frames", "none in the last second", values);
+    }
+    let why = if s.last_error.is_empty() { "the pipeline was busy".to_string() } else { s.last_error.clone() };
+    status(WARN, "dropped frames", format!("{} skipped, {} rejected in the last second; last: {why}", r.skipped, r.rejected), values)
+}
+
+fn tracking_status(s: &MapperStatus, r: &Rates) -> DiagnosticStatus {
+    let values = vec![kv("mapped_hz", format!("{:.1}", r.processed_hz)), kv("frames_processed", s.frames_processed)];
+    if r.depth_hz > 0.0 && r.processed_hz <= 0.0 {
+        let why = if s.last_error.is_empty() { "no reason reported".to_string() } else { s.last_error.clone() };
+        return status(WARN, "tracking", format!("depth frames arrive but none was mapped: {why}"), values);
+    }
+    if r.processed_hz <= 0.0 {
+        return status(OK, "tracking", "idle (no depth frames)", values);
+    }
+    status(OK, "tracking", format!("mapping {:.0} frames/s", r.processed_hz), values)
+}
+
+fn map_status(s: &MapperStatus) -> DiagnosticStatus {
+    status(OK, "map", format!("{} patches", s.patches_in_map), vec![kv("patches", s.patches_in_map)])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn find<'a>(array: &'a DiagnosticArray, name: &str) -> &'a DiagnosticStatus {
+        array.status.iter().find(|s| s.name == format!("{HARDWARE_ID}: {name}")).unwrap()
+    }
+
+    #[test]
+    fn rates_latency_quantiles_and_drops_over_one_window() {
+        let t0 = Instant::now();
+        let mut window = MapperWindow::default();
+        let mut s = MapperStatus { timing_names: vec![LATENCY_NAME.into()], ..Default::default() };
+        window.sample(&s, t0);
+        for i in 1..=30u64 {
+            s.frames_received = i;
+            s.frames_processed = i;
+            s.imu_received = 10 * i;
+            s.camera_infos_received = i;
+            s.timing_ms = vec![i as f64];
+            window.sample(&s, t0 + Duration::from_millis(33 * i));
+        }
+        s.frames_skipped = 2;
+        s.last_error = "depth frame skipped: no CameraInfo yet".into();
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(1));
+        assert_eq!(find(&array, "inputs").level, OK);
+        let latency = find(&array, "latency");
+        assert!(latency.message.contains("p50 15.0 ms") && latency.message.contains("p99 30.0 ms"), "{}", latency.message);
+        let dropped = find(&array, "dropped frames");
+        assert_eq!(dropped.level, WARN);
+        assert!(dropped.message.contains("2 skipped") && dropped.message.contains("CameraInfo"), "{}", dropped.message);
+        assert!(array.status.iter().all(|st| st.hardware_id == HARDWARE_ID));
+    }
+
+    #[test]
+    fn frames_arriving_but_none_mapped_warn_and_no_depth_is_an_error() {
+        let t0 = Instant::now();
+        let mut window = MapperWindow::default();
+        let mut s = MapperStatus::default();
+        window.sample(&s, t0);
+        s.frames_received = 30;
+        s.last_error = "ICP did not converge".into();
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(1));
+        let tracking = find(&array, "tracking");
+        assert_eq!(tracking.level, WARN);
+        assert!(tracking.message.contains("ICP"), "{}", tracking.message);
+        assert_eq!(find(&array, "inputs").level, WARN, "IMU and camera info missing");
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(2));
+        assert_eq!(find(&array, "inputs").level, ERROR);
+    }
+
+    #[test]
+    fn quantiles_use_the_nearest_rank() {
+        assert_eq!(quantile(&[], 0.5), None);
+        assert_eq!(quantile(&[4.0], 0.99), Some(4.0));
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(quantile(&v, 0.5), Some(50.0));
+        assert_eq!(quantile(&v, 0.99), Some(99.0));
+    }
+}

@@ -197,6 +197,7 @@ class RosHarness:
         self._thread.start()
         self._lock = threading.Lock()
         self._entities: list = []  # subscriptions and publishers made for the current test
+        self._heartbeats: list = []  # heartbeats started in the current test
 
     def _spin(self) -> None:
         try:
@@ -205,7 +206,11 @@ class RosHarness:
             pass
 
     def destroy_entities(self) -> None:
-        """Destroy the subscriptions and publishers created since the last call (end of a test)."""
+        """Destroy the subscriptions and publishers created since the last call (end of a test), and
+        stop its heartbeats (a failed test must not leave one beating for the next)."""
+        for heartbeat in self._heartbeats:
+            heartbeat.stop()
+        self._heartbeats.clear()
         with self._lock:
             from rclpy.subscription import Subscription
 
@@ -298,13 +303,23 @@ class RosHarness:
 
     def heartbeat(self, period: float = 0.05) -> "Heartbeat":
         """Start publishing the operator's heartbeat (step_executor arms only while it arrives)."""
-        return Heartbeat(self.node, self._lock, period)
+        heartbeat = Heartbeat(self.node, self._lock, period)
+        self._heartbeats.append(heartbeat)
+        return heartbeat
 
     # --- services ------------------------------------------------------------------------------------
 
-    def client(self, srv_type, name: str):
+    def client(self, srv_type, name: str, depth: int | None = None):
+        """A service client; `depth` deepens its request/reply queues (rmw's default keeps 10, so an
+        unpaced burst of more calls loses requests in the client's own writer)."""
         with self._lock:
-            return self.node.create_client(srv_type, name)
+            if depth is None:
+                return self.node.create_client(srv_type, name)
+            from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy, DurabilityPolicy
+
+            qos = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=depth,
+                             durability=DurabilityPolicy.VOLATILE)
+            return self.node.create_client(srv_type, name, qos_profile=qos)
 
     def call(self, srv_type, name: str, request=None, timeout: float = DEFAULT_TIMEOUT_S, attempt_s: float = 5.0):
         """Call service `name` and return its response. A request lost while discovery settles is
@@ -348,6 +363,8 @@ class Heartbeat:
         wait_until(lambda: self._publisher.get_subscription_count() > 0, f"a subscriber on {HEARTBEAT_TOPIC}", timeout)
 
     def stop(self) -> None:
+        if self._stop.is_set():
+            return
         self._stop.set()
         self._thread.join(timeout=5)
         with self._lock:

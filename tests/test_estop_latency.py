@@ -123,3 +123,54 @@ def test_stop_is_answered_during_a_training_fit(ros, step_executor):
         latencies.append(stop_latency)
         assert stop_at < fit_at, "the stop waited for the fit"
     assert max(latencies) < 1.0
+
+
+def test_stop_by_service_and_by_topic_during_bursts_of_1000_calls(ros, step_executor):
+    """An unpaced burst of 1,000 list_motions calls, then an e-stop, 20 times for the service and 20
+    for the topic: the stop's answer (service) or the latched state on /step_executor/estop_state
+    (topic) comes ahead of the burst's tail. p50/max are printed."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Bool
+
+    latched = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         history=HistoryPolicy.KEEP_LAST, depth=1)
+    listing = ros.client(ListMotions, "/step_executor/list_motions", depth=1024)
+    stop = ros.client(Trigger, "/step_executor/stop")
+    reset = ros.client(Trigger, "/step_executor/reset_estop")
+    for client in (listing, stop, reset):
+        assert client.wait_for_service(timeout_sec=60.0)
+    estop_pub = ros.publisher(Bool, "/step_executor/estop", qos=latched)
+    ros.wait_for_subscriber(estop_pub)
+    state = ros.collect(Bool, "/step_executor/estop_state", qos=latched)
+    state.wait_for(lambda m: True)
+    _wait(_send(stop, Trigger.Request()))
+
+    def reset_until_cleared():
+        state.clear()
+        for _ in range(50):
+            if _wait(_send(reset, Trigger.Request()))[0].success:
+                break
+        state.wait_for(lambda m: m.data is False)
+
+    results = {"service": [], "topic": []}
+    for trial in range(40):
+        path = "service" if trial % 2 == 0 else "topic"
+        reset_until_cleared()
+        burst = [listing.call_async(ListMotions.Request()) for _ in range(1000)]
+        state.clear()
+        sent = time.monotonic()
+        if path == "service":
+            _, latency, _ = _wait(_send(stop, Trigger.Request()))
+        else:
+            estop_pub.publish(Bool(data=True))
+            state.wait_for(lambda m: m.data is True, timeout=30.0)
+            latency = time.monotonic() - sent
+        results[path].append(latency)
+        deadline = time.monotonic() + 60
+        while not all(f.done() for f in burst):
+            assert time.monotonic() < deadline, "burst not answered"
+            time.sleep(0.01)
+    for path, latencies in results.items():
+        print(f"e-stop by {path} during a burst of 1,000 calls ({len(latencies)} tries): "
+              f"p50 {statistics.median(latencies) * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
+        assert max(latencies) < 5.0, "sanity bound only"

@@ -6,10 +6,23 @@ from __future__ import annotations
 
 import time
 
+import pytest
 from std_srvs.srv import SetBool
 from patchwalk_msgs.msg import ExecutorStatus
 
-from test_step_executor_sim_bus import executor_on_sim_bus, patch_map, sim_bus, train_rock1  # noqa: F401  (fixtures)
+from test_step_executor_sim_bus import patch_map, sim_bus, train_rock1  # noqa: F401  (fixtures)
+
+
+@pytest.fixture
+def executor_with_deadman(ros, start_node, sim_bus, tmp_path):
+    """The executor on the simulated chain with a 1.0 s deadman: shorter than rock1 (1.4 s), so the
+    hold comes while it plays, and longer than a Python heartbeat thread stalls on a loaded host."""
+    node = start_node("step_executor", "--param", f"bus.port={sim_bus.device}",
+                      "--param", "bus.response_timeout_ms=1000",
+                      "--param", f"library_path={tmp_path / 'motions.yaml'}",
+                      "--param", "ros.status_rate_hz=20", "--param", "ros.heartbeat_timeout_s=1.0")
+    ros.wait_for_nodes("/step_executor")
+    return node
 
 
 def test_heartbeats_stopping_disarm_within_the_timeout(ros, step_executor):
@@ -39,7 +52,7 @@ def test_heartbeats_stopping_disarm_within_the_timeout(ros, step_executor):
         assert ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True)).success
 
 
-def test_a_matched_motion_is_held_when_heartbeats_stop(ros, sim_bus, executor_on_sim_bus):
+def test_a_matched_motion_is_held_when_heartbeats_stop(ros, sim_bus, executor_with_deadman):
     pub = train_rock1(ros, sim_bus)
     status = ros.collect(ExecutorStatus, "/step_executor/status")
     heartbeat = ros.heartbeat()

@@ -53,7 +53,10 @@ def executor_on_sim_bus(ros, start_node, sim_bus, tmp_path):
     node = start_node("step_executor", "--param", f"bus.port={sim_bus.device}",
                       "--param", "bus.response_timeout_ms=1000",
                       "--param", f"library_path={tmp_path / 'motions.yaml'}",
-                      "--param", "ros.status_rate_hz=20")
+                      "--param", "ros.status_rate_hz=20",
+                      # Heartbeats come from a Python thread; on a loaded host it can stall for
+                      # longer than the 0.5 s default (the deadman's own tests use the default).
+                      "--param", "ros.heartbeat_timeout_s=2.0")
     ros.wait_for_nodes("/step_executor")
     return node
 

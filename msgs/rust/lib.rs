@@ -13,4 +13,6 @@ pub mod interface;
 pub mod msg;
 pub mod srv;
 
-pub use ros2_interfaces_jazzy_serde::{builtin_interfaces, diagnostic_msgs, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs};
+pub use ros2_interfaces_jazzy_serde::{
+    builtin_interfaces, diagnostic_msgs, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs,
+};

@@ -20,9 +20,9 @@ use std::time::{Duration, Instant};
 use ros2_client::action::{ActionServer, ActionServerQosPolicies, GetResultResponse, GoalId, GoalInfo, GoalStatusEnum, SendGoalResponse};
 use ros2_client::action_msgs::{CancelGoalResponse, CancelGoalResponseEnum, GoalStatus, GoalStatusArray};
 use ros2_client::builtin_interfaces::Time as RosTime;
+use ros2_client::dds::ServiceMapping;
 use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
 use ros2_client::service::RmwRequestId;
-use ros2_client::dds::ServiceMapping;
 
 use patchwalk_msgs::action::{PlayMotion, PlayMotionFeedback, PlayMotionGoal, PlayMotionResult};
 use patchwalk_msgs::interface::RosAction;
@@ -196,13 +196,22 @@ impl PlayMotionAction {
         match started {
             Ok((keyframe_count, duration_s)) => {
                 tracing::info!("{PLAY_MOTION_ACTION}: playing {:?} (goal {goal_id:?})", goal.name);
-                self.active =
-                    Some(Active { info, keyframe_count, duration_s, started: Instant::now(), cancel_requested: false, last_feedback: None });
+                self.active = Some(Active {
+                    info,
+                    keyframe_count,
+                    duration_s,
+                    started: Instant::now(),
+                    cancel_requested: false,
+                    last_feedback: None,
+                });
             }
             Err(reason) => {
                 tracing::warn!("{PLAY_MOTION_ACTION}: goal {:?}: {reason}", goal.name);
-                let result =
-                    PlayMotionResult { outcome: PlayMotionResult::OUTCOME_REFUSED, fault_servo_id: 0, message: format!("{:?}: {reason}", goal.name) };
+                let result = PlayMotionResult {
+                    outcome: PlayMotionResult::OUTCOME_REFUSED,
+                    fault_servo_id: 0,
+                    message: format!("{:?}: {reason}", goal.name),
+                };
                 self.finish(info, GoalStatusEnum::Aborted, result, log);
             }
         }
@@ -262,11 +271,17 @@ impl PlayMotionAction {
             match &t.event {
                 Some(PlayerEvent::Finished { name }) => {
                     let message = format!("{name:?} completed");
-                    ended = Some((GoalStatusEnum::Succeeded, PlayMotionResult { outcome: PlayMotionResult::OUTCOME_COMPLETED, fault_servo_id: 0, message }));
+                    ended = Some((
+                        GoalStatusEnum::Succeeded,
+                        PlayMotionResult { outcome: PlayMotionResult::OUTCOME_COMPLETED, fault_servo_id: 0, message },
+                    ));
                 }
                 Some(PlayerEvent::Fault(fault)) => {
-                    let result =
-                        PlayMotionResult { outcome: PlayMotionResult::OUTCOME_FAULTED, fault_servo_id: fault.servo_id.unwrap_or(0), message: fault.to_string() };
+                    let result = PlayMotionResult {
+                        outcome: PlayMotionResult::OUTCOME_FAULTED,
+                        fault_servo_id: fault.servo_id.unwrap_or(0),
+                        message: fault.to_string(),
+                    };
                     ended = Some((GoalStatusEnum::Aborted, result));
                 }
                 Some(PlayerEvent::EStopped) => {
@@ -293,7 +308,11 @@ impl PlayMotionAction {
                 if due {
                     let elapsed = now.duration_since(active.started).as_secs_f64();
                     let fraction = if active.duration_s > 0.0 { (elapsed / active.duration_s).clamp(0.0, 1.0) } else { 0.0 };
-                    let feedback = PlayMotionFeedback { keyframe_index: keyframe, keyframe_count: active.keyframe_count, fraction_done: fraction as f32 };
+                    let feedback = PlayMotionFeedback {
+                        keyframe_index: keyframe,
+                        keyframe_count: active.keyframe_count,
+                        fraction_done: fraction as f32,
+                    };
                     if let Err(e) = self.server.send_feedback(active.info.goal_id, feedback) {
                         log.warn("action_feedback", format_args!("{PLAY_MOTION_ACTION}: cannot publish feedback: {e:?}"));
                     }

@@ -80,7 +80,13 @@ fn kv(key: &str, value: impl ToString) -> KeyValue {
 }
 
 fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
-    DiagnosticStatus { level, name: format!("{HARDWARE_ID}: {name}"), message: message.into(), hardware_id: HARDWARE_ID.to_string(), values }
+    DiagnosticStatus {
+        level,
+        name: format!("{HARDWARE_ID}: {name}"),
+        message: message.into(),
+        hardware_id: HARDWARE_ID.to_string(),
+        values,
+    }
 }
 
 /// The whole array for `snapshot` and the cycles of `window` (which is restarted).

@@ -7,8 +7,8 @@
 //! Both topics are reliable, transient local, keep last 1: an e-stop published before the node
 //! started (or before it matched the publisher) is still delivered once it matches.
 
-use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
 use ros2_client::dds::{Publisher, Subscription};
+use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
 
 use patchwalk_msgs::std_msgs::msg::Bool;
 use patchwalk_ros::node::{self, NodeError, RateLimitedLog, RosNode};

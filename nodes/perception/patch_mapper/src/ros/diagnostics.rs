@@ -90,7 +90,13 @@ fn kv(key: &str, value: impl ToString) -> KeyValue {
 }
 
 fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
-    DiagnosticStatus { level, name: format!("{HARDWARE_ID}: {name}"), message: message.into(), hardware_id: HARDWARE_ID.to_string(), values }
+    DiagnosticStatus {
+        level,
+        name: format!("{HARDWARE_ID}: {name}"),
+        message: message.into(),
+        hardware_id: HARDWARE_ID.to_string(),
+        values,
+    }
 }
 
 /// The `q` quantile (0..1) of sorted values, nearest rank.
@@ -101,8 +107,11 @@ fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
 }
 
 fn inputs_status(r: &Rates) -> DiagnosticStatus {
-    let values =
-        vec![kv("depth_hz", format!("{:.1}", r.depth_hz)), kv("imu_hz", format!("{:.1}", r.imu_hz)), kv("camera_info_hz", format!("{:.1}", r.camera_info_hz))];
+    let values = vec![
+        kv("depth_hz", format!("{:.1}", r.depth_hz)),
+        kv("imu_hz", format!("{:.1}", r.imu_hz)),
+        kv("camera_info_hz", format!("{:.1}", r.camera_info_hz)),
+    ];
     let missing: Vec<&str> = [("depth", r.depth_hz), ("IMU", r.imu_hz), ("camera info", r.camera_info_hz)]
         .iter()
         .filter(|(_, hz)| *hz <= 0.0)

@@ -530,8 +530,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if worker_thread.is_finished() {
             anyhow::bail!("the pipeline thread ended unexpectedly");
         }
-        let timeout =
-            if more { Duration::ZERO } else { next_status.min(next_diagnostics).min(Instant::now() + MAX_WAIT).saturating_duration_since(Instant::now()) };
+        let timeout = if more {
+            Duration::ZERO
+        } else {
+            next_status.min(next_diagnostics).min(Instant::now() + MAX_WAIT).saturating_duration_since(Instant::now())
+        };
         wakeup.wait(timeout);
     }
     stop.store(true, Ordering::Relaxed);

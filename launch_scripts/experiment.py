@@ -238,6 +238,7 @@ class Experiment:
         self.full_motion_played: set[str] = set()      # rocks in front of which a whole motion played
 
     def close(self) -> None:
+        self.heartbeat.stop()
         self.services.close()
         with self.ros._lock:
             for sub in self._subs:

@@ -1,6 +1,8 @@
 """The e-stop is answered at once whatever else the executor is doing: during a library write of
-several MB (a delete_motion with fsync runs off the node's loop) and during a burst of other calls.
-The latencies are printed (pytest -s) and bounded loosely; the order of the answers is the point."""
+several MB (a delete_motion with fsync runs off the node's loop), during a training fit on a large
+cloud, and during unpaced bursts of 1,000 other calls (by the stop service and by the e-stop topic).
+Each is tried 20 times; p50/max are printed (pytest -s) and bounded loosely; the order of the
+answers is the point."""
 
 from __future__ import annotations
 
@@ -41,7 +43,7 @@ def test_stop_is_answered_during_a_large_library_write(ros, start_node, tmp_path
     assert len(_wait(_send(listing, ListMotions.Request()))[0].motions) == len(names)
     _wait(_send(stop, Trigger.Request()))  # first call of each client out of the measurement
     latencies = []
-    for name in names[:5]:
+    for name in names[:20]:
         deleting = _send(delete, DeleteMotion.Request(name=name))
         time.sleep(0.005)
         stopped = _send(stop, Trigger.Request())
@@ -55,7 +57,7 @@ def test_stop_is_answered_during_a_large_library_write(ros, start_node, tmp_path
         assert stop_at < delete_at, "the stop waited for the library write"
     print(f"stop during a library write: p50 {statistics.median(latencies) * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms")
     assert max(latencies) < 1.0
-    assert [m.name for m in _wait(_send(listing, ListMotions.Request()))[0].motions] == names[5:]
+    assert [m.name for m in _wait(_send(listing, ListMotions.Request()))[0].motions] == names[20:]
 
 
 def _cloud(points: int):
@@ -101,7 +103,7 @@ def test_stop_is_answered_during_a_training_fit(ros, step_executor):
     # base_link's origin: with the map at the camera (identity camera pose) it lies inside the cube.
     request = SelectTarget.Request(mode=SelectTarget.Request.MODE_FIT_AT_POINT, radius=0.5)
     latencies = []
-    for trial in range(3):
+    for trial in range(20):
         map_pub.publish(empty_map)
         cloud_pub.publish(cloud)
         # The fit answers "no birds-eye cloud" until both have arrived; then it fits.
@@ -122,6 +124,7 @@ def test_stop_is_answered_during_a_training_fit(ros, step_executor):
               f"stop answered after {stop_latency * 1e3:.1f} ms")
         latencies.append(stop_latency)
         assert stop_at < fit_at, "the stop waited for the fit"
+    print(f"stop during a fit: p50 {statistics.median(latencies) * 1e3:.1f} ms, max {max(latencies) * 1e3:.1f} ms ({len(latencies)} tries)")
     assert max(latencies) < 1.0
 
 

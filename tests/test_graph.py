@@ -14,6 +14,13 @@ NAMES_TOPICS = {
     # step_executor
     "/joint_states": "sensor_msgs/msg/JointState",
     "/step_executor/status": "patchwalk_msgs/msg/ExecutorStatus",
+    "/step_executor/estop": "std_msgs/msg/Bool",
+    "/step_executor/estop_state": "std_msgs/msg/Bool",
+    "/step_executor/heartbeat": "std_msgs/msg/Empty",
+    "/step_executor/play_motion/_action/feedback": "patchwalk_msgs/action/PlayMotion_FeedbackMessage",
+    "/step_executor/play_motion/_action/status": "action_msgs/msg/GoalStatusArray",
+    # both
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 
 NAMES_SERVICES = {
@@ -27,6 +34,9 @@ NAMES_SERVICES = {
     "/step_executor/play_motion": "patchwalk_msgs/srv/PlayMotion",
     "/step_executor/stop": "std_srvs/srv/Trigger",
     "/step_executor/arm": "std_srvs/srv/SetBool",
+    "/step_executor/play_motion/_action/send_goal": "patchwalk_msgs/action/PlayMotion_SendGoal",
+    "/step_executor/play_motion/_action/cancel_goal": "action_msgs/srv/CancelGoal",
+    "/step_executor/play_motion/_action/get_result": "patchwalk_msgs/action/PlayMotion_GetResult",
 }
 
 

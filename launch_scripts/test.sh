@@ -118,7 +118,8 @@ fi
 # --- 7. verdict ---------------------------------------------------------------------------------------
 ELAPSED=$(($(date +%s) - START))
 TOTAL_PASSED=$((RUST_PASSED + PY_PASSED))
-if [ "$RUST_STATUS" = 0 ] && [ "$PY_STATUS" = 0 ]; then
+# Every counted failure fails the run: tests, doc tests, formatting and lints alike.
+if [ "$RUST_FAILED" = 0 ] && [ "$PY_FAILED" = 0 ]; then
     echo
     echo "patchwalk: $TOTAL_PASSED passed, 0 failed"
     echo "patchwalk tests: PASS (rust $RUST_PASSED passed, python $PY_PASSED passed, ${ELAPSED} s)"

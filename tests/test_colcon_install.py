@@ -1,0 +1,65 @@
+"""The colcon install (build/colcon/install, built by launch_scripts/test.sh): every package is in the
+ament index, the executables are where `ros2 run` looks, the share directories hold config, URDF and
+launch files, and a node started from the install, outside the repository, comes up on the graph,
+answers a service and loads its URDF from its share directory through the ament index."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import pytest
+from patchwalk_msgs.srv import ListMotions
+
+import colcon_install as ci
+import patchwalk_testing as pw
+from conftest import ENV
+
+EXECUTABLES = {"patch_mapper": "patch_mapper", "step_executor": "step_executor", "terrain_sim": "terrain_sim"}
+SHARE_FILES = {
+    "patch_mapper": ["config/patch_mapper.yaml", "config/patch_mapper_sim.yaml", "package.xml"],
+    "step_executor": ["config/step_executor.yaml", "config/patchwalk.rviz", "urdf/rpbp.urdf",
+                      "launch/robot.launch.xml", "launch/simulation.launch.xml", "package.xml"],
+    "terrain_sim": ["config/terrain_sim.yaml", "urdf/rpbp.urdf", "package.xml"],
+}
+
+
+@pytest.mark.parametrize("package", ci.PACKAGES)
+def test_package_is_in_the_ament_index_of_the_sourced_install(package):
+    prefix = ci.package_prefix(package)
+    assert prefix == ci.INSTALL / package, f"{package} found in {prefix}, not in the colcon install"
+    manifest = ET.parse(ci.package_share(package) / "package.xml").getroot()
+    assert manifest.findtext("name") == package
+
+
+@pytest.mark.parametrize("package", ci.NODE_PACKAGES)
+def test_executable_and_share_files_are_where_ros2_finds_them(package):
+    ci.executable(package, EXECUTABLES[package])
+    share = ci.package_share(package)
+    missing = [f for f in SHARE_FILES[package] if not (share / f).is_file()]
+    assert not missing, f"{share} lacks {missing}"
+    # Installed copies of the repository's files, not stale ones.
+    for rel in SHARE_FILES[package]:
+        source = (pw.REPO / rel) if not rel.startswith("launch/") else (pw.REPO / "nodes/execution/step_executor" / rel)
+        if rel != "package.xml":
+            assert (share / rel).read_bytes() == source.read_bytes(), f"{share / rel} differs from {source}"
+
+
+def test_installed_step_executor_runs_outside_the_repository_with_its_share_urdf(ros, log_dir, tmp_path):
+    """`ros2 run step_executor step_executor run` from a directory outside the repository, in the sourced
+    environment: on the graph, list_motions answers, and the URDF came from the package share."""
+    env = {**ci.sourced_environment(), **ENV}
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    node = pw.NodeProcess("step_executor", ["run", "--param", f"library_path={outside / 'motions.yaml'}"], env, log_dir,
+                          executable=ci.executable("step_executor", "step_executor"), cwd=outside)
+    try:
+        ros.wait_for_nodes("/step_executor")
+        response = ros.call(ListMotions, "/step_executor/list_motions")
+        assert list(response.motions) == []
+        share_urdf = ci.package_share("step_executor") / "urdf" / "rpbp.urdf"
+        pw.wait_until(lambda: "robot model" in node.log(), "the robot model log line", timeout=10)
+        line = next(line for line in node.log().splitlines() if "robot model" in line)
+        assert f"robot model {share_urdf} (package share (ament index))" in line, line
+        assert str(pw.REPO) not in line
+    finally:
+        node.stop()

@@ -47,9 +47,10 @@ cargo build --release --workspace --all-targets || die "cargo build failed"
 # patchwalk_msgs (ament_cmake) and the node packages (ament_cargo: colcon-ros-cargo + cargo-ament-build)
 # into build/colcon/{build,install,log}; tests/test_colcon_install.py and tests/test_launch_files.py run
 # against build/colcon/install. colcon gives every cargo package its own --target-dir
-# (build/colcon/build/<pkg>); its release/ is a symlink to the release/ of the cargo build above, so the
-# three packages share one set of compiled crates with step 4 (and cargo's lock on that directory)
-# instead of three full rebuilds. With nothing changed it takes seconds. Needs colcon (the venv).
+# (build/colcon/build/<pkg>); its release/ is a symlink to the release/ of the cargo build above, and
+# `--workspace --all-targets` makes cargo-ament-build ask for exactly step 4's build (same crates, same
+# features), so colcon compiles nothing again: it installs what step 4 built (instead of three
+# per-package builds with their own feature sets). Needs colcon (the venv).
 if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     COLCON_DIR="$BUILD_DIR/colcon"
     CARGO_RELEASE="${CARGO_TARGET_DIR:-$REPO/target}/release"
@@ -67,7 +68,7 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
             PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" "$VENV/bin/colcon" --log-base log build \
                 --base-paths "$REPO/msgs" "$REPO/nodes" --build-base build --install-base install \
                 --cmake-args -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DCMAKE_PREFIX_PATH="$VENV" \
-                -DPython3_EXECUTABLE="$VENV/bin/python" --cargo-args --profile release
+                -DPython3_EXECUTABLE="$VENV/bin/python" --cargo-args --profile release --workspace --all-targets
     ) >"$LOG_DIR/colcon.log" 2>&1 || { grep -E '^(Failed|Aborted|error)' -A20 "$LOG_DIR/colcon.log" | head -60; die "colcon build failed (log: $LOG_DIR/colcon.log)"; }
     grep -E '^Summary:' "$LOG_DIR/colcon.log" | tail -1
     echo "colcon build: $(($(date +%s) - COLCON_START)) s"

@@ -66,7 +66,8 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     (
         cd "$COLCON_DIR" &&
             PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" "$VENV/bin/colcon" --log-base log build \
-                --base-paths "$REPO/msgs" "$REPO/nodes" --build-base build --install-base install \
+                --base-paths "$REPO/msgs" "$REPO/nodes/perception/patch_mapper" "$REPO/nodes/execution/step_executor" \
+                "$REPO/nodes/sim/terrain_sim" --build-base build --install-base install \
                 --cmake-args -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DCMAKE_PREFIX_PATH="$VENV" \
                 -DPython3_EXECUTABLE="$VENV/bin/python" --cargo-args --profile release --workspace --all-targets
     ) >"$LOG_DIR/colcon.log" 2>&1 || { grep -E '^(Failed|Aborted|error)' -A20 "$LOG_DIR/colcon.log" | head -60; die "colcon build failed (log: $LOG_DIR/colcon.log)"; }

@@ -23,6 +23,23 @@ SHARE_FILES = {
 }
 
 
+def test_every_crate_is_a_colcon_package_or_ignored():
+    """`colcon build` of a workspace around the repository crawls every directory: a crate without a
+    package.xml would be taken for a plain cargo package (colcon-cargo) and built and installed on its
+    own. Library crates are built as the nodes' dependencies and carry a COLCON_IGNORE."""
+    packages, stray = set(), []
+    for manifest in sorted(pw.REPO.glob("nodes/**/Cargo.toml")) + [pw.REPO / "msgs" / "Cargo.toml"]:
+        crate = manifest.parent
+        ignored = any((d / "COLCON_IGNORE").exists() for d in [crate, *crate.parents] if d.is_relative_to(pw.REPO))
+        if (crate / "package.xml").is_file():
+            assert not ignored, f"{crate} has a package.xml but is under a COLCON_IGNORE"
+            packages.add(ET.parse(crate / "package.xml").getroot().findtext("name"))
+        elif not ignored:
+            stray.append(str(crate.relative_to(pw.REPO)))
+    assert not stray, f"crates neither colcon packages (package.xml) nor under a COLCON_IGNORE: {stray}"
+    assert packages == set(ci.PACKAGES)
+
+
 @pytest.mark.parametrize("package", ci.PACKAGES)
 def test_package_is_in_the_ament_index_of_the_sourced_install(package):
     prefix = ci.package_prefix(package)

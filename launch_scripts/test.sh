@@ -43,6 +43,38 @@ command -v cargo >/dev/null || die "cargo not found (install Rust: rustup)"
 log "cargo build --release --workspace --all-targets"
 cargo build --release --workspace --all-targets || die "cargo build failed"
 
+# --- 4b. colcon build of the repository (ROS 2 workspace layout) ---------------------------------------
+# patchwalk_msgs (ament_cmake) and the node packages (ament_cargo: colcon-ros-cargo + cargo-ament-build)
+# into build/colcon/{build,install,log}; tests/test_colcon_install.py and tests/test_launch_files.py run
+# against build/colcon/install. colcon gives every cargo package its own --target-dir
+# (build/colcon/build/<pkg>); its release/ is a symlink to the release/ of the cargo build above, and
+# `--workspace --all-targets` makes cargo-ament-build ask for exactly step 4's build (same crates, same
+# features), so colcon compiles nothing again: it installs what step 4 built (instead of three
+# per-package builds with their own feature sets). Needs colcon (the venv).
+if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
+    COLCON_DIR="$BUILD_DIR/colcon"
+    CARGO_RELEASE="${CARGO_TARGET_DIR:-$REPO/target}/release"
+    for pkg in patch_mapper step_executor terrain_sim; do
+        mkdir -p "$COLCON_DIR/build/$pkg"
+        [ "$(readlink "$COLCON_DIR/build/$pkg/release" 2>/dev/null)" = "$CARGO_RELEASE" ] \
+            || { rm -rf "$COLCON_DIR/build/$pkg/release" && ln -s "$CARGO_RELEASE" "$COLCON_DIR/build/$pkg/release"; }
+    done
+    log "colcon build (msgs/ + the node packages into build/colcon/install)"
+    COLCON_START=$(date +%s)
+    # Run from build/colcon: colcon-ros-cargo writes its .cargo/config.toml into the working directory,
+    # which must not be an ancestor of the packages (it would patch crates-io with the installed copies).
+    (
+        cd "$COLCON_DIR" &&
+            PATH="$VENV/bin:$PATH" AMENT_PREFIX_PATH="$VENV" "$VENV/bin/colcon" --log-base log build \
+                --base-paths "$REPO/msgs" "$REPO/nodes/perception/patch_mapper" "$REPO/nodes/execution/step_executor" \
+                "$REPO/nodes/sim/terrain_sim" --build-base build --install-base install \
+                --cmake-args -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF -DCMAKE_PREFIX_PATH="$VENV" \
+                -DPython3_EXECUTABLE="$VENV/bin/python" --cargo-args --profile release --workspace --all-targets
+    ) >"$LOG_DIR/colcon.log" 2>&1 || { grep -E '^(Failed|Aborted|error)' -A20 "$LOG_DIR/colcon.log" | head -60; die "colcon build failed (log: $LOG_DIR/colcon.log)"; }
+    grep -E '^Summary:' "$LOG_DIR/colcon.log" | tail -1
+    echo "colcon build: $(($(date +%s) - COLCON_START)) s"
+fi
+
 # --- 5. Rust tests ------------------------------------------------------------------------------------
 RUST_PASSED=0
 RUST_FAILED=0

@@ -91,17 +91,19 @@ def binary(name: str) -> Path:
 class NodeProcess:
     """A patchwalk node binary (`<name> run ...`) with its log captured to a file."""
 
-    def __init__(self, name: str, args: list[str], env: dict[str, str], log_dir: Path):
+    def __init__(self, name: str, args: list[str], env: dict[str, str], log_dir: Path,
+                 executable: Optional[Path] = None, cwd: Optional[Path] = None):
+        """`executable` defaults to the cargo build's `binary(name)`, `cwd` to the repository."""
         self.name = name
         self.log_path = log_dir / f"{name}-{time.monotonic_ns()}.log"
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen(
-            [str(binary(name)), *args],
+            [str(executable or binary(name)), *args],
             env={**os.environ, **env},
             stdin=subprocess.DEVNULL,
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            cwd=REPO,
+            cwd=cwd or REPO,
         )
 
     def alive(self) -> bool:

@@ -8,6 +8,8 @@
 //! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
 //! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
 //! - [`security`]: DDS Security from an SROS2 keystore, configured by `ROS_SECURITY_*` as rcl does.
+//! - [`share`]: where a node finds its URDF and YAML files: working directory, package share
+//!   directory (ament index, for a colcon install), source tree.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
 //! against other ROS 2 implementations.
@@ -17,4 +19,5 @@ pub mod params;
 pub mod patch_msg;
 pub mod process;
 pub mod security;
+pub mod share;
 pub mod wait;

@@ -39,4 +39,18 @@ mod tests {
         assert_eq!(robot.materials.len(), 3);
         crate::kinematics::RobotModel::from_urdf_str(super::RPBP_URDF).unwrap();
     }
+
+    /// The keyframe joints (the names step_executor publishes on /joint_states by default) are the
+    /// model's movable joints, each once, with position limits; robot_state_publisher finds them all.
+    #[test]
+    fn every_keyframe_joint_is_a_limited_revolute_joint_of_the_model() {
+        let robot = urdf_rs::read_from_string(super::RPBP_URDF).unwrap();
+        let movable: Vec<&urdf_rs::Joint> = robot.joints.iter().filter(|j| !matches!(j.joint_type, urdf_rs::JointType::Fixed)).collect();
+        assert_eq!(movable.len(), super::DEFAULT_JOINTS.len());
+        for name in super::DEFAULT_JOINTS {
+            let joint = movable.iter().find(|j| j.name == name).unwrap_or_else(|| panic!("{name} is not a movable joint"));
+            assert!(matches!(joint.joint_type, urdf_rs::JointType::Revolute), "{name}: {:?}", joint.joint_type);
+            assert!(joint.limit.lower < joint.limit.upper, "{name}: limits {} .. {}", joint.limit.lower, joint.limit.upper);
+        }
+    }
 }

@@ -41,7 +41,8 @@ pub struct InvalidSetting {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct StepExecutorConfig {
-    /// Robot model (relative paths are resolved against the config file's directory's parent).
+    /// Robot model. A relative path is looked up in the working directory, the installed package's share
+    /// directory (ament index), then the source tree; the built-in RPBP model when it is in none.
     pub urdf_path: PathBuf,
     /// Motion library file (J 6.3: "a library of stored stepping motions").
     pub library_path: PathBuf,

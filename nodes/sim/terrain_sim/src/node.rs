@@ -286,6 +286,7 @@ fn load_robot(config: &SimConfig, config_path: Option<&Path>) -> Option<Robot> {
     let path = resolve_path(&config.node.urdf_path, config_path);
     match RobotModel::from_file(&path) {
         Ok(model) => {
+            tracing::info!("robot model {} (following {JOINT_STATES_TOPIC})", path.display());
             // Start from zero joint angles (the lookdown pose of the URDF) until a joint state arrives.
             let positions = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
             Some(Robot { model, positions })
@@ -298,16 +299,19 @@ fn load_robot(config: &SimConfig, config_path: Option<&Path>) -> Option<Robot> {
 }
 
 /// A relative path is tried against the working directory, then the config file's workspace (the
-/// parent of its `config/` directory), then this source tree.
+/// parent of its `config/` directory), then the package's share directory (a colcon install, through
+/// the ament index), then this source tree.
 fn resolve_path(path: &Path, config_path: Option<&Path>) -> PathBuf {
     if path.is_absolute() || path.exists() {
         return path.to_path_buf();
     }
-    let candidates = [
-        config_path.and_then(Path::parent).and_then(Path::parent).map(|root| root.join(path)),
-        Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..").join(path)),
-    ];
-    candidates.into_iter().flatten().find(|p| p.exists()).unwrap_or_else(|| path.to_path_buf())
+    if let Some(candidate) = config_path.and_then(Path::parent).and_then(Path::parent).map(|root| root.join(path)) {
+        if candidate.exists() {
+            return candidate;
+        }
+    }
+    let source_root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..");
+    patchwalk_ros::share::find_data_file(path, "terrain_sim", &source_root).map_or_else(|| path.to_path_buf(), |(found, _)| found)
 }
 
 fn lock(pose: &Mutex<RobotPose>) -> MutexGuard<'_, RobotPose> {

@@ -20,8 +20,15 @@ use patchwalk_dynamixel::servo_bus::ServoBus;
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use patchwalk_spl::patch::Patch;
 
-/// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
+/// The RPBP model shipped with the repository, used when `urdf_path` is found nowhere.
 const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
+/// The colcon package whose share directory holds `urdf/rpbp.urdf` when installed.
+const PACKAGE: &str = "step_executor";
+
+/// The repository this crate was built from (the parent of `config/` and `urdf/`).
+fn source_root() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..")
+}
 
 /// Coarse state for the status message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -124,14 +131,19 @@ impl Runtime {
     /// Build with a given bus factory (tests: mock or simulated chain). Returns warnings to log.
     pub fn with_bus(config: StepExecutorConfig, open_bus: impl FnOnce() -> BusResult) -> Result<(Self, Vec<String>), RuntimeError> {
         let mut warnings = Vec::new();
-        let model = match RobotModel::from_file(&config.urdf_path) {
-            Ok(model) => model,
-            // Started outside the repository: fall back to the RPBP model compiled into the binary.
-            Err(e) if !config.urdf_path.exists() => {
-                warnings.push(format!("{e}; using the built-in urdf/rpbp.urdf"));
+        // A relative `urdf_path` is looked up in the working directory, the package's share directory
+        // (a colcon install, through the ament index) and the source tree, in that order.
+        let model = match patchwalk_ros::share::find_data_file(&config.urdf_path, PACKAGE, &source_root()) {
+            Some((path, origin)) => {
+                let model = RobotModel::from_file(&path)?;
+                tracing::info!("robot model {} ({origin})", path.display());
+                model
+            }
+            // Neither installed nor started from the repository: the RPBP model compiled into the binary.
+            None => {
+                warnings.push(format!("{} not found; using the built-in urdf/rpbp.urdf", config.urdf_path.display()));
                 RobotModel::from_urdf_str(BUILT_IN_URDF)?
             }
-            Err(e) => return Err(e.into()),
         };
         let joint_names = config.joint_names();
         let mut joint_specs = Vec::with_capacity(config.servos.len());

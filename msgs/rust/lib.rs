@@ -4,12 +4,14 @@
 //!   of truth; the structs mirror them field by field (the CDR wire format is positional) and
 //!   `rust/tests/interface_files.rs` parses the files and checks every struct against them.
 //! - [`builtin_interfaces`], [`std_msgs`], [`geometry_msgs`], [`sensor_msgs`], [`std_srvs`],
-//!   [`visualization_msgs`]: the standard ROS 2 Jazzy types, re-exported from
-//!   `ros2-interfaces-jazzy-serde`.
+//!   [`visualization_msgs`], [`tf2_msgs`] (`/tf`, `/tf_static`), [`rosgraph_msgs`] (`/clock`): the
+//!   standard ROS 2 Jazzy types, re-exported from `ros2-interfaces-jazzy-serde`.
 //! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`).
 
 pub mod interface;
 pub mod msg;
 pub mod srv;
 
-pub use ros2_interfaces_jazzy_serde::{builtin_interfaces, geometry_msgs, sensor_msgs, std_msgs, std_srvs, visualization_msgs};
+pub use ros2_interfaces_jazzy_serde::{
+    builtin_interfaces, geometry_msgs, rosgraph_msgs, sensor_msgs, std_msgs, std_srvs, tf2_msgs, visualization_msgs,
+};

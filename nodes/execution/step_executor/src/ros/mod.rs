@@ -13,6 +13,7 @@
 
 mod convert;
 mod jobs;
+mod tf;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -24,8 +25,10 @@ use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
+use patchwalk_ros::clock::{ClockListener, NodeClock};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_ros::patch_msg;
+use patchwalk_ros::tf::{SharedTf, TfListener};
 use patchwalk_ros::wait::Wakeup;
 use patchwalk_spl::patch::Patch;
 use ros2_client::service::RmwRequestId;
@@ -77,6 +80,9 @@ struct Executor {
     jobs_pending: JobsPending,
     /// Stops taken in the current loop pass (see [`Executor::reset_estop`]).
     stops_in_pass: usize,
+    /// The TF tree (`/tf`, `/tf_static`): patch maps go to base_link through it when it has their frame.
+    tf: SharedTf,
+    clock: NodeClock,
 }
 
 impl Executor {
@@ -88,6 +94,8 @@ impl Executor {
             latest_cloud: None,
             jobs_pending: JobsPending::default(),
             stops_in_pass: 0,
+            tf: SharedTf::default(),
+            clock: NodeClock::wall(),
         }
     }
 
@@ -110,7 +118,12 @@ impl Executor {
                 }
             }
         }
-        match self.runtime.on_patch_map(&patches, &map_from_camera) {
+        let in_tree = tf::base_from_map(&self.tf.lock(), &map.header.frame_id, &map.header.stamp);
+        let result = match in_tree {
+            Some(base_from_map) => self.runtime.on_patch_map_in_base(&patches, base_from_map),
+            None => self.runtime.on_patch_map(&patches, &map_from_camera),
+        };
+        match result {
             Ok(report) => match (&report.best, report.near_misses.first()) {
                 (Some(best), _) => tracing::debug!(?best, "patch map matched"),
                 (None, Some(miss)) => {
@@ -127,7 +140,7 @@ impl Executor {
     fn status(&self) -> ExecutorStatus {
         let s = self.runtime.status();
         ExecutorStatus {
-            stamp: node::now_stamp(),
+            stamp: self.clock.now(),
             state: match s.state {
                 RunState::Idle => ExecutorStatus::STATE_IDLE,
                 RunState::Playing => ExecutorStatus::STATE_PLAYING,
@@ -428,11 +441,13 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
     Duration::try_from_secs_f64(1.0 / rate_hz).with_context(|| format!("{key} = {rate_hz}"))
 }
 
-pub fn run(args: RunArgs) -> anyhow::Result<()> {
+pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
+    let clock = NodeClock::new(patchwalk_ros::clock::take_use_sim_time(&mut args.node.params)?);
     let config: ExecutorFileView = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     config.validate()?;
     let params = config.ros.clone();
+    let urdf = tf::urdf_text(&config.urdf_path);
     let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
     let joint_state_period = period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
     // Library, URDF and the servo bus thread (a missing bus or a broken library file is reported, not fatal).
@@ -459,6 +474,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut stop_srv = ros.server::<Trigger>(STOP)?;
     let mut arm_srv = ros.server::<SetBool>(ARM)?;
     let mut reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
+    let _robot_description_pub = tf::publish_robot_description(&mut ros, urdf)?;
+    let tf_tree = SharedTf::default();
+    let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
+    let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
 
     // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
     // an event, or a periodic output is due.
@@ -475,6 +494,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     wakeup.watch(&mut list_motions_srv)?;
     wakeup.watch(&mut delete_motion_srv)?;
     wakeup.watch(&mut play_motion_srv)?;
+    tf_listener.watch(&wakeup)?;
+    if let Some(listener) = clock_listener.as_mut() {
+        wakeup.watch(&mut listener.subscription)?;
+    }
     let job_waker = wakeup.waker();
     let jobs = Jobs::spawn(move || {
         let _ = job_waker.wake();
@@ -483,6 +506,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     let mut log = RateLimitedLog::default();
     let mut executor = Executor::new(runtime);
+    executor.tf = tf_tree;
+    executor.clock = clock.clone();
     let bus_waker = wakeup.waker();
     executor.runtime.set_bus_notify(Box::new(move || {
         let _ = bus_waker.wake();
@@ -509,6 +534,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= serve_or_start(&select_target_srv, SELECT_TARGET, &mut executor, &jobs, &mut log, Executor::select_target);
         more |= serve_or_start(&save_motion_srv, SAVE_MOTION, &mut executor, &jobs, &mut log, Executor::save_motion);
         more |= serve_or_start(&delete_motion_srv, DELETE_MOTION, &mut executor, &jobs, &mut log, Executor::delete_motion);
+        if let Some(listener) = clock_listener.as_mut() {
+            listener.drain();
+        }
+        more |= tf_listener.drain();
         let finished: Vec<Finished> = jobs.finished().collect();
         for done in finished {
             match executor.finish(done) {
@@ -525,7 +554,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             let now = Instant::now();
             if playing || now >= next_joint_state {
                 let mut msg = JointState { name: joint_names.clone(), ..Default::default() };
-                msg.header.stamp = node::now_stamp();
+                msg.header.stamp = clock.now();
                 msg.position = telemetry.positions.iter().map(|p| p.unwrap_or(f64::NAN)).collect();
                 node::publish(&joint_states_pub, JOINT_STATES_TOPIC, msg, &mut log);
                 next_joint_state = now + joint_state_period;

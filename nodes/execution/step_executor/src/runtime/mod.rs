@@ -21,7 +21,7 @@ use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use patchwalk_spl::patch::Patch;
 
 /// The RPBP model shipped with the repository, used when `urdf_path` does not exist.
-const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
+pub const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
 
 /// Coarse state for the status message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -255,6 +255,11 @@ impl Runtime {
     /// Returns the match report.
     pub fn on_patch_map(&mut self, patches_in_map: &[Patch], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, CommandError> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
+        self.on_patch_map_in_base(patches_in_map, base_from_map)
+    }
+
+    /// [`Runtime::on_patch_map`] with `base_from_map` known (looked up in TF at the map's stamp).
+    pub fn on_patch_map_in_base(&mut self, patches_in_map: &[Patch], base_from_map: Isometry3<f64>) -> Result<MatchReport, CommandError> {
         self.latest_base_from_map = Some(base_from_map);
         self.latest_map_in_base = patches_in_map.iter().filter_map(|p| pose_in(&base_from_map, p)).collect();
         let report = self.matcher.report(&self.latest_map_in_base);

@@ -700,4 +700,27 @@ mod tests {
         state.on_imu(&sample, &mut log);
         assert!(imu.try_recv().is_ok());
     }
+
+    #[test]
+    fn the_skew_window_is_measured_against_simulated_time() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        let (jobs, job_rx) = crossbeam_channel::bounded(1);
+        let (imu_tx, imu) = crossbeam_channel::unbounded();
+        let clock = NodeClock::sim();
+        let mut state = State::new(SharedStatus::default(), jobs, job_rx, imu_tx, StampWindow::default(), clock.clone());
+        let mut sample = Imu::default();
+        sample.linear_acceleration.z = 9.81;
+        // Before the first /clock any stamp goes through (nothing to compare with).
+        sample.header.stamp = Time { sec: 50, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_ok());
+        clock.set_sim_time(&Time { sec: 20, nanosec: 0 });
+        sample.header.stamp = Time { sec: 31, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_err(), "11 s ahead of simulated time");
+        sample.header.stamp = Time { sec: 0, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        let WorkerInput::Imu { stamp, .. } = imu.try_recv().unwrap();
+        assert_eq!(stamp, 20.0, "an unset stamp is the node clock's now");
+    }
 }

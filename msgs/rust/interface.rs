@@ -4,7 +4,7 @@
 
 use ros2_client::{ActionTypeName, Message, MessageTypeName, ServiceTypeName};
 
-use crate::{action, diagnostic_msgs, msg, sensor_msgs, srv, std_msgs, std_srvs, visualization_msgs};
+use crate::{action, diagnostic_msgs, msg, rosgraph_msgs, sensor_msgs, srv, std_msgs, std_srvs, tf2_msgs, visualization_msgs};
 
 /// A message type with its ROS 2 name `package/msg/Name`.
 pub trait RosMessage: Message + Clone + Send + 'static {
@@ -119,6 +119,18 @@ ros_message!("diagnostic_msgs",
 
 ros_message!("visualization_msgs",
     visualization_msgs::msg::MarkerArray => "MarkerArray",
+);
+
+ros_message!("std_msgs",
+    std_msgs::msg::String => "String",
+);
+
+ros_message!("tf2_msgs",
+    tf2_msgs::msg::TFMessage => "TFMessage",
+);
+
+ros_message!("rosgraph_msgs",
+    rosgraph_msgs::msg::Clock => "Clock",
 );
 
 ros_service!("patchwalk_msgs",

@@ -10,14 +10,20 @@
 //! - [`security`]: DDS Security from an SROS2 keystore, configured by `ROS_SECURITY_*` as rcl does.
 //! - [`share`]: where a node finds its URDF and YAML files: working directory, package share
 //!   directory (ament index, for a colcon install), source tree.
+//! - [`tf_buffer`]: a transform tree (static + dynamic with interpolation), `target_from_source`
+//!   lookups at a stamp; [`tf`]: its `/tf` + `/tf_static` listener and broadcasters (tf2_ros QoS).
+//! - [`clock`]: the node clock (wall, or `/clock` with `use_sim_time`) and a `/clock` publisher.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
 //! against other ROS 2 implementations.
 
+pub mod clock;
 pub mod node;
 pub mod params;
 pub mod patch_msg;
 pub mod process;
 pub mod security;
 pub mod share;
+pub mod tf;
+pub mod tf_buffer;
 pub mod wait;

@@ -11,7 +11,7 @@ use std::net::{IpAddr, Ipv4Addr};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use ros2_client::dds::rustdds::DomainParticipantBuilder;
 use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscription};
@@ -364,10 +364,10 @@ pub fn publish<M: serde::Serialize>(publisher: &Publisher<M>, topic: &str, msg: 
     }
 }
 
-/// Wall-clock stamp as `builtin_interfaces/Time`.
+/// Wall-clock stamp as `builtin_interfaces/Time`. Node outputs are stamped from their inputs or from
+/// [`crate::clock::NodeClock::now`], which follows `/clock` under `use_sim_time`.
 pub fn now_stamp() -> Time {
-    let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
-    Time { sec: i32::try_from(since_epoch.as_secs()).unwrap_or(i32::MAX), nanosec: since_epoch.subsec_nanos() }
+    crate::clock::NodeClock::wall().now()
 }
 
 /// Set by SIGINT or SIGTERM; a second signal while shutting down exits at once (code 1).

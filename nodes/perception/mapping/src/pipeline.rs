@@ -23,7 +23,7 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::{Isometry3, Point3, Rotation3, Unit, Vector3};
 
 use crate::acquire::{gravity_from_accelerometer, AcquireError};
 use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
@@ -285,6 +285,11 @@ impl Pipeline {
     /// The tracker (volume, pose).
     pub fn tracker(&self) -> &Tracker {
         &self.tracker
+    }
+
+    /// Replaces `mapper.acquire.camera_from_imu` (the IMU mount found at run time, e.g. in TF).
+    pub fn set_camera_from_imu(&mut self, camera_from_imu: &Rotation3<f64>) {
+        self.mapper.config.acquire.camera_from_imu = std::array::from_fn(|r| std::array::from_fn(|c| camera_from_imu[(r, c)]));
     }
 
     /// Intrinsics the pipeline was built for.

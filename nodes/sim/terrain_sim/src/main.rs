@@ -2,6 +2,7 @@
 //! (`run`, the default), writes the stream as a TUM-format dataset (`record`), or prints the scene
 //! with its ground-truth footholds (`scene`).
 
+mod frames;
 mod node;
 
 use std::path::PathBuf;

@@ -2,7 +2,10 @@
 //! `/camera/depth/camera_info` (30 Hz) and `/imu/data` (100 Hz) with sensor-data QoS, stamped on one
 //! clock (`start + t`); follows `/joint_states` (the simulated servo bus) by keeping the stance foot
 //! planted; `/terrain_sim/place_at_rock` (std_msgs/UInt32) places the robot in front of rock i, and
-//! `/terrain_sim/rock` (std_msgs/UInt32, 1 Hz and on change) reports where it stands.
+//! `/terrain_sim/rock` (std_msgs/UInt32, 1 Hz and on change) reports where it stands. The rig's
+//! mount goes on `/tf_static` (`base_link → camera → imu`, see `frames`). With `--clock [RATE]` the
+//! simulator runs on its own time from 0 at RATE × real time and publishes it on `/clock` (100 Hz of
+//! simulated time) for nodes started with `use_sim_time`.
 //!
 //! Threads: camera (render + publish), IMU (sample + publish), main (subscriptions). The simulator
 //! itself is immutable and shared; only the robot's pose is behind a mutex.
@@ -20,7 +23,9 @@ use patchwalk_msgs::geometry_msgs::msg::{Quaternion as QuaternionMsg, Vector3 as
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, RegionOfInterest};
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
+use patchwalk_ros::clock::ClockPublisher;
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::tf::StaticTfBroadcaster;
 use patchwalk_ros::wait::Wakeup;
 use ros2_client::{MessageTypeName, Publisher, Subscription};
 use terrain_sim::config::SimConfig;
@@ -40,7 +45,14 @@ pub const ROCK_TOPIC: &str = "/terrain_sim/rock";
 pub struct RunArgs {
     #[command(flatten)]
     pub node: NodeArgs,
+    /// Publish simulated time on /clock, starting at 0 and running at RATE × real time (0.5 = half
+    /// speed; 1 when RATE is omitted). Every stamp follows it; without it stamps are wall-clock time.
+    #[arg(long, value_name = "RATE", num_args = 0..=1, default_missing_value = "1.0")]
+    pub clock: Option<f64>,
 }
+
+/// Simulated time published on /clock (Hz of simulated time).
+const CLOCK_RATE_HZ: f64 = 100.0;
 
 /// Where the robot is: its station (rock index) and, when following the servos, the stance tracker.
 #[derive(Clone)]
@@ -98,6 +110,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     wakeup.watch(&mut place_sub)?;
     let rock_pub: Publisher<UInt32> = std_msgs_publisher(&mut ros, ROCK_TOPIC, "UInt32")?;
+    let clock = match args.clock {
+        None => Clock { start: Instant::now(), epoch: Some(SystemTime::now()), rate: 1.0 },
+        Some(rate) if rate.is_finite() && rate > 0.0 => Clock { start: Instant::now(), epoch: None, rate },
+        Some(rate) => anyhow::bail!("--clock {rate}: the rate must be a positive number (1 = real time)"),
+    };
+    let clock_pub = if clock.epoch.is_none() { Some(ClockPublisher::new(&mut ros)?) } else { None };
+    let mut mount_pub = StaticTfBroadcaster::new(&mut ros)?;
+    mount_pub.send(crate::frames::mount_transforms(&sim, clock.stamp(0.0)));
 
     let pose = Arc::new(Mutex::new(RobotPose {
         rock: config.start_rock,
@@ -105,7 +125,6 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         stance: None,
         base_from_camera: sim.base_from_camera,
     }));
-    let clock = Clock { start: Instant::now(), start_wall: SystemTime::now() };
     tracing::info!(
         rocks = sim.scene.rocks.len(),
         rock = config.start_rock,
@@ -126,6 +145,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             .name("terrain_sim-imu".into())
             .spawn(move || imu_loop(&sim, &pose, &shutdown, clock, &frame_id, &imu_pub))?
     };
+
+    let clock_thread = clock_pub
+        .map(|publisher| {
+            let shutdown = shutdown.clone();
+            std::thread::Builder::new().name("terrain_sim-clock".into()).spawn(move || clock_loop(publisher, &shutdown, clock))
+        })
+        .transpose()?;
 
     let mut log = RateLimitedLog::default();
     let mut last_rock_report = Instant::now() - Duration::from_secs(10);
@@ -168,7 +194,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let report_due = Duration::from_secs(1).saturating_sub(last_rock_report.elapsed());
         wakeup.wait(if more { Duration::ZERO } else { report_due.min(Duration::from_millis(100)) });
     }
-    for (name, handle) in [("camera", camera_thread), ("imu", imu_thread)] {
+    for (name, handle) in [("camera", Some(camera_thread)), ("imu", Some(imu_thread)), ("clock", clock_thread)] {
+        let Some(handle) = handle else { continue };
         if handle.join().is_err() {
             tracing::error!("{name} thread panicked");
         }
@@ -177,21 +204,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// One time base for both sensors: sim time `t` (s since start) ↔ stamp `start_wall + t`.
+/// One time base for both sensors: sim time `t` (s since start) ↔ stamp `epoch + t` (wall clock), or
+/// with `--clock` stamp `t` itself, sim time running at `rate` × real time.
 #[derive(Clone, Copy)]
 struct Clock {
     start: Instant,
-    start_wall: SystemTime,
+    /// `None`: simulated time published on /clock.
+    epoch: Option<SystemTime>,
+    rate: f64,
 }
 
 impl Clock {
     fn stamp(&self, t: f64) -> Time {
-        stamp_from(self.start_wall + Duration::from_secs_f64(t.max(0.0)))
+        let since_start = Duration::from_secs_f64(t.max(0.0));
+        match self.epoch {
+            Some(epoch) => stamp_from(epoch + since_start),
+            None => Time { sec: i32::try_from(since_start.as_secs()).unwrap_or(i32::MAX), nanosec: since_start.subsec_nanos() },
+        }
     }
 
     /// Sleeps until sim time `t`; false if shutdown was requested meanwhile.
     fn sleep_until(&self, t: f64, shutdown: &Shutdown) -> bool {
-        let due = self.start + Duration::from_secs_f64(t.max(0.0));
+        let due = self.start + Duration::from_secs_f64((t / self.rate).max(0.0));
         loop {
             if shutdown.requested() {
                 return false;
@@ -205,7 +239,17 @@ impl Clock {
     }
 
     fn now(&self) -> f64 {
-        self.start.elapsed().as_secs_f64()
+        self.start.elapsed().as_secs_f64() * self.rate
+    }
+}
+
+/// Publishes the simulated time on /clock every 1/CLOCK_RATE_HZ of it.
+fn clock_loop(mut publisher: ClockPublisher, shutdown: &Shutdown, clock: Clock) {
+    let period = 1.0 / CLOCK_RATE_HZ;
+    let mut index = 0u64;
+    while clock.sleep_until(index as f64 * period, shutdown) {
+        publisher.publish(clock.stamp(index as f64 * period));
+        index = ((clock.now() / period).floor() as u64 + 1).max(index + 1);
     }
 }
 

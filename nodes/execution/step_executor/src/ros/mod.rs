@@ -17,6 +17,7 @@ mod diagnostics;
 mod estop;
 mod heartbeat;
 mod jobs;
+mod tf;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -28,8 +29,10 @@ use patchwalk_msgs::msg::{ExecutorStatus, MotionSummary, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
+use patchwalk_ros::clock::{ClockListener, NodeClock};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
 use patchwalk_ros::patch_msg;
+use patchwalk_ros::tf::{SharedTf, TfListener};
 use patchwalk_ros::wait::Wakeup;
 use patchwalk_spl::patch::Patch;
 use ros2_client::service::RmwRequestId;
@@ -89,6 +92,9 @@ struct Executor {
     stops_in_pass: usize,
     /// The operator's heartbeat, required to arm (see `heartbeat`).
     deadman: Deadman,
+    /// The TF tree (`/tf`, `/tf_static`): patch maps go to base_link through it when it has their frame.
+    tf: SharedTf,
+    clock: NodeClock,
 }
 
 impl Executor {
@@ -101,6 +107,8 @@ impl Executor {
             jobs_pending: JobsPending::default(),
             stops_in_pass: 0,
             deadman: Deadman::new(heartbeat_timeout),
+            tf: SharedTf::default(),
+            clock: NodeClock::wall(),
         }
     }
 
@@ -137,7 +145,12 @@ impl Executor {
                 }
             }
         }
-        match self.runtime.on_patch_map(&patches, &map_from_camera) {
+        let in_tree = tf::base_from_map(&self.tf.lock(), &map.header.frame_id, &map.header.stamp);
+        let result = match in_tree {
+            Some(base_from_map) => self.runtime.on_patch_map_in_base(&patches, base_from_map),
+            None => self.runtime.on_patch_map(&patches, &map_from_camera),
+        };
+        match result {
             Ok(report) => match (&report.best, report.near_misses.first()) {
                 (Some(best), _) => tracing::debug!(?best, "patch map matched"),
                 (None, Some(miss)) => {
@@ -154,7 +167,7 @@ impl Executor {
     fn status(&self) -> ExecutorStatus {
         let s = self.runtime.status();
         ExecutorStatus {
-            stamp: node::now_stamp(),
+            stamp: self.clock.now(),
             state: match s.state {
                 RunState::Idle => ExecutorStatus::STATE_IDLE,
                 RunState::Playing => ExecutorStatus::STATE_PLAYING,
@@ -468,11 +481,13 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
     Duration::try_from_secs_f64(1.0 / rate_hz).with_context(|| format!("{key} = {rate_hz}"))
 }
 
-pub fn run(args: RunArgs) -> anyhow::Result<()> {
+pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
+    let clock = NodeClock::new(patchwalk_ros::clock::take_use_sim_time(&mut args.node.params)?);
     let config: ExecutorFileView = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     config.validate()?;
     let params = config.ros.clone();
+    let urdf = tf::urdf_text(&config.urdf_path);
     let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
     let heartbeat_timeout = match Duration::try_from_secs_f64(params.heartbeat_timeout_s) {
         Ok(timeout) if timeout > Duration::ZERO => timeout,
@@ -507,6 +522,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut heartbeat_sub = ros.subscription::<Empty>(HEARTBEAT_TOPIC, heartbeat::heartbeat_qos())?;
     let mut play_action = PlayMotionAction::new(&mut ros)?;
     let diagnostics_pub = ros.publisher::<DiagnosticArray>(DIAGNOSTICS_TOPIC, node::reliable_qos())?;
+    let _robot_description_pub = tf::publish_robot_description(&mut ros, urdf)?;
+    let tf_tree = SharedTf::default();
+    let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
+    let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
 
     // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
     // an event, or a periodic output is due.
@@ -526,6 +545,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     wakeup.watch(&mut list_motions_srv)?;
     wakeup.watch(&mut delete_motion_srv)?;
     wakeup.watch(&mut play_motion_srv)?;
+    tf_listener.watch(&wakeup)?;
+    if let Some(listener) = clock_listener.as_mut() {
+        wakeup.watch(&mut listener.subscription)?;
+    }
     let job_waker = wakeup.waker();
     let jobs = Jobs::spawn(move || {
         let _ = job_waker.wake();
@@ -534,6 +557,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     let mut log = RateLimitedLog::default();
     let mut executor = Executor::new(runtime, heartbeat_timeout);
+    executor.tf = tf_tree;
+    executor.clock = clock.clone();
     let bus_waker = wakeup.waker();
     executor.runtime.set_bus_notify(Box::new(move || {
         let _ = bus_waker.wake();
@@ -572,6 +597,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= serve_or_start(&select_target_srv, SELECT_TARGET, &mut executor, &jobs, &mut log, Executor::select_target);
         more |= serve_or_start(&save_motion_srv, SAVE_MOTION, &mut executor, &jobs, &mut log, Executor::save_motion);
         more |= serve_or_start(&delete_motion_srv, DELETE_MOTION, &mut executor, &jobs, &mut log, Executor::delete_motion);
+        if let Some(listener) = clock_listener.as_mut() {
+            listener.drain();
+        }
+        more |= tf_listener.drain();
         let finished: Vec<Finished> = jobs.finished().collect();
         for done in finished {
             match executor.finish(done) {
@@ -592,7 +621,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             let now = Instant::now();
             if playing || now >= next_joint_state {
                 let mut msg = JointState { name: joint_names.clone(), ..Default::default() };
-                msg.header.stamp = node::now_stamp();
+                msg.header.stamp = clock.now();
                 msg.position = telemetry.positions.iter().map(|p| p.unwrap_or(f64::NAN)).collect();
                 node::publish(&joint_states_pub, JOINT_STATES_TOPIC, msg, &mut log);
                 next_joint_state = now + joint_state_period;

@@ -21,13 +21,19 @@ use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use patchwalk_spl::patch::Patch;
 
 /// The RPBP model shipped with the repository, used when `urdf_path` is found nowhere.
-const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
+pub const BUILT_IN_URDF: &str = patchwalk_robot_model::RPBP_URDF;
 /// The colcon package whose share directory holds `urdf/rpbp.urdf` when installed.
 const PACKAGE: &str = "step_executor";
 
 /// The repository this crate was built from (the parent of `config/` and `urdf/`).
 fn source_root() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../..")
+}
+
+/// The URDF file `urdf_path` names: looked up in the working directory, the package's share directory
+/// (a colcon install, through the ament index) and the source tree, in that order.
+pub fn find_urdf(urdf_path: &std::path::Path) -> Option<(std::path::PathBuf, patchwalk_ros::share::Origin)> {
+    patchwalk_ros::share::find_data_file(urdf_path, PACKAGE, &source_root())
 }
 
 /// Coarse state for the status message.
@@ -131,9 +137,7 @@ impl Runtime {
     /// Build with a given bus factory (tests: mock or simulated chain). Returns warnings to log.
     pub fn with_bus(config: StepExecutorConfig, open_bus: impl FnOnce() -> BusResult) -> Result<(Self, Vec<String>), RuntimeError> {
         let mut warnings = Vec::new();
-        // A relative `urdf_path` is looked up in the working directory, the package's share directory
-        // (a colcon install, through the ament index) and the source tree, in that order.
-        let model = match patchwalk_ros::share::find_data_file(&config.urdf_path, PACKAGE, &source_root()) {
+        let model = match find_urdf(&config.urdf_path) {
             Some((path, origin)) => {
                 let model = RobotModel::from_file(&path)?;
                 tracing::info!("robot model {} ({origin})", path.display());
@@ -267,6 +271,11 @@ impl Runtime {
     /// Returns the match report.
     pub fn on_patch_map(&mut self, patches_in_map: &[Patch], map_from_camera: &Isometry3<f64>) -> Result<MatchReport, CommandError> {
         let base_from_map = self.base_from_camera()? * map_from_camera.inverse();
+        self.on_patch_map_in_base(patches_in_map, base_from_map)
+    }
+
+    /// [`Runtime::on_patch_map`] with `base_from_map` known (looked up in TF at the map's stamp).
+    pub fn on_patch_map_in_base(&mut self, patches_in_map: &[Patch], base_from_map: Isometry3<f64>) -> Result<MatchReport, CommandError> {
         self.latest_base_from_map = Some(base_from_map);
         self.latest_map_in_base = patches_in_map.iter().filter_map(|p| pose_in(&base_from_map, p)).collect();
         let report = self.matcher.report(&self.latest_map_in_base);

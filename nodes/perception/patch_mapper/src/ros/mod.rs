@@ -10,10 +10,16 @@
 //! Every bad input (wrong encoding or size, NaN/zero depth, missing CameraInfo, IMU gaps, out-of-order
 //! or duplicate stamps, stamps far ahead of the node clock) is counted, logged once per period, and
 //! skipped — the node keeps running.
+//!
+//! Time and frames: stamps come from the inputs or the node clock (`use_sim_time`: `/clock`); the
+//! tracked pose is published on `/tf` and the IMU mount read from `/tf_static` (see [`tf`]); each depth
+//! image is paired with its CameraInfo (see [`camera_info`]).
 
+mod camera_info;
 mod convert;
 mod diagnostics;
 mod publish;
+mod tf;
 
 /// The longest the loop sleeps without input (a shutdown request is seen within this).
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -32,13 +38,15 @@ use serde::{Deserialize, Serialize};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_mapping::mapper::MapperConfig;
-use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, StampWindow, MAP_FRAME};
+use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, StampWindow};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
 use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
+use patchwalk_ros::clock::{ClockListener, NodeClock};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::tf::{SharedTf, TfBroadcaster, TfListener};
 use ros2_client::Publisher;
 
 /// Arguments of `patch_mapper run`.
@@ -121,6 +129,8 @@ pub struct MapperRosParams {
     /// Depth and IMU stamps farther than this from the node clock are refused where they enter
     /// ([`StampWindow`]: 10 s into the future, any age by default, so bags and simulators work).
     pub max_stamp_skew_s: StampWindow,
+    /// Frames and `/tf`: the fixed frame's name, what is published, the IMU mount from TF.
+    pub tf: tf::TfParams,
 }
 
 impl Default for MapperRosParams {
@@ -134,6 +144,7 @@ impl Default for MapperRosParams {
             publish_birds_eye_cloud: true,
             publish_markers: true,
             max_stamp_skew_s: StampWindow::default(),
+            tf: tf::TfParams::default(),
         }
     }
 }
@@ -147,6 +158,8 @@ pub const RESET_SERVICE: &str = "/patch_mapper/reset";
 
 /// A checked depth frame on its way to the worker.
 struct DepthJob {
+    /// The Image's `frame_id` (the camera frame in TF).
+    frame_id: String,
     depth: DepthImage,
     intrinsics: Intrinsics,
     stamp: Time,
@@ -155,7 +168,7 @@ struct DepthJob {
 
 /// What the ROS loop hands the worker.
 enum WorkerInput {
-    Imu { stamp: f64, acceleration_in_imu: Vector3<f64> },
+    Imu { stamp: f64, acceleration_in_imu: Vector3<f64>, frame_id: String },
 }
 
 /// Status shared by both threads (counters of MapperStatus, last error, timings).
@@ -170,7 +183,8 @@ fn with_status(status: &SharedStatus, update: impl FnOnce(&mut MapperStatus)) {
 /// What the ROS loop knows between messages.
 struct State {
     status: SharedStatus,
-    intrinsics: Option<Intrinsics>,
+    camera_info: camera_info::CameraInfoPairing,
+    clock: NodeClock,
     jobs: Sender<DepthJob>,
     /// The ROS loop's own end of the job queue, to replace a waiting frame by a newer one.
     stale_jobs: Receiver<DepthJob>,
@@ -185,14 +199,16 @@ impl State {
         stale_jobs: Receiver<DepthJob>,
         imu: Sender<WorkerInput>,
         stamp_window: StampWindow,
+        clock: NodeClock,
     ) -> Self {
-        Self { status, intrinsics: None, jobs, stale_jobs, imu, stamp_window }
+        Self { status, camera_info: camera_info::CameraInfoPairing::default(), clock, jobs, stale_jobs, imu, stamp_window }
     }
 
     /// Whether a message stamp is within [`StampWindow`] of the node clock; a refusal is reported once
-    /// per period for each input (`key`).
+    /// per period for each input (`key`). Simulated time before the first `/clock` accepts any stamp.
     fn stamp_plausible(&mut self, log: &mut RateLimitedLog, key: &str, input: &'static str, stamp: &Time) -> bool {
-        let now = publish::seconds_from_time(&node::now_stamp());
+        let Some(now_ns) = self.clock.now_ns_if_known() else { return true };
+        let now = now_ns as f64 * 1e-9;
         match self.stamp_window.check(input, publish::seconds_from_time(stamp), now) {
             Ok(()) => true,
             Err(e) => {
@@ -219,27 +235,26 @@ impl State {
                 return;
             }
         };
-        let Some(intrinsics) = self.intrinsics else {
-            self.count(|s| s.frames_skipped += 1);
-            self.fail(log, "no_camera_info", "depth frame skipped: no valid CameraInfo received yet".into());
-            return;
+        let intrinsics = match self.camera_info.pair(&msg.header.stamp, depth.width, depth.height) {
+            Ok(intrinsics) => intrinsics,
+            Err(e @ camera_info::PairingError::NoCameraInfo) => {
+                self.count(|s| s.frames_skipped += 1);
+                self.fail(log, "no_camera_info", format!("depth frame skipped: {e}"));
+                return;
+            }
+            Err(e) => {
+                self.count(|s| s.frames_rejected += 1);
+                self.fail(log, "size", format!("depth frame rejected: {e}"));
+                return;
+            }
         };
-        if (depth.width, depth.height) != (intrinsics.width, intrinsics.height) {
-            self.count(|s| s.frames_rejected += 1);
-            self.fail(
-                log,
-                "size",
-                format!("depth image is {}x{} but CameraInfo says {}x{}", depth.width, depth.height, intrinsics.width, intrinsics.height),
-            );
-            return;
-        }
         // An unset stamp (0) means "now" (publishers that do not stamp their images).
-        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
+        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { self.clock.now() } else { msg.header.stamp.clone() };
         if !self.stamp_plausible(log, "depth_stamp", "depth", &stamp) {
             self.count(|s| s.frames_rejected += 1);
             return;
         }
-        let job = DepthJob { depth, intrinsics, stamp, received };
+        let job = DepthJob { frame_id: msg.header.frame_id.clone(), depth, intrinsics, stamp, received };
         if let Err(TrySendError::Full(job)) = self.jobs.try_send(job) {
             // Keep-latest: the waiting frame is dropped for the newer one.
             if self.stale_jobs.try_recv().is_ok() {
@@ -253,7 +268,7 @@ impl State {
     fn on_camera_info(&mut self, msg: &CameraInfo, log: &mut RateLimitedLog) {
         self.count(|s| s.camera_infos_received += 1);
         match convert::intrinsics(msg) {
-            Ok(intrinsics) => self.intrinsics = Some(intrinsics),
+            Ok(intrinsics) => self.camera_info.push(&msg.header.stamp, intrinsics),
             Err(e) => self.fail(log, "camera_info", format!("CameraInfo rejected: {e}")),
         }
     }
@@ -262,7 +277,7 @@ impl State {
         self.count(|s| s.imu_received += 1);
         let a = &msg.linear_acceleration;
         let acceleration_in_imu = Vector3::new(a.x, a.y, a.z);
-        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { node::now_stamp() } else { msg.header.stamp.clone() };
+        let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { self.clock.now() } else { msg.header.stamp.clone() };
         if !acceleration_in_imu.iter().all(|v| v.is_finite()) {
             self.fail(log, "imu", format!("IMU sample rejected: non-finite acceleration {acceleration_in_imu:?}"));
             return;
@@ -270,7 +285,8 @@ impl State {
         if !self.stamp_plausible(log, "imu_stamp", "IMU", &stamp) {
             return;
         }
-        let _ = self.imu.send(WorkerInput::Imu { stamp: publish::seconds_from_time(&stamp), acceleration_in_imu });
+        let frame_id = msg.header.frame_id.clone();
+        let _ = self.imu.send(WorkerInput::Imu { stamp: publish::seconds_from_time(&stamp), acceleration_in_imu, frame_id });
     }
 
     fn fail(&mut self, log: &mut RateLimitedLog, key: &str, message: String) {
@@ -284,6 +300,7 @@ struct Outputs {
     patches: Publisher<PatchArray>,
     markers: Option<Publisher<MarkerArray>>,
     birds_eye: Option<Publisher<PointCloud2>>,
+    tf: Option<TfBroadcaster>,
 }
 
 /// The worker: builds the pipeline for the current intrinsics, runs it on each frame, publishes.
@@ -299,6 +316,11 @@ struct Worker {
     last_reset: Option<ResetMark>,
     /// Set by the reset service, taken by the worker.
     reset_request: Arc<Mutex<Option<ResetMark>>>,
+    /// The TF tree the ROS loop fills (robot tree, IMU mount).
+    tf: SharedTf,
+    extrinsics: tf::Extrinsics,
+    /// The `frame_id` of the latest IMU sample.
+    imu_frame: Option<String>,
 }
 
 /// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
@@ -313,8 +335,8 @@ struct ResetMark {
 const STALE_FRAME_WINDOW_S: f64 = 0.5;
 
 impl ResetMark {
-    fn now() -> Self {
-        Self { at: Instant::now(), stamp_s: publish::seconds_from_time(&node::now_stamp()) }
+    fn now(clock: &NodeClock) -> Self {
+        Self { at: Instant::now(), stamp_s: clock.now_s() }
     }
 
     fn is_stale(&self, received: Instant, stamp_s: f64) -> bool {
@@ -345,7 +367,10 @@ impl Worker {
 
     fn take_inputs(&mut self, inputs: &Receiver<WorkerInput>) {
         for input in inputs.try_iter() {
-            let WorkerInput::Imu { stamp, acceleration_in_imu } = input;
+            let WorkerInput::Imu { stamp, acceleration_in_imu, frame_id } = input;
+            if self.imu_frame.as_deref() != Some(frame_id.as_str()) {
+                self.imu_frame = Some(frame_id);
+            }
             // Kept for a pipeline built later (first CameraInfo, new intrinsics).
             self.recent_imu.push_back((stamp, acceleration_in_imu));
             while self.recent_imu.front().is_some_and(|(t, _)| *t < stamp - self.config.pipeline.imu_buffer_s) {
@@ -384,6 +409,19 @@ impl Worker {
             }
         }
         let Some(pipeline) = self.pipeline.as_mut() else { return };
+        match self.extrinsics.camera_from_imu(&self.tf, &job.frame_id, self.imu_frame.as_deref(), Instant::now()) {
+            tf::MountChoice::FromTf(camera_from_imu) => pipeline.set_camera_from_imu(&camera_from_imu),
+            tf::MountChoice::Config => {
+                if let Ok(configured) = self.config.mapper.acquire.camera_from_imu() {
+                    pipeline.set_camera_from_imu(&configured);
+                }
+            }
+            tf::MountChoice::Wait => {
+                with_status(&self.status, |s| s.frames_skipped += 1);
+                self.log.warn("extrinsics_wait", format_args!("depth frame skipped: waiting for the IMU mount on /tf_static"));
+                return;
+            }
+        }
         let output = match pipeline.process(&job.depth, publish::seconds_from_time(&job.stamp)) {
             Ok(output) => output,
             Err(e) => {
@@ -399,15 +437,27 @@ impl Worker {
         }
         let map = pipeline.map();
         let started = Instant::now();
-        let array = publish::patch_array(map, &output.map_from_camera, &job.stamp);
+        let fixed_frame = self.config.ros.tf.fixed_frame.as_str();
+        if let Some(broadcaster) = self.outputs.tf.as_mut() {
+            let transform = tf::pose_transform(&self.config.ros.tf, &self.tf.lock(), &job.frame_id, &job.stamp, &output.map_from_camera);
+            if let Some(transform) = transform {
+                broadcaster.send(vec![transform]);
+            }
+        }
+        let mut array = publish::patch_array(map, &output.map_from_camera, &job.stamp);
+        array.header.frame_id = fixed_frame.to_string();
         node::publish(&self.outputs.patches, PATCHES_TOPIC, array, &mut self.dds_log);
         let latency_ms = job.received.elapsed().as_secs_f64() * 1e3;
         if let Some(markers) = &self.outputs.markers {
-            node::publish(markers, MARKERS_TOPIC, publish::markers(map, &job.stamp), &mut self.dds_log);
+            let mut msg = publish::markers(map, &job.stamp);
+            for marker in &mut msg.markers {
+                marker.header.frame_id = fixed_frame.to_string();
+            }
+            node::publish(markers, MARKERS_TOPIC, msg, &mut self.dds_log);
         }
         if let Some(cloud) = &self.outputs.birds_eye {
             let points = birds_eye_points_in_map(&output.birds_eye, &output.map_from_birds_eye);
-            node::publish(cloud, BIRDS_EYE_TOPIC, publish::point_cloud(&points, &job.stamp, MAP_FRAME), &mut self.dds_log);
+            node::publish(cloud, BIRDS_EYE_TOPIC, publish::point_cloud(&points, &job.stamp, fixed_frame), &mut self.dds_log);
         }
         let publish_ms = started.elapsed().as_secs_f64() * 1e3;
         let patches = map.len();
@@ -426,8 +476,9 @@ impl Worker {
     }
 }
 
-pub fn run(args: RunArgs) -> anyhow::Result<()> {
+pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing();
+    let clock = NodeClock::new(patchwalk_ros::clock::take_use_sim_time(&mut args.node.params)?);
     let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
     let params = config.ros.clone();
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
@@ -444,18 +495,27 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
     let diagnostics_pub =
         ros.publisher::<patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray>(diagnostics::DIAGNOSTICS_TOPIC, node::reliable_qos())?;
+    let tf_tree = SharedTf::default();
+    let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
+    let tf_broadcaster = if params.tf.publish == tf::TfPublish::Off { None } else { Some(TfBroadcaster::new(&mut ros)?) };
+    let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;
     wakeup.watch(&mut depth_sub)?;
     wakeup.watch(&mut info_sub)?;
     wakeup.watch(&mut imu_sub)?;
     wakeup.watch(&mut reset_srv)?;
+    tf_listener.watch(&wakeup)?;
+    if let Some(listener) = clock_listener.as_mut() {
+        wakeup.watch(&mut listener.subscription)?;
+    }
 
     let status_period = Duration::try_from_secs_f64(params.status_period_s)
         .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
     let log_period = Duration::try_from_secs_f64(params.log_period_s)
         .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
     params.max_stamp_skew_s.validate().context("invalid ros.max_stamp_skew_s")?;
+    params.tf.validate().map_err(anyhow::Error::msg)?;
     // Check the pipeline sections now, so a bad config fails at start and not at the first frame.
     Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), Intrinsics::primesense_default())
         .context("invalid pipeline/tracker/mapper configuration")?;
@@ -465,6 +525,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let (input_tx, input_rx) = crossbeam_channel::unbounded::<WorkerInput>();
     let reset: Arc<Mutex<Option<ResetMark>>> = Arc::default();
     let stop = Arc::new(AtomicBool::new(false));
+    let extrinsics = tf::Extrinsics::new(config.ros.tf.clone());
     let worker = Worker {
         config,
         pipeline: None,
@@ -474,11 +535,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             patches: patches_pub,
             markers: params.publish_markers.then_some(markers_pub),
             birds_eye: params.publish_birds_eye_cloud.then_some(birds_eye_pub),
+            tf: tf_broadcaster,
         },
         log: RateLimitedLog::new(log_period),
         dds_log: RateLimitedLog::new(log_period),
         last_reset: None,
         reset_request: reset.clone(),
+        tf: tf_tree,
+        extrinsics,
+        imu_frame: None,
     };
     let worker_thread = {
         let (jobs, stop) = (job_rx.clone(), stop.clone());
@@ -488,20 +553,24 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Two logs so the middleware's and the messages' warnings are limited independently.
     let mut dds_log = RateLimitedLog::new(log_period);
     let mut log = RateLimitedLog::new(log_period);
-    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s);
+    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s, clock.clone());
     let mut next_status = Instant::now();
     let mut diagnostics_window = diagnostics::MapperWindow::default();
     let mut next_diagnostics = Instant::now() + diagnostics::DIAGNOSTICS_PERIOD;
     tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
 
     while !shutdown.requested() {
-        let mut more =
-            node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
+        // Time and the TF tree first: the inputs below are checked against them.
+        if let Some(listener) = clock_listener.as_mut() {
+            listener.drain();
+        }
+        let mut more = tf_listener.drain();
+        more |= node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
         more |= node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log)) >= 256;
         more |= node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log)) >= 8;
         more |= node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
             if let Ok(mut mark) = reset.lock() {
-                *mark = Some(ResetMark::now());
+                *mark = Some(ResetMark::now(&clock));
             }
             let frames = status.lock().map(|mut s| {
                 s.last_error.clear();
@@ -514,7 +583,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let now = Instant::now();
         if now >= next_status {
             if let Ok(mut s) = status.lock() {
-                s.stamp = node::now_stamp();
+                s.stamp = clock.now();
                 node::publish(&status_pub, STATUS_TOPIC, s.clone(), &mut dds_log);
             }
             next_status = now + status_period;
@@ -566,7 +635,7 @@ mod tests {
     fn state() -> (State, Receiver<DepthJob>, Receiver<WorkerInput>) {
         let (jobs, job_rx) = crossbeam_channel::bounded(1);
         let (imu, imu_rx) = crossbeam_channel::unbounded();
-        (State::new(SharedStatus::default(), jobs, job_rx.clone(), imu, StampWindow::default()), job_rx, imu_rx)
+        (State::new(SharedStatus::default(), jobs, job_rx.clone(), imu, StampWindow::default(), NodeClock::wall()), job_rx, imu_rx)
     }
 
     #[test]
@@ -609,7 +678,7 @@ mod tests {
         msg.header.stamp = Time { sec: 3, nanosec: 500_000_000 };
         msg.linear_acceleration.z = 9.81;
         state.on_imu(&msg, &mut log);
-        let WorkerInput::Imu { stamp, acceleration_in_imu } = imu.try_recv().unwrap();
+        let WorkerInput::Imu { stamp, acceleration_in_imu, .. } = imu.try_recv().unwrap();
         assert_eq!((stamp, acceleration_in_imu.z), (3.5, 9.81));
         msg.linear_acceleration.x = f64::NAN;
         state.on_imu(&msg, &mut log);
@@ -646,5 +715,28 @@ mod tests {
         sample.header.stamp = node::now_stamp();
         state.on_imu(&sample, &mut log);
         assert!(imu.try_recv().is_ok());
+    }
+
+    #[test]
+    fn the_skew_window_is_measured_against_simulated_time() {
+        let mut log = RateLimitedLog::new(Duration::from_secs(3600));
+        let (jobs, job_rx) = crossbeam_channel::bounded(1);
+        let (imu_tx, imu) = crossbeam_channel::unbounded();
+        let clock = NodeClock::sim();
+        let mut state = State::new(SharedStatus::default(), jobs, job_rx, imu_tx, StampWindow::default(), clock.clone());
+        let mut sample = Imu::default();
+        sample.linear_acceleration.z = 9.81;
+        // Before the first /clock any stamp goes through (nothing to compare with).
+        sample.header.stamp = Time { sec: 50, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_ok());
+        clock.set_sim_time(&Time { sec: 20, nanosec: 0 });
+        sample.header.stamp = Time { sec: 31, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        assert!(imu.try_recv().is_err(), "11 s ahead of simulated time");
+        sample.header.stamp = Time { sec: 0, nanosec: 0 };
+        state.on_imu(&sample, &mut log);
+        let WorkerInput::Imu { stamp, .. } = imu.try_recv().unwrap();
+        assert_eq!(stamp, 20.0, "an unset stamp is the node clock's now");
     }
 }

@@ -27,6 +27,7 @@ NAMES_SERVICES = {
     "/step_executor/play_motion": "patchwalk_msgs/srv/PlayMotion",
     "/step_executor/stop": "std_srvs/srv/Trigger",
     "/step_executor/arm": "std_srvs/srv/SetBool",
+    "/step_executor/reboot_servos": "patchwalk_msgs/srv/RebootServos",
 }
 
 

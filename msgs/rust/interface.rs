@@ -74,6 +74,8 @@ impl_message!(
     srv::DeleteMotionResponse,
     srv::PlayMotionRequest,
     srv::PlayMotionResponse,
+    srv::RebootServosRequest,
+    srv::RebootServosResponse,
 );
 
 ros_message!("patchwalk_msgs",
@@ -103,6 +105,7 @@ ros_service!("patchwalk_msgs",
     srv::ListMotions => ("ListMotions", srv::ListMotionsRequest, srv::ListMotionsResponse),
     srv::DeleteMotion => ("DeleteMotion", srv::DeleteMotionRequest, srv::DeleteMotionResponse),
     srv::PlayMotion => ("PlayMotion", srv::PlayMotionRequest, srv::PlayMotionResponse),
+    srv::RebootServos => ("RebootServos", srv::RebootServosRequest, srv::RebootServosResponse),
 );
 
 ros_service!("std_srvs",

@@ -6,8 +6,11 @@
 //! `patchwalk_robot_model`.
 
 pub mod config;
+pub mod cycle_clock;
 pub mod executor;
+pub mod health;
 pub mod library;
 pub mod matcher;
 pub mod player;
 pub mod runtime;
+pub mod slow_bus;

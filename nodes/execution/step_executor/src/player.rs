@@ -369,12 +369,13 @@ impl Player {
         let mut report = CycleReport::default();
         let playing = matches!(self.state, PlayerState::Playing { .. });
         if estop && playing {
-            // Freeze at the last measured pose, then refresh the measurement.
+            // Freeze at the last measured pose and report it at once: the next cycle's read
+            // refreshes the measurement (a read here would hold the report back by one more
+            // transaction, 200 ms on a slow bus).
             report.goal = self.hold(bus);
             self.state = PlayerState::Stopped;
             self.trajectory = None;
             report.event = Some(PlayerEvent::EStopped);
-            let _ = self.read_present(bus);
             report.present = self.last_present.clone();
             return report;
         }

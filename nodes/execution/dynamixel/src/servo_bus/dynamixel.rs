@@ -14,8 +14,10 @@
 //!
 //! [`ServoBus::reconnect`] reopens the same path (an unplugged USB adapter or pty that came back).
 
+use std::cell::Cell;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
+use std::sync::Once;
 use std::time::{Duration, Instant};
 
 use dynamixel2::instructions::{instruction_id, packet_id, SyncWriteData};
@@ -42,6 +44,29 @@ impl std::fmt::Debug for DynamixelBus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("DynamixelBus").field("baud", &self.bus.baud_rate()).finish()
     }
+}
+
+thread_local! {
+    /// Set while a transaction runs under [`DynamixelBus::guarded`].
+    static GUARDED: Cell<bool> = const { Cell::new(false) };
+}
+
+static QUIET_HOOK: Once = Once::new();
+
+/// A panic caught by [`DynamixelBus::guarded`] is an error of the transaction, reported as such: the
+/// default hook's "panicked at" message on stderr is replaced by a debug log for those panics only
+/// (every other panic still goes to the previous hook).
+fn install_quiet_hook() {
+    QUIET_HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if GUARDED.with(Cell::get) {
+                tracing::debug!("dynamixel2 panicked inside a guarded transaction: {info}");
+            } else {
+                previous(info);
+            }
+        }));
+    });
 }
 
 fn panic_message(payload: Box<dyn std::any::Any + Send>) -> String {
@@ -80,6 +105,7 @@ impl DynamixelBus {
     pub fn open(port: &Path, baud: u32) -> Result<Self, BusError> {
         let bus = Bus::open_with_buffers(port, baud, vec![0u8; BUFFER_SIZE], vec![0u8; BUFFER_SIZE])
             .map_err(|e| BusError::Io(format!("{}: {e}", port.display())))?;
+        install_quiet_hook();
         Ok(Self { bus, port: port.to_path_buf(), response_timeout: DEFAULT_RESPONSE_TIMEOUT })
     }
 
@@ -122,7 +148,10 @@ impl DynamixelBus {
     /// Run one transaction with panics turned into errors.
     fn guarded<T>(&mut self, f: impl FnOnce(&mut Bus<Vec<u8>, Vec<u8>>) -> Result<T, BusError>) -> Result<T, BusError> {
         let bus = &mut self.bus;
-        match catch_unwind(AssertUnwindSafe(|| f(bus))) {
+        GUARDED.with(|g| g.set(true));
+        let outcome = catch_unwind(AssertUnwindSafe(|| f(bus)));
+        GUARDED.with(|g| g.set(false));
+        match outcome {
             Ok(result) => result,
             Err(payload) => Err(BusError::Panicked(panic_message(payload))),
         }

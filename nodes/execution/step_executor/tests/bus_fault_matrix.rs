@@ -233,7 +233,8 @@ fn run_row(row: &Row) {
             Recovery::Reboot => {
                 // Clearing alone does not help: the error is still in the servo.
                 rig.executor.set_torque(false).unwrap();
-                rig.drain();
+                // The cycle that took the command reports Idle, the next one the fault again.
+                rig.wait(|t| t.state == PlayerState::Idle, "the cleared cycle");
                 rig.wait(|t| matches!(t.event, Some(PlayerEvent::Fault(_))), "the fault again");
                 let rebooted = rig.executor.reboot(Vec::new()).unwrap();
                 assert_eq!(rebooted, vec![row.servo.unwrap()], "{cell}");
@@ -419,7 +420,7 @@ fn overheating_then_reboot_then_play() {
     rig.chain.set_hardware_error(9, mx28::HW_OVERHEATING);
     rig.wait(|t| matches!(t.event, Some(PlayerEvent::Fault(_))), "the overheating fault");
     rig.executor.set_torque(false).unwrap();
-    rig.drain();
+    rig.wait(|t| t.state == PlayerState::Idle, "the cleared cycle");
     rig.wait(|t| matches!(t.event, Some(PlayerEvent::Fault(_))), "the fault again: torque off does not clear a hardware error");
     let refused = rig.executor.play(motion(0.1, 0.2));
     assert!(matches!(&refused, Err(ExecutorError::Refused(m)) if m.contains("reboot_servos")), "{refused:?}");

@@ -37,6 +37,7 @@ NAMES_SERVICES = {
     "/step_executor/play_motion/_action/send_goal": "patchwalk_msgs/action/PlayMotion_SendGoal",
     "/step_executor/play_motion/_action/cancel_goal": "action_msgs/srv/CancelGoal",
     "/step_executor/play_motion/_action/get_result": "patchwalk_msgs/action/PlayMotion_GetResult",
+    "/step_executor/reboot_servos": "patchwalk_msgs/srv/RebootServos",
 }
 
 

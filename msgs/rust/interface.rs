@@ -90,6 +90,8 @@ impl_message!(
     action::PlayMotionGoal,
     action::PlayMotionResult,
     action::PlayMotionFeedback,
+    srv::RebootServosRequest,
+    srv::RebootServosResponse,
 );
 
 ros_message!("patchwalk_msgs",
@@ -140,6 +142,7 @@ ros_service!("patchwalk_msgs",
     srv::ListMotions => ("ListMotions", srv::ListMotionsRequest, srv::ListMotionsResponse),
     srv::DeleteMotion => ("DeleteMotion", srv::DeleteMotionRequest, srv::DeleteMotionResponse),
     srv::PlayMotion => ("PlayMotion", srv::PlayMotionRequest, srv::PlayMotionResponse),
+    srv::RebootServos => ("RebootServos", srv::RebootServosRequest, srv::RebootServosResponse),
 );
 
 ros_service!("std_srvs",

@@ -104,3 +104,18 @@ pub struct PlayMotionResponse {
     pub success: bool,
     pub message: String,
 }
+
+/// `patchwalk_msgs/srv/RebootServos`: REBOOT servos (empty ids = the faulted ones) to recover from a fault.
+pub struct RebootServos;
+
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct RebootServosRequest {
+    pub ids: Vec<u8>,
+}
+
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct RebootServosResponse {
+    pub success: bool,
+    pub message: String,
+    pub rebooted: Vec<u8>,
+}

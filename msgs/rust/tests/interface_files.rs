@@ -335,6 +335,7 @@ fn services_match_their_srv_files() {
     check_service::<srv::ListMotionsRequest, srv::ListMotionsResponse>("ListMotions");
     check_service::<srv::DeleteMotionRequest, srv::DeleteMotionResponse>("DeleteMotion");
     check_service::<srv::PlayMotionRequest, srv::PlayMotionResponse>("PlayMotion");
+    check_service::<srv::RebootServosRequest, srv::RebootServosResponse>("RebootServos");
 }
 
 fn check_action<G: DeserializeOwned, R: DeserializeOwned, F: DeserializeOwned>(name: &str) {

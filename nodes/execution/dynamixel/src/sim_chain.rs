@@ -7,11 +7,14 @@
 //! (or the velocity limit, 230 × 0.229 rpm ≈ 53 rpm, the MX-28's no-load speed) while torque is on.
 //! Wire time at the configured baud rate is simulated. Faults can be injected at run time: silence
 //! (per servo or the whole chain), corrupted CRCs, hardware error bits (alert bit set, torque off as
-//! with the Shutdown register), and extra latency.
+//! with the Shutdown register), extra latency, answers carrying another servo's id, and unplugging
+//! the device ([`SimChain::unplug`]: the pty closes, the master's I/O fails) and plugging it back
+//! ([`SimChain::replug`]: a new pty, the servos as they were). REBOOT clears a servo's hardware
+//! error and torque; the servo is then silent for [`SimConfig::boot_time`] before it answers again.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::os::fd::{AsFd, OwnedFd};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -43,6 +46,8 @@ pub struct Faults {
     /// These servos answer with a malformed frame whose LEN field (2) is shorter than any status
     /// packet, with a valid CRC (a corrupted/echoed frame; it panics dynamixel2 0.9.1's parser).
     pub malformed: BTreeSet<u8>,
+    /// These servos answer with another id in their status packets (servo → id it claims).
+    pub wrong_id: BTreeMap<u8, u8>,
 }
 
 /// Chain configuration.
@@ -56,14 +61,22 @@ pub struct SimConfig {
     pub simulate_wire_time: bool,
     /// Initial Return Delay Time register (2 µs units); factory default 250 (500 µs).
     pub return_delay_register: u8,
+    /// How long a servo is silent after REBOOT.
+    pub boot_time: Duration,
 }
 
 impl SimConfig {
     /// `n` servos with IDs 1..=n at 1 Mbps, factory return delay.
     pub fn with_servos(n: u8) -> Self {
-        Self { ids: (1..=n).collect(), baud: 1_000_000, simulate_wire_time: true, return_delay_register: 250 }
+        Self { ids: (1..=n).collect(), baud: 1_000_000, simulate_wire_time: true, return_delay_register: 250, boot_time: DEFAULT_BOOT_TIME }
     }
 }
+
+/// SCHED_FIFO priority of the chain's thread (below the control loop's; nice -15 where refused).
+const SIM_PRIORITY: i32 = 40;
+
+/// Boot time after REBOOT of the simulated servos.
+pub const DEFAULT_BOOT_TIME: Duration = Duration::from_millis(100);
 
 /// Snapshot of one simulated servo.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -82,6 +95,8 @@ struct SimServo {
     present: f64,
     /// Goal positions received while torque is on (for tests: the servo "passes through" keyframes).
     goal_history: Vec<i32>,
+    /// Silent until then after a REBOOT.
+    booting_until: Option<Instant>,
 }
 
 impl SimServo {
@@ -94,7 +109,7 @@ impl SimServo {
         }
         table[usize::from(mx28::ID)] = id;
         table[usize::from(mx28::RETURN_DELAY_TIME)] = return_delay;
-        let mut servo = Self { table, present, goal_history: Vec::new() };
+        let mut servo = Self { table, present, goal_history: Vec::new(), booting_until: None };
         servo.set_u32(mx28::GOAL_POSITION, present.round() as u32);
         servo.sync_present(0.0);
         servo
@@ -215,6 +230,10 @@ impl SimServo {
         Ok(self.table[start..end].to_vec())
     }
 
+    fn booting(&self, now: Instant) -> bool {
+        self.booting_until.is_some_and(|until| now < until)
+    }
+
     fn reboot(&mut self) {
         let id = self.id();
         let eeprom: Vec<u8> = self.table[..usize::from(mx28::RAM_START)].to_vec();
@@ -234,7 +253,6 @@ impl SimServo {
 }
 
 struct Shared {
-    stop: AtomicBool,
     faults: Mutex<Faults>,
     servos: Mutex<Vec<SimServo>>,
 }
@@ -245,16 +263,50 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 
 /// A running simulated chain; dropping it stops the thread and closes the pty.
 pub struct SimChain {
-    device_path: PathBuf,
     shared: Arc<Shared>,
+    config: SimConfig,
+    /// The pty being served (`None` while unplugged).
+    plugged: Mutex<Option<Plugged>>,
+}
+
+/// One pty and the thread serving it.
+struct Plugged {
+    device_path: PathBuf,
+    stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
     /// Kept open so the master never sees EIO when clients disconnect.
-    _slave: Arc<OwnedFd>,
+    _slave: OwnedFd,
+}
+
+impl Plugged {
+    fn open(shared: &Arc<Shared>, config: &SimConfig) -> Result<Self, SimError> {
+        let pty = nix::pty::openpty(None, None).map_err(|e| SimError::Pty(e.to_string()))?;
+        let mut termios = nix::sys::termios::tcgetattr(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
+        nix::sys::termios::cfmakeraw(&mut termios);
+        nix::sys::termios::tcsetattr(pty.slave.as_fd(), nix::sys::termios::SetArg::TCSANOW, &termios)
+            .map_err(|e| SimError::Pty(e.to_string()))?;
+        let device_path = nix::unistd::ttyname(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let (thread_shared, thread_stop, thread_config) = (Arc::clone(shared), Arc::clone(&stop), config.clone());
+        let master = pty.master;
+        let thread = std::thread::Builder::new()
+            .name("sim-mx28-chain".into())
+            .spawn(move || serve(master, thread_shared, thread_stop, thread_config))
+            .map_err(|e| SimError::Pty(e.to_string()))?;
+        Ok(Self { device_path, stop, thread: Some(thread), _slave: pty.slave })
+    }
+
+    fn close(mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
 }
 
 impl std::fmt::Debug for SimChain {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SimChain").field("device_path", &self.device_path).finish()
+        f.debug_struct("SimChain").field("device_path", &self.device_path()).finish()
     }
 }
 
@@ -264,26 +316,35 @@ impl SimChain {
         if let Some(&bad) = config.ids.iter().find(|&&id| id == 0 || id > 252) {
             return Err(SimError::InvalidId(bad));
         }
-        let pty = nix::pty::openpty(None, None).map_err(|e| SimError::Pty(e.to_string()))?;
-        let mut termios = nix::sys::termios::tcgetattr(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
-        nix::sys::termios::cfmakeraw(&mut termios);
-        nix::sys::termios::tcsetattr(pty.slave.as_fd(), nix::sys::termios::SetArg::TCSANOW, &termios)
-            .map_err(|e| SimError::Pty(e.to_string()))?;
-        let device_path = nix::unistd::ttyname(pty.slave.as_fd()).map_err(|e| SimError::Pty(e.to_string()))?;
         let servos = config.ids.iter().map(|&id| SimServo::new(id, config.return_delay_register, 2048.0)).collect();
-        let shared = Arc::new(Shared { stop: AtomicBool::new(false), faults: Mutex::new(Faults::default()), servos: Mutex::new(servos) });
-        let thread_shared = Arc::clone(&shared);
-        let master = pty.master;
-        let thread = std::thread::Builder::new()
-            .name("sim-mx28-chain".into())
-            .spawn(move || serve(master, thread_shared, config))
-            .map_err(|e| SimError::Pty(e.to_string()))?;
-        Ok(Self { device_path, shared, thread: Some(thread), _slave: Arc::new(pty.slave) })
+        let shared = Arc::new(Shared { faults: Mutex::new(Faults::default()), servos: Mutex::new(servos) });
+        let plugged = Plugged::open(&shared, &config)?;
+        Ok(Self { shared, config, plugged: Mutex::new(Some(plugged)) })
     }
 
-    /// The slave device to open with any Dynamixel master (e.g. `/dev/pts/3`).
-    pub fn device_path(&self) -> &Path {
-        &self.device_path
+    /// The slave device to open with any Dynamixel master (e.g. `/dev/pts/3`); empty while unplugged.
+    pub fn device_path(&self) -> PathBuf {
+        lock(&self.plugged).as_ref().map(|p| p.device_path.clone()).unwrap_or_default()
+    }
+
+    /// Unplug: stop serving and close the pty (the master's reads and writes fail from now on; the
+    /// device node goes away once the master closes it). The servos keep their state.
+    pub fn unplug(&self) {
+        if let Some(plugged) = lock(&self.plugged).take() {
+            plugged.close();
+        }
+    }
+
+    /// Plug back in: a new pty (a new device path) serving the same servos. Returns the new path.
+    pub fn replug(&self) -> Result<PathBuf, SimError> {
+        let mut slot = lock(&self.plugged);
+        if let Some(old) = slot.take() {
+            old.close();
+        }
+        let plugged = Plugged::open(&self.shared, &self.config)?;
+        let path = plugged.device_path.clone();
+        *slot = Some(plugged);
+        Ok(path)
     }
 
     /// Change the injected faults.
@@ -328,12 +389,9 @@ impl SimChain {
         lock(&self.shared.servos).iter().find(|s| s.id() == id).map(|s| s.goal_history.clone()).unwrap_or_default()
     }
 
-    /// Stop the thread (also done on drop).
+    /// Stop the thread and close the pty (also done on drop).
     pub fn stop(&mut self) {
-        self.shared.stop.store(true, Ordering::SeqCst);
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
+        self.unplug();
     }
 }
 
@@ -362,14 +420,14 @@ fn write_all(master: &OwnedFd, mut bytes: &[u8]) {
 }
 
 /// The chain's thread: read instructions, advance the servos, answer.
-fn serve(master: OwnedFd, shared: Arc<Shared>, config: SimConfig) {
+fn serve(master: OwnedFd, shared: Arc<Shared>, stop: Arc<AtomicBool>, config: SimConfig) {
     // Real servos answer from their own MCU whatever the host's load: the master's answer budget must
     // not trip because this thread waited for a CPU.
-    crate::priority::raise_thread_priority();
+    crate::priority::make_realtime(SIM_PRIORITY);
     let mut parser = PacketParser::new();
     let mut buffer = [0u8; 1024];
     let mut last = Instant::now();
-    while !shared.stop.load(Ordering::SeqCst) {
+    while !stop.load(Ordering::SeqCst) {
         let readable = {
             let mut fds = [nix::poll::PollFd::new(master.as_fd(), nix::poll::PollFlags::POLLIN)];
             matches!(nix::poll::poll(&mut fds, nix::poll::PollTimeout::from(5u8)), Ok(n) if n > 0)
@@ -402,7 +460,7 @@ fn serve(master: OwnedFd, shared: Arc<Shared>, config: SimConfig) {
             // Frames with a bad CRC are ignored by MX-28s when addressed by broadcast; for a unicast
             // instruction the servo answers with a CRC error status.
             let responses = match frame {
-                Ok(packet) => handle(&packet, &shared),
+                Ok(packet) => handle(&packet, &shared, config.boot_time),
                 Err(protocol::FrameError::Crc { id, .. }) => crc_error_response(id, &shared),
                 Err(_) => Vec::new(),
             };
@@ -418,14 +476,17 @@ fn crc_error_response(id: u8, shared: &Shared) -> Vec<Response> {
     let servos = lock(&shared.servos);
     servos
         .iter()
-        .filter(|s| s.id() == id && id != protocol::BROADCAST_ID && s.u8_at(mx28::STATUS_RETURN_LEVEL) == 2)
+        .filter(|s| s.id() == id && id != protocol::BROADCAST_ID && s.u8_at(mx28::STATUS_RETURN_LEVEL) == 2 && !s.booting(Instant::now()))
         .map(|s| (id, s.error_byte(status_error::CRC), Vec::new()))
         .collect()
 }
 
 /// Execute one instruction; returns the status packets to send, in bus order.
-fn handle(packet: &Packet, shared: &Shared) -> Vec<Response> {
-    let mut servos = lock(&shared.servos);
+fn handle(packet: &Packet, shared: &Shared, boot_time: Duration) -> Vec<Response> {
+    let mut guard = lock(&shared.servos);
+    // A booting servo hears nothing.
+    let now = Instant::now();
+    let mut servos: Vec<&mut SimServo> = guard.iter_mut().filter(|s| !s.booting(now)).collect();
     let p = &packet.params;
     let u16_at = |i: usize| -> Option<u16> { Some(u16::from_le_bytes([*p.get(i)?, *p.get(i + 1)?])) };
     let broadcast = packet.id == protocol::BROADCAST_ID;
@@ -474,8 +535,12 @@ fn handle(packet: &Packet, shared: &Shared) -> Vec<Response> {
                         _ => (status_error::DATA_LENGTH, Vec::new()),
                     },
                     instruction::REBOOT => {
+                        // Answered first (with the alert bit as it was), then the servo restarts
+                        // and is silent while it boots.
+                        let before = servo.error_byte(0);
                         servo.reboot();
-                        (0, Vec::new())
+                        servo.booting_until = Some(now + boot_time);
+                        (before, Vec::new())
                     }
                     _ => (status_error::INSTRUCTION, Vec::new()),
                 };
@@ -516,7 +581,9 @@ fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec
         if faults.silent.contains(&id) {
             continue;
         }
-        let mut bytes = if faults.malformed.contains(&id) { malformed_frame(id) } else { protocol::encode_status(id, error, &data) };
+        let claimed = faults.wrong_id.get(&id).copied().unwrap_or(id);
+        let mut bytes =
+            if faults.malformed.contains(&id) { malformed_frame(claimed) } else { protocol::encode_status(claimed, error, &data) };
         if faults.crc_errors.contains(&id) {
             let n = bytes.len();
             bytes[n - 1] ^= 0xA5;
@@ -647,8 +714,52 @@ mod tests {
         assert_eq!(p.params, vec![status_error::ALERT, mx28::HW_OVERLOAD]);
         raw.send(2, instruction::REBOOT, &[]);
         raw.recv().unwrap();
+        std::thread::sleep(DEFAULT_BOOT_TIME + Duration::from_millis(50));
         raw.send(2, instruction::READ, &[70, 0, 1, 0]);
         assert_eq!(raw.recv().unwrap().params, vec![0, 0]);
+    }
+
+    #[test]
+    fn reboot_answers_then_the_servo_is_silent_while_it_boots() {
+        let mut config = SimConfig::with_servos(1);
+        config.return_delay_register = 0;
+        config.boot_time = Duration::from_millis(400);
+        let chain = SimChain::spawn(config).unwrap();
+        let mut raw = raw_tty(&chain);
+        chain.set_hardware_error(1, mx28::HW_OVERHEATING);
+        raw.send(1, instruction::REBOOT, &[]);
+        assert_eq!(raw.recv().unwrap().params, vec![status_error::ALERT]);
+        raw.send(1, instruction::PING, &[]);
+        assert!(raw.recv().is_none(), "silent while booting");
+        std::thread::sleep(Duration::from_millis(400));
+        raw.send(1, instruction::PING, &[]);
+        let p = raw.recv().unwrap();
+        assert_eq!(p.params[0], 0, "no alert after the reboot");
+        assert_eq!(chain.snapshot(1).unwrap().hardware_error, 0);
+        assert!(!chain.snapshot(1).unwrap().torque);
+    }
+
+    #[test]
+    fn wrong_id_and_unplug_replug() {
+        let chain = chain(2);
+        let mut raw = raw_tty(&chain);
+        chain.set_faults(|f| {
+            f.wrong_id.insert(2, 9);
+        });
+        raw.send(2, instruction::PING, &[]);
+        assert_eq!(raw.recv().unwrap().id, 9);
+        let old = chain.device_path();
+        chain.unplug();
+        assert_eq!(chain.device_path(), PathBuf::new());
+        let mut buf = [0u8; 8];
+        assert!(raw.port.read(&mut buf).is_err() || raw.port.write_all(&[0]).is_err(), "I/O fails while unplugged");
+        drop(raw);
+        let new = chain.replug().unwrap();
+        assert!(new.exists());
+        let mut raw = raw_tty(&chain);
+        raw.send(1, instruction::PING, &[]);
+        assert_eq!(raw.recv().unwrap().id, 1);
+        let _ = old;
     }
 
     #[test]

@@ -74,6 +74,16 @@ pub struct BusConfig {
     /// Time allowed for a status packet beyond its transfer time, ms (ROBOTIS SDK and dynamixel2:
     /// 34 = 2 × 16 ms USB latency timer + 2 ms). Raise it for a pty on a loaded host.
     pub response_timeout_ms: f64,
+    /// When a bus too slow for the control cycle becomes a fault.
+    pub slow_bus: crate::slow_bus::SlowBusConfig,
+    /// Present Input Voltage and Temperature of every servo are read every this many cycles
+    /// (one extra sync read; 25 = 5 Hz at 8 ms; 0 = never), skipped when the cycle is short of time.
+    pub health_read_period_cycles: u32,
+    /// After a REBOOT, how long to wait for the servo to answer a ping again, ms.
+    pub reboot_wait_ms: f64,
+    /// SCHED_FIFO priority of the bus thread (1..=99; 0 = do not ask). Where SCHED_FIFO is not
+    /// permitted the thread runs at nice -15 (logged once at start).
+    pub realtime_priority: i32,
 }
 
 /// One servo: which joint it drives and how its ticks map to the joint angle.
@@ -148,6 +158,11 @@ impl Default for BusConfig {
             return_delay_us: 0,
             expected_model: patchwalk_dynamixel::mx28::MODEL_NUMBER,
             response_timeout_ms: 34.0,
+            slow_bus: crate::slow_bus::SlowBusConfig::default(),
+            health_read_period_cycles: 25,
+            // The MX-28 boots within a few hundred ms.
+            reboot_wait_ms: 2000.0,
+            realtime_priority: 50,
         }
     }
 }
@@ -226,6 +241,13 @@ impl StepExecutorConfig {
         if self.bus.return_delay_us > 508 {
             return Err(ConfigError::Invalid("bus.return_delay_us: at most 508 (register 9 is 2 µs × 0..=254)".into()));
         }
+        if !(self.bus.reboot_wait_ms.is_finite() && (1.0..=30_000.0).contains(&self.bus.reboot_wait_ms)) {
+            return Err(ConfigError::Invalid("bus.reboot_wait_ms: must be within 1..=30000".into()));
+        }
+        if !(0..=99).contains(&self.bus.realtime_priority) {
+            return Err(ConfigError::Invalid(format!("bus.realtime_priority: {} is outside 0..=99", self.bus.realtime_priority)));
+        }
+        self.bus.slow_bus.validate()?;
         self.matcher.validate()?;
         self.player.validate()?;
         Ok(())

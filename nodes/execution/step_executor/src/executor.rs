@@ -1,20 +1,30 @@
 //! The bus thread: owns the [`ServoBus`] and the [`Player`], runs the 8 ms control cycle on absolute
-//! deadlines, and talks to the rest of the node through channels (commands in, telemetry out) and an
-//! atomic e-stop flag (read at the start of every cycle, so a stop is honoured within one cycle).
-//! A panic inside the bus implementation is already turned into an error by the bus; this thread
-//! additionally isolates the node from any bus stall.
+//! deadlines ([`CycleClock`], `SCHED_FIFO` where permitted), and talks to the rest of the node
+//! through channels (commands in, telemetry out, never blocking: telemetry is dropped when the
+//! consumer is behind), an atomic e-stop flag (read at the start of every cycle and between its
+//! transactions, so a stop waits behind at most one bus transaction), and the bus health
+//! ([`BusHealth`], handed over with a try-lock so the cycle never waits for a reader).
+//!
+//! Faults: every fault the player sees latches (see [`crate::player`]); a bus too slow for the cycle
+//! is one too ([`SlowBusDetector`]). Recovery: torque off clears a latched fault; a hardware error
+//! needs [`Executor::reboot`] (Protocol 2.0 REBOOT, then positions re-read, torque held off, and a
+//! motion plays only after an explicit torque on); a lost port needs [`Executor::reconnect`].
+//! A panic inside the bus implementation is already turned into an error by the bus.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
-use patchwalk_dynamixel::priority::raise_thread_priority;
+use patchwalk_dynamixel::priority::{make_realtime, raise_thread_priority, Priority};
 
-use crate::config::BusConfig;
+use crate::config::{BusConfig, StepExecutorConfig};
+use crate::cycle_clock::CycleClock;
+use crate::health::{BusHealth, HealthTracker};
 use crate::library::Motion;
-use crate::player::{Player, PlayerEvent, PlayerState};
+use crate::player::{CycleReport, Player, PlayerEvent, PlayerState};
+use crate::slow_bus::{SlowBusConfig, SlowBusDetector};
 use patchwalk_dynamixel::mx28;
 use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 
@@ -39,6 +49,8 @@ enum Command {
     Play(Box<Motion>, Reply<()>),
     SetTorque(bool, Reply<()>),
     Positions(Reply<Vec<f64>>),
+    Reboot(Vec<u8>, Reply<Vec<u8>>),
+    Reconnect(Reply<()>),
 }
 
 /// One control cycle as seen from outside.
@@ -59,6 +71,40 @@ pub struct Telemetry {
     pub event: Option<PlayerEvent>,
 }
 
+/// How the bus thread runs its cycle.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoopSettings {
+    pub cycle: Duration,
+    pub slow_bus: SlowBusConfig,
+    /// Vitals (voltage, temperature) read every this many cycles; 0 = never.
+    pub health_read_period_cycles: u32,
+    /// Longest wait for a servo to answer after REBOOT.
+    pub reboot_wait: Duration,
+    /// SCHED_FIFO priority; 0 = keep nice -15 only.
+    pub realtime_priority: i32,
+}
+
+impl LoopSettings {
+    /// `cycle` with the configuration's defaults for the rest.
+    pub fn new(cycle: Duration) -> Self {
+        Self::from_bus(cycle, &BusConfig::default())
+    }
+
+    pub fn from_config(config: &StepExecutorConfig) -> Self {
+        Self::from_bus(config.player.cycle(), &config.bus)
+    }
+
+    fn from_bus(cycle: Duration, bus: &BusConfig) -> Self {
+        Self {
+            cycle,
+            slow_bus: bus.slow_bus.clone(),
+            health_read_period_cycles: bus.health_read_period_cycles,
+            reboot_wait: Duration::from_secs_f64(bus.reboot_wait_ms / 1000.0),
+            realtime_priority: bus.realtime_priority,
+        }
+    }
+}
+
 /// Handle of the running bus thread.
 pub struct Executor {
     commands: Sender<Command>,
@@ -66,6 +112,8 @@ pub struct Executor {
     estop: Arc<AtomicBool>,
     shutdown: Arc<AtomicBool>,
     notify: Arc<OnceLock<Notify>>,
+    health: Arc<Mutex<BusHealth>>,
+    reply_timeout: Duration,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -91,61 +139,40 @@ pub fn initialise_bus(bus: &mut dyn ServoBus, player: &Player, config: &BusConfi
 
 impl Executor {
     /// Spawn the bus thread. `bus` must already be initialised (see [`initialise_bus`]).
-    pub fn spawn(mut bus: Box<dyn ServoBus>, mut player: Player, cycle: Duration) -> Result<Self, ExecutorError> {
+    pub fn spawn(bus: Box<dyn ServoBus>, player: Player, settings: LoopSettings) -> Result<Self, ExecutorError> {
         let (command_tx, command_rx) = crossbeam_channel::unbounded::<Command>();
         let (telemetry_tx, telemetry_rx) = crossbeam_channel::bounded::<Telemetry>(1024);
         let estop = Arc::new(AtomicBool::new(false));
         let shutdown = Arc::new(AtomicBool::new(false));
-        let thread_estop = Arc::clone(&estop);
-        let thread_shutdown = Arc::clone(&shutdown);
         let notify: Arc<OnceLock<Notify>> = Arc::new(OnceLock::new());
-        let thread_notify = Arc::clone(&notify);
+        let tracker = HealthTracker::new(&player.ids(), settings.cycle);
+        let health = Arc::new(Mutex::new(tracker.health.clone()));
+        // A reboot waits for the servos to boot: the reply may take that long.
+        let reply_timeout = Duration::from_secs(2) + settings.reboot_wait * 2;
+        let bus_loop = BusLoop {
+            bus,
+            player,
+            torque: false,
+            needs_torque_on: false,
+            detector: SlowBusDetector::new(settings.slow_bus.clone(), settings.cycle),
+            tracker,
+            settings,
+            estop: Arc::clone(&estop),
+            shutdown: Arc::clone(&shutdown),
+            notify: Arc::clone(&notify),
+            health: Arc::clone(&health),
+            commands: command_rx,
+            telemetry: telemetry_tx,
+        };
         let thread = std::thread::Builder::new()
             .name("servo-bus".into())
-            .spawn(move || {
-                raise_thread_priority();
-                let mut torque = false;
-                let mut next = Instant::now();
-                let mut cycle_index = 0u64;
-                while !thread_shutdown.load(Ordering::SeqCst) {
-                    let started = Instant::now();
-                    let estop = thread_estop.swap(false, Ordering::SeqCst);
-                    let report = player.cycle(bus.as_mut(), estop);
-                    while let Ok(command) = command_rx.try_recv() {
-                        handle(command, bus.as_mut(), &mut player, &mut torque);
-                    }
-                    let telemetry = Telemetry {
-                        started,
-                        busy: started.elapsed(),
-                        cycle_index,
-                        keyframe_index: player.keyframe_index(),
-                        positions: report.present,
-                        goal: report.goal,
-                        state: player.state().clone(),
-                        torque,
-                        event: report.event,
-                    };
-                    let urgent = telemetry.goal.is_some() || telemetry.event.is_some();
-                    // Never block the control loop on a slow consumer: drop telemetry instead.
-                    let _ = telemetry_tx.try_send(telemetry);
-                    if let (true, Some(notify)) = (urgent, thread_notify.get()) {
-                        notify();
-                    }
-                    cycle_index += 1;
-                    next += cycle;
-                    let now = Instant::now();
-                    if next > now {
-                        std::thread::sleep(next - now);
-                    } else {
-                        next = now; // overrun: restart the schedule instead of bursting
-                    }
-                }
-            })
+            .spawn(move || bus_loop.run())
             .map_err(|e| ExecutorError::Refused(format!("cannot start the bus thread: {e}")))?;
-        Ok(Self { commands: command_tx, telemetry: telemetry_rx, estop, shutdown, notify, thread: Some(thread) })
+        Ok(Self { commands: command_tx, telemetry: telemetry_rx, estop, shutdown, notify, health, reply_timeout, thread: Some(thread) })
     }
 
-    /// Request an e-stop (honoured at the start of the next cycle).
+    /// Request an e-stop (honoured at the start of the next cycle, or between the transactions of
+    /// the current one).
     pub fn estop(&self) {
         self.estop.store(true, Ordering::SeqCst);
     }
@@ -161,13 +188,20 @@ impl Executor {
         &self.telemetry
     }
 
+    /// The bus health as of the last update (every `bus.health_read_period_cycles` cycles, at
+    /// least every 25).
+    pub fn health(&self) -> BusHealth {
+        self.health.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).clone()
+    }
+
     fn request<T>(&self, make: impl FnOnce(Reply<T>) -> Command) -> Result<T, ExecutorError> {
         let (tx, rx) = crossbeam_channel::bounded(1);
         self.commands.send(make(tx)).map_err(|_| ExecutorError::Stopped)?;
-        rx.recv_timeout(Duration::from_secs(2)).map_err(|_| ExecutorError::Stopped)?
+        rx.recv_timeout(self.reply_timeout).map_err(|_| ExecutorError::Stopped)?
     }
 
     /// Start a motion (torque is enabled first if needed; limits are checked before anything moves).
+    /// Refused while faulted, and after a reboot until torque is switched on explicitly.
     pub fn play(&self, motion: Motion) -> Result<(), ExecutorError> {
         self.request(|reply| Command::Play(Box::new(motion), reply))
     }
@@ -177,9 +211,23 @@ impl Executor {
         self.request(|reply| Command::SetTorque(on, reply))
     }
 
-    /// Present positions of all joints (rad), e.g. to record a keyframe.
+    /// Present positions of all joints (rad), e.g. to record a keyframe; refused while faulted.
     pub fn positions(&self) -> Result<Vec<f64>, ExecutorError> {
         self.request(Command::Positions)
+    }
+
+    /// REBOOT servos `ids` (empty: the faulted ones), wait until they answer, torque off on all,
+    /// re-read the positions, clear the fault. Refused while a motion plays. When the fault is a
+    /// lost port, the port is reopened first (and with no ids and no hardware error, that is all).
+    /// Returns the ids rebooted.
+    pub fn reboot(&self, ids: Vec<u8>) -> Result<Vec<u8>, ExecutorError> {
+        self.request(|reply| Command::Reboot(ids, reply))
+    }
+
+    /// Reopen the bus's port (it was unplugged and is back), re-read the positions, torque off on
+    /// all, clear the fault. Refused while a motion plays.
+    pub fn reconnect(&self) -> Result<(), ExecutorError> {
+        self.request(Command::Reconnect)
     }
 }
 
@@ -189,6 +237,282 @@ impl Drop for Executor {
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
         }
+    }
+}
+
+/// Everything the bus thread owns.
+struct BusLoop {
+    bus: Box<dyn ServoBus>,
+    player: Player,
+    torque: bool,
+    /// Set by a reboot or reconnect: a motion plays only after an explicit torque on.
+    needs_torque_on: bool,
+    detector: SlowBusDetector,
+    tracker: HealthTracker,
+    settings: LoopSettings,
+    estop: Arc<AtomicBool>,
+    shutdown: Arc<AtomicBool>,
+    notify: Arc<OnceLock<Notify>>,
+    health: Arc<Mutex<BusHealth>>,
+    commands: Receiver<Command>,
+    telemetry: Sender<Telemetry>,
+}
+
+/// How often the health summary is handed over when vitals are not read more often.
+const HEALTH_PUBLISH_CYCLES: u64 = 25;
+
+impl BusLoop {
+    fn run(mut self) {
+        let priority = if self.settings.realtime_priority > 0 {
+            make_realtime(self.settings.realtime_priority)
+        } else if raise_thread_priority() {
+            Priority::Nice
+        } else {
+            Priority::Unchanged
+        };
+        match priority {
+            Priority::Fifo(_) => tracing::info!("servo bus thread: {priority}"),
+            _ => tracing::warn!("servo bus thread: {priority}"),
+        }
+        self.tracker.health.scheduling = priority.to_string();
+        let mut clock = CycleClock::start(self.settings.cycle);
+        let mut cycle_index = 0u64;
+        let mut previous_start: Option<Instant> = None;
+        while !self.shutdown.load(Ordering::SeqCst) {
+            let started = Instant::now();
+            let estop = self.estop.swap(false, Ordering::SeqCst);
+            let flag = Arc::clone(&self.estop);
+            let mut report = self.player.cycle_with_stop(self.bus.as_mut(), estop, &mut || flag.swap(false, Ordering::SeqCst));
+            self.tracker.read(self.player.last_errors());
+            let busy = started.elapsed();
+            if matches!(self.player.state(), PlayerState::Faulted(_)) {
+                // Latched already (a silent servo makes every cycle slow): count afresh once cleared.
+                self.detector.reset();
+            } else if let Some(fault) = self.detector.observe(started, busy) {
+                if let Some(faulted) = self.player.fault_external(self.bus.as_mut(), fault) {
+                    report = CycleReport { goal: faulted.goal.or(report.goal), present: faulted.present, event: faulted.event };
+                }
+            }
+            let mut blocked = false;
+            while let Ok(command) = self.commands.try_recv() {
+                blocked |= self.handle(command);
+            }
+            if blocked {
+                self.detector.reset();
+            }
+            // Vitals at a low rate, only with time left in the cycle, no stop pending and a bus that answers.
+            let period = u64::from(self.settings.health_read_period_cycles);
+            let healthy_read = self.player.last_errors().iter().all(Option::is_none);
+            if period > 0
+                && cycle_index % period == 0
+                && healthy_read
+                && !self.estop.load(Ordering::SeqCst)
+                && started.elapsed() < self.settings.cycle / 2
+            {
+                self.read_vitals();
+            }
+            let busy = started.elapsed();
+            self.tracker.cycle(previous_start.map(|p| started.saturating_duration_since(p)), busy, busy > self.settings.cycle);
+            previous_start = Some(started);
+            // Every 25 cycles, and every overrun (a slow bus is seen at once, not 25 slow cycles later).
+            if cycle_index % HEALTH_PUBLISH_CYCLES == 0 || (period > 0 && cycle_index % period == 0) || busy > self.settings.cycle {
+                self.publish_health();
+            }
+            let telemetry = Telemetry {
+                started,
+                busy,
+                cycle_index,
+                keyframe_index: self.player.keyframe_index(),
+                positions: report.present,
+                goal: report.goal,
+                state: self.player.state().clone(),
+                torque: self.torque,
+                event: report.event,
+            };
+            let urgent = telemetry.goal.is_some() || telemetry.event.is_some();
+            // Never block the control loop on a slow consumer: drop telemetry instead.
+            let _ = self.telemetry.try_send(telemetry);
+            if let (true, Some(notify)) = (urgent, self.notify.get()) {
+                notify();
+            }
+            cycle_index += 1;
+            clock.wait();
+        }
+    }
+
+    /// Present Input Voltage and Temperature (144..=146) of every servo in one sync read.
+    fn read_vitals(&mut self) {
+        let ids = self.player.ids();
+        match self.bus.sync_read(&ids, mx28::PRESENT_INPUT_VOLTAGE, 3) {
+            Ok(results) => {
+                for (id, result) in results {
+                    self.tracker.vitals(id, &result.map(|r| r.data));
+                }
+            }
+            Err(e) => {
+                for id in ids {
+                    self.tracker.vitals(id, &Err(e.clone()));
+                }
+            }
+        }
+    }
+
+    /// Hand the health over unless a reader holds it right now (then the next update does).
+    fn publish_health(&mut self) {
+        self.tracker.summarise();
+        if let Ok(mut shared) = self.health.try_lock() {
+            shared.clone_from(&self.tracker.health);
+        }
+    }
+
+    /// One command; returns whether the slow-bus check should start afresh (the loop was blocked on
+    /// purpose, e.g. a reboot's wait, or a fault was cleared).
+    fn handle(&mut self, command: Command) -> bool {
+        let (bus, player) = (self.bus.as_mut(), &mut self.player);
+        match command {
+            Command::Play(motion, reply) => {
+                let result = (|| {
+                    if let PlayerState::Faulted(fault) = player.state() {
+                        let how = if matches!(fault.error, BusError::Hardware { .. }) {
+                            "a hardware error needs reboot_servos, then set_torque true"
+                        } else {
+                            "toggle torque to clear"
+                        };
+                        return Err(ExecutorError::Refused(format!("faulted ({fault}); {how}")));
+                    }
+                    if self.needs_torque_on {
+                        return Err(ExecutorError::Refused(
+                            "the servos were rebooted or reconnected with torque off: call set_torque true first".into(),
+                        ));
+                    }
+                    if !self.torque {
+                        enable_torque(bus, player)?;
+                        self.torque = true;
+                    }
+                    player.start(&motion).map(|_| ()).map_err(|e| ExecutorError::Refused(e.to_string()))
+                })();
+                let _ = reply.send(result);
+                false
+            }
+            Command::SetTorque(on, reply) => {
+                let result = if on {
+                    enable_torque(bus, player)
+                } else {
+                    servo_bus::sync_write_u8(bus, mx28::TORQUE_ENABLE, &all_ids(player, 0)).map_err(ExecutorError::Bus)
+                };
+                if result.is_ok() {
+                    self.torque = on;
+                    if on {
+                        self.needs_torque_on = false;
+                    }
+                    if !on || !matches!(player.state(), PlayerState::Playing { .. }) {
+                        player.reset();
+                    }
+                }
+                let _ = reply.send(result);
+                true
+            }
+            Command::Positions(reply) => {
+                let positions: Option<Vec<f64>> = player.last_present().iter().copied().collect();
+                let result = match (player.state(), positions) {
+                    (PlayerState::Faulted(fault), _) => Err(ExecutorError::Refused(format!("positions not current: {fault}"))),
+                    (_, Some(p)) => Ok(p),
+                    (_, None) => Err(ExecutorError::Refused("positions not read yet".into())),
+                };
+                let _ = reply.send(result);
+                false
+            }
+            Command::Reboot(ids, reply) => {
+                let result = self.reboot(ids);
+                let _ = reply.send(result);
+                true
+            }
+            Command::Reconnect(reply) => {
+                let result = self.reconnect();
+                let _ = reply.send(result);
+                true
+            }
+        }
+    }
+
+    fn refuse_while_playing(&self, what: &str) -> Result<(), ExecutorError> {
+        if matches!(self.player.state(), PlayerState::Playing { .. }) {
+            return Err(ExecutorError::Refused(format!("{what} refused while a motion plays (stop it first)")));
+        }
+        Ok(())
+    }
+
+    fn servo_error(&self, id: u8, error: BusError) -> ExecutorError {
+        let joint = self.player.joints().iter().find(|j| j.servo.id == id).map(|j| j.servo.joint.clone()).unwrap_or_default();
+        ExecutorError::Servo { id, joint, error }
+    }
+
+    /// After a reboot or reconnect: torque off on every servo, positions re-read, fault cleared;
+    /// a motion needs an explicit torque on.
+    fn settle(&mut self) -> Result<(), ExecutorError> {
+        servo_bus::sync_write_u8(self.bus.as_mut(), mx28::TORQUE_ENABLE, &all_ids(&self.player, 0)).map_err(ExecutorError::Bus)?;
+        self.torque = false;
+        self.needs_torque_on = true;
+        self.player.reset();
+        if let Err(error) = self.player.refresh(self.bus.as_mut()) {
+            return Err(match error.servo_id() {
+                Some(id) => self.servo_error(id, error),
+                None => ExecutorError::Bus(error),
+            });
+        }
+        Ok(())
+    }
+
+    fn reboot(&mut self, ids: Vec<u8>) -> Result<Vec<u8>, ExecutorError> {
+        self.refuse_while_playing("reboot")?;
+        // A lost port is reopened first: nothing can be rebooted through a dead port.
+        let lost_port = matches!(self.player.state(), PlayerState::Faulted(fault) if matches!(fault.error, BusError::Io(_)));
+        if lost_port {
+            self.bus.reconnect().map_err(ExecutorError::Bus)?;
+            if ids.is_empty() && self.tracker.hardware_faulted().next().is_none() {
+                self.settle()?;
+                return Ok(Vec::new());
+            }
+        }
+        let known = self.player.ids();
+        if let Some(bad) = ids.iter().find(|id| !known.contains(id)) {
+            return Err(ExecutorError::Refused(format!("servo {bad} is not on this bus (ids {known:?})")));
+        }
+        let mut targets = ids;
+        if targets.is_empty() {
+            if let PlayerState::Faulted(fault) = self.player.state() {
+                targets.extend(fault.servo_id);
+            }
+            targets.extend(self.tracker.hardware_faulted());
+            targets.sort_unstable();
+            targets.dedup();
+        }
+        if targets.is_empty() {
+            return Err(ExecutorError::Refused("no faulted servo to reboot: name the ids".into()));
+        }
+        for &id in &targets {
+            self.bus.reboot(id).map_err(|e| self.servo_error(id, e))?;
+        }
+        // Each servo is silent while it boots: wait until every one answers a ping.
+        let deadline = Instant::now() + self.settings.reboot_wait;
+        for &id in &targets {
+            loop {
+                match self.bus.ping(id) {
+                    Ok(_) => break,
+                    Err(e) if Instant::now() >= deadline => return Err(self.servo_error(id, e)),
+                    Err(_) => std::thread::sleep(self.settings.cycle),
+                }
+            }
+            self.tracker.rebooted(id);
+        }
+        self.settle()?;
+        Ok(targets)
+    }
+
+    fn reconnect(&mut self) -> Result<(), ExecutorError> {
+        self.refuse_while_playing("reconnect")?;
+        self.bus.reconnect().map_err(ExecutorError::Bus)?;
+        self.settle()
     }
 }
 
@@ -209,47 +533,6 @@ fn enable_torque(bus: &mut dyn ServoBus, player: &Player) -> Result<(), Executor
     }
     servo_bus::sync_write_u32(bus, mx28::GOAL_POSITION, &goals).map_err(ExecutorError::Bus)?;
     servo_bus::sync_write_u8(bus, mx28::TORQUE_ENABLE, &all_ids(player, 1)).map_err(ExecutorError::Bus)
-}
-
-fn handle(command: Command, bus: &mut dyn ServoBus, player: &mut Player, torque: &mut bool) {
-    match command {
-        Command::Play(motion, reply) => {
-            let result = (|| {
-                if let PlayerState::Faulted(fault) = player.state() {
-                    return Err(ExecutorError::Refused(format!("faulted ({fault}); toggle torque to clear")));
-                }
-                if !*torque {
-                    enable_torque(bus, player)?;
-                    *torque = true;
-                }
-                player.start(&motion).map(|_| ()).map_err(|e| ExecutorError::Refused(e.to_string()))
-            })();
-            let _ = reply.send(result);
-        }
-        Command::SetTorque(on, reply) => {
-            let result = if on {
-                enable_torque(bus, player)
-            } else {
-                servo_bus::sync_write_u8(bus, mx28::TORQUE_ENABLE, &all_ids(player, 0)).map_err(ExecutorError::Bus)
-            };
-            if result.is_ok() {
-                *torque = on;
-                if !on || !matches!(player.state(), PlayerState::Playing { .. }) {
-                    player.reset();
-                }
-            }
-            let _ = reply.send(result);
-        }
-        Command::Positions(reply) => {
-            let positions: Option<Vec<f64>> = player.last_present().iter().copied().collect();
-            let result = match (positions, player.state()) {
-                (Some(p), _) => Ok(p),
-                (None, PlayerState::Faulted(fault)) => Err(ExecutorError::Refused(format!("positions unknown: {fault}"))),
-                (None, _) => Err(ExecutorError::Refused("positions not read yet".into())),
-            };
-            let _ = reply.send(result);
-        }
-    }
 }
 
 #[cfg(test)]
@@ -294,7 +577,7 @@ mod tests {
     fn play_estop_and_torque_through_the_bus_thread() {
         let bus = MockBus::new(&[1, 2, 3]);
         bus.state().max_step_ticks = 2;
-        let executor = Executor::spawn(Box::new(bus.clone()), player(3), Duration::from_millis(2)).unwrap();
+        let executor = Executor::spawn(Box::new(bus.clone()), player(3), LoopSettings::new(Duration::from_millis(2))).unwrap();
         wait_for(&executor, |t| t.positions.iter().all(Option::is_some));
         assert_eq!(executor.positions().unwrap(), vec![0.0; 3]);
         let motion = Motion {

@@ -8,8 +8,11 @@
 
 pub mod action_file;
 pub mod config;
+pub mod cycle_clock;
 pub mod executor;
+pub mod health;
 pub mod library;
 pub mod matcher;
 pub mod player;
 pub mod runtime;
+pub mod slow_bus;

@@ -8,9 +8,12 @@
 //! profile keeps moving to its final goal until told otherwise; (d) the same code runs on the mock,
 //! the pty emulator and the robot, and changing Drive Mode needs EEPROM writes with torque off.
 //!
-//! Each cycle: e-stop check → one sync write of the 12 goal positions → one sync read of Present
-//! Position (132) whose alert bits are resolved via Hardware Error Status (70). Any fault (timeout,
-//! CRC error, missing servo, hardware error) stops playback and holds the last measured positions.
+//! Each cycle: e-stop check → one sync write of the 12 goal positions → e-stop check → one sync read
+//! of Present Position (132) whose alert bits are resolved via Hardware Error Status (70). Any fault
+//! (timeout, CRC error, malformed frame, wrong id, missing servo, hardware error, lost port, a bus
+//! too slow for the cycle) latches in every state: a motion stops and holds the last measured
+//! positions in the same cycle, no goal is written until the fault is cleared (torque off, or
+//! REBOOT for a hardware error), and the positions are not handed out for recording.
 //! Joint limits (URDF, and the servo's 0..=4095 range) are checked for the whole motion before the
 //! first byte is sent, and again for every goal.
 
@@ -194,12 +197,24 @@ pub struct Player {
     cycle_index: u64,
     /// Last measured positions (rad), joint order.
     last_present: Vec<Option<f64>>,
+    /// This cycle's read, per servo (preallocated, overwritten every cycle).
+    read_ticks: Vec<Option<i32>>,
+    read_errors: Vec<Option<BusError>>,
 }
 
 impl Player {
     pub fn new(config: PlayerConfig, joints: Vec<JointSpec>) -> Self {
         let n = joints.len();
-        Self { config, joints, state: PlayerState::Idle, trajectory: None, cycle_index: 0, last_present: vec![None; n] }
+        Self {
+            config,
+            joints,
+            state: PlayerState::Idle,
+            trajectory: None,
+            cycle_index: 0,
+            last_present: vec![None; n],
+            read_ticks: vec![None; n],
+            read_errors: vec![None; n],
+        }
     }
 
     pub fn state(&self) -> &PlayerState {
@@ -216,6 +231,34 @@ impl Player {
 
     pub fn last_present(&self) -> &[Option<f64>] {
         &self.last_present
+    }
+
+    /// Each servo's error in the last position read (joint order; `None` = read fine).
+    pub fn last_errors(&self) -> &[Option<BusError>] {
+        &self.read_errors
+    }
+
+    /// Latch a fault found outside the position read (e.g. a bus too slow for the cycle): a motion
+    /// stops and holds the measured pose now; nothing moves until cleared. `None` when already faulted.
+    pub fn fault_external(&mut self, bus: &mut dyn ServoBus, error: BusError) -> Option<CycleReport> {
+        if matches!(self.state, PlayerState::Faulted(_)) {
+            return None;
+        }
+        let mut report = CycleReport::default();
+        if matches!(self.state, PlayerState::Playing { .. }) {
+            report.goal = self.hold(bus);
+        }
+        let fault = self.fault(error);
+        self.trajectory = None;
+        self.state = PlayerState::Faulted(fault.clone());
+        report.event = Some(PlayerEvent::Fault(fault));
+        report.present = self.last_present.clone();
+        Some(report)
+    }
+
+    /// Read the present positions now (after a reboot or reconnect), outside a cycle.
+    pub fn refresh(&mut self, bus: &mut dyn ServoBus) -> Result<(), BusError> {
+        self.read_present(bus)
     }
 
     /// Keyframe being played (0 when idle).
@@ -305,29 +348,34 @@ impl Player {
     /// Read present positions; on failure keep the partial readings.
     fn read_present(&mut self, bus: &mut dyn ServoBus) -> Result<(), BusError> {
         let ids = self.ids();
-        let (positions, error) = match servo_bus::read_present_positions(bus, &ids) {
-            Ok(ticks) => (ticks.into_iter().map(Some).collect::<Vec<_>>(), None),
-            Err((error, partial)) => (partial, Some(error)),
-        };
-        for ((slot, joint), ticks) in self.last_present.iter_mut().zip(&self.joints).zip(positions) {
+        let result = servo_bus::read_present_each(bus, &ids, &mut self.read_ticks, &mut self.read_errors);
+        for ((slot, joint), ticks) in self.last_present.iter_mut().zip(&self.joints).zip(&self.read_ticks) {
             if let Some(ticks) = ticks {
-                *slot = Some(joint.servo.joint_from_ticks(f64::from(ticks)));
+                *slot = Some(joint.servo.joint_from_ticks(f64::from(*ticks)));
             }
         }
-        error.map_or(Ok(()), Err)
+        result
     }
 
     /// One control cycle. `estop` is the operator's stop request (honoured in this cycle).
     pub fn cycle(&mut self, bus: &mut dyn ServoBus, estop: bool) -> CycleReport {
+        self.cycle_with_stop(bus, estop, &mut || false)
+    }
+
+    /// [`Player::cycle`] that also asks `stop_requested` between its transactions (after the goal
+    /// write, before the read): a stop arriving during the write is honoured before the read
+    /// instead of after it, so it never waits behind more than one bus transaction.
+    pub fn cycle_with_stop(&mut self, bus: &mut dyn ServoBus, estop: bool, stop_requested: &mut dyn FnMut() -> bool) -> CycleReport {
         let mut report = CycleReport::default();
         let playing = matches!(self.state, PlayerState::Playing { .. });
         if estop && playing {
-            // Freeze at the last measured pose, then refresh the measurement.
+            // Freeze at the last measured pose and report it at once: the next cycle's read
+            // refreshes the measurement (a read here would hold the report back by one more
+            // transaction, 200 ms on a slow bus).
             report.goal = self.hold(bus);
             self.state = PlayerState::Stopped;
             self.trajectory = None;
             report.event = Some(PlayerEvent::EStopped);
-            let _ = self.read_present(bus);
             report.present = self.last_present.clone();
             return report;
         }
@@ -353,6 +401,15 @@ impl Player {
             }
             report.goal = Some(goal);
             self.cycle_index += 1;
+            if stop_requested() {
+                // Freeze at the pose measured last cycle (the goal just written is one 8 ms step on).
+                report.goal = self.hold(bus);
+                self.state = PlayerState::Stopped;
+                self.trajectory = None;
+                report.event = Some(PlayerEvent::EStopped);
+                report.present = self.last_present.clone();
+                return report;
+            }
             if finished {
                 self.state = PlayerState::Idle;
                 self.trajectory = None;
@@ -369,8 +426,9 @@ impl Player {
                 self.state = PlayerState::Faulted(fault.clone());
                 report.event = Some(PlayerEvent::Fault(fault));
             } else if !matches!(self.state, PlayerState::Faulted(_)) {
-                // Idle: nothing to stop; report it (a persistent fault also refuses the next start
-                // at its first cycle).
+                // Idle or training (torque off): nothing to stop; latch it so that nothing starts
+                // and no stale position is recorded until the fault is cleared.
+                self.state = PlayerState::Faulted(fault.clone());
                 report.event = Some(PlayerEvent::Fault(fault));
             }
             return report;
@@ -531,13 +589,45 @@ mod tests {
     }
 
     #[test]
-    fn idle_read_failure_is_reported_without_latching() {
+    fn idle_read_failure_latches_until_reset() {
         let (mut player, mut bus) = ready(3);
         bus.state().servos.get_mut(&2).unwrap().silent = true;
         let report = player.cycle(&mut bus, false);
         assert!(matches!(report.event, Some(PlayerEvent::Fault(Fault { servo_id: Some(2), .. }))), "{report:?}");
-        assert_eq!(player.state(), &PlayerState::Idle);
+        assert!(matches!(player.state(), PlayerState::Faulted(_)));
+        assert_eq!(player.last_errors()[1], Some(BusError::Timeout { id: 2 }));
+        assert_eq!(player.last_errors()[0], None);
+        // Reported once, refused to start, nothing written.
+        assert_eq!(player.cycle(&mut bus, false).event, None);
+        assert!(matches!(player.start(&motion(vec![frame(0.1, 3, 0.1, 0.0)])), Err(PlayerError::Faulted(_))));
         assert!(bus.state().goal_writes.is_empty());
+        bus.state().servos.get_mut(&2).unwrap().silent = false;
+        player.reset();
+        assert_eq!(player.cycle(&mut bus, false).event, None);
+        assert_eq!(player.state(), &PlayerState::Idle);
+    }
+
+    #[test]
+    fn external_fault_holds_a_motion_and_a_stop_between_transactions_is_honoured() {
+        let (mut player, mut bus) = ready(2);
+        bus.state().max_step_ticks = 3;
+        player.start(&motion(vec![frame(1.0, 2, 1.0, 0.0)])).unwrap();
+        for _ in 0..5 {
+            player.cycle(&mut bus, false);
+        }
+        let report = player.fault_external(&mut bus, BusError::TooSlow { rate_hz: 5.0, nominal_hz: 125.0, detail: "test".into() }).unwrap();
+        assert!(matches!(report.event, Some(PlayerEvent::Fault(Fault { servo_id: None, .. }))));
+        let state = bus.state();
+        assert!(state.goal_writes.last().unwrap().iter().all(|(id, goal)| *goal == state.servos[id].present));
+        drop(state);
+        assert!(player.fault_external(&mut bus, BusError::Io("again".into())).is_none(), "latched once");
+        player.reset();
+        player.start(&motion(vec![frame(1.0, 2, 1.0, 0.0)])).unwrap();
+        let reads = bus.state().sync_reads;
+        let report = player.cycle_with_stop(&mut bus, false, &mut || true);
+        assert_eq!(report.event, Some(PlayerEvent::EStopped));
+        assert_eq!(bus.state().sync_reads, reads, "stopped before the read");
+        assert_eq!(player.state(), &PlayerState::Stopped);
     }
 
     #[test]

@@ -23,7 +23,7 @@ fn setup(n: u8) -> (SimChain, DynamixelBus) {
     let chain = SimChain::spawn(config).unwrap();
     // The chain is a user thread behind a pty: on a loaded test host (nextest in parallel, other
     // builds) its answers can lag far beyond RS-485's 34 ms, so the tests allow 300 ms.
-    let bus = DynamixelBus::open(chain.device_path(), 1_000_000).unwrap().with_response_timeout(ANSWER_BUDGET);
+    let bus = DynamixelBus::open(&chain.device_path(), 1_000_000).unwrap().with_response_timeout(ANSWER_BUDGET);
     (chain, bus)
 }
 
@@ -120,7 +120,7 @@ fn malformed_frame_panic_inside_dynamixel2_becomes_an_error_and_the_bus_survives
     std::panic::set_hook(Box::new(|_| {}));
     let result = bus.ping(2);
     std::panic::set_hook(hook);
-    assert!(matches!(result, Err(BusError::Panicked(_))), "{result:?}");
+    assert!(matches!(result, Err(BusError::Malformed { id: 2, .. })), "{result:?}");
     chain.set_faults(|f| f.malformed.clear());
     assert_eq!(bus.ping(2).unwrap(), mx28::MODEL_NUMBER);
     assert_eq!(bus.ping(1).unwrap(), mx28::MODEL_NUMBER);

@@ -8,10 +8,16 @@
 //! - `bulk_read` with ≥ 2 entries is broken → never used;
 //! - the default 128-byte write buffer cannot hold a 12-servo sync write → 1 KiB read/write buffers;
 //! - malformed/echoed frames can panic inside the crate → every call runs under `catch_unwind`, so a
-//!   panic becomes [`BusError::Panicked`] on the control thread that owns this bus, never a dead node.
+//!   panic becomes an error on the control thread that owns this bus, never a dead node; a panic
+//!   while reading a servo's status packet is [`BusError::Malformed`] naming that servo (in a sync
+//!   read: the servo whose answer was due; the servos after it are [`BusError::Unread`]).
+//!
+//! [`ServoBus::reconnect`] reopens the same path (an unplugged USB adapter or pty that came back).
 
+use std::cell::Cell;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
+use std::sync::Once;
 use std::time::{Duration, Instant};
 
 use dynamixel2::instructions::{instruction_id, packet_id, SyncWriteData};
@@ -26,6 +32,7 @@ pub const BUFFER_SIZE: usize = 1024;
 /// Protocol 2.0 master over `dynamixel2`.
 pub struct DynamixelBus {
     bus: Bus<Vec<u8>, Vec<u8>>,
+    port: std::path::PathBuf,
     /// Time allowed for an answer beyond its transfer time.
     response_timeout: Duration,
 }
@@ -37,6 +44,29 @@ impl std::fmt::Debug for DynamixelBus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("DynamixelBus").field("baud", &self.bus.baud_rate()).finish()
     }
+}
+
+thread_local! {
+    /// Set while a transaction runs under [`DynamixelBus::guarded`].
+    static GUARDED: Cell<bool> = const { Cell::new(false) };
+}
+
+static QUIET_HOOK: Once = Once::new();
+
+/// A panic caught by [`DynamixelBus::guarded`] is an error of the transaction, reported as such: the
+/// default hook's "panicked at" message on stderr is replaced by a debug log for those panics only
+/// (every other panic still goes to the previous hook).
+fn install_quiet_hook() {
+    QUIET_HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if GUARDED.with(Cell::get) {
+                tracing::debug!("dynamixel2 panicked inside a guarded transaction: {info}");
+            } else {
+                previous(info);
+            }
+        }));
+    });
 }
 
 fn panic_message(payload: Box<dyn std::any::Any + Send>) -> String {
@@ -75,7 +105,8 @@ impl DynamixelBus {
     pub fn open(port: &Path, baud: u32) -> Result<Self, BusError> {
         let bus = Bus::open_with_buffers(port, baud, vec![0u8; BUFFER_SIZE], vec![0u8; BUFFER_SIZE])
             .map_err(|e| BusError::Io(format!("{}: {e}", port.display())))?;
-        Ok(Self { bus, response_timeout: DEFAULT_RESPONSE_TIMEOUT })
+        install_quiet_hook();
+        Ok(Self { bus, port: port.to_path_buf(), response_timeout: DEFAULT_RESPONSE_TIMEOUT })
     }
 
     /// Change the answer budget beyond the transfer time.
@@ -94,7 +125,7 @@ impl DynamixelBus {
     /// One instruction to one servo and its status packet: (parameters, alert bit).
     fn transfer(&mut self, id: u8, instruction: u8, params: &[u8], expected: usize) -> Result<(Vec<u8>, bool), BusError> {
         let budget = self.deadline(expected).saturating_duration_since(Instant::now());
-        self.guarded(|bus| {
+        let result = self.guarded(|bus| {
             bus.write_instruction(id, instruction, params.len(), |buffer| buffer.copy_from_slice(params)).map_err(write_error)?;
             let response = bus.read_status_response_deadline(Instant::now() + budget).map_err(|e| read_error(id, e))?;
             if response.packet_id() != id {
@@ -107,13 +138,20 @@ impl DynamixelBus {
                 });
             }
             Ok((response.parameters().to_vec(), response.alert()))
+        });
+        result.map_err(|e| match e {
+            BusError::Panicked(detail) => BusError::Malformed { id, detail },
+            other => other,
         })
     }
 
     /// Run one transaction with panics turned into errors.
     fn guarded<T>(&mut self, f: impl FnOnce(&mut Bus<Vec<u8>, Vec<u8>>) -> Result<T, BusError>) -> Result<T, BusError> {
         let bus = &mut self.bus;
-        match catch_unwind(AssertUnwindSafe(|| f(bus))) {
+        GUARDED.with(|g| g.set(true));
+        let outcome = catch_unwind(AssertUnwindSafe(|| f(bus)));
+        GUARDED.with(|g| g.set(false));
+        match outcome {
             Ok(result) => result,
             Err(payload) => Err(BusError::Panicked(panic_message(payload))),
         }
@@ -156,42 +194,60 @@ impl ServoBus for DynamixelBus {
         let per_answer = self.deadline(usize::from(count)).saturating_duration_since(Instant::now());
         self.guarded(|bus| {
             bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, params.len(), |buffer| buffer.copy_from_slice(&params))
-                .map_err(write_error)?;
-            let mut results: Vec<SyncReadResult> = Vec::with_capacity(ids.len());
-            while let Some(&id) = ids.get(results.len()) {
-                let rest = ids.get(results.len()..).unwrap_or(&[]);
-                let answer = bus.read_status_response_deadline(Instant::now() + per_answer);
-                let (from, result) = match answer {
-                    Err(ReadError::Io(e)) if e.kind() == std::io::ErrorKind::TimedOut => {
-                        // Nothing more will come: every remaining servo is missing.
-                        results.extend(rest.iter().map(|&id| (id, Err(BusError::Timeout { id }))));
-                        break;
-                    }
-                    Err(e) => (id, Err(read_error(id, e))),
-                    Ok(response) if response.parameters().len() != usize::from(count) => (
-                        response.packet_id(),
-                        Err(BusError::Protocol {
-                            id: response.packet_id(),
-                            detail: format!("{} bytes instead of {count}", response.parameters().len()),
-                        }),
-                    ),
-                    Ok(response) => {
-                        (response.packet_id(), Ok(SyncReadData { data: response.parameters().to_vec(), alert: response.alert() }))
-                    }
-                };
-                // Servos answer in the requested order: an answer from a later servo means the ones
-                // in between are missing.
-                match rest.iter().position(|&expected| expected == from) {
-                    Some(skipped) => {
-                        results.extend(rest.iter().take(skipped).map(|&id| (id, Err(BusError::Timeout { id }))));
-                        results.push((from, result));
-                    }
-                    None => {
-                        results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") }))))
-                    }
+                .map_err(write_error)
+        })?;
+        let mut results: Vec<SyncReadResult> = Vec::with_capacity(ids.len());
+        while let Some(&id) = ids.get(results.len()) {
+            let rest = ids.get(results.len()..).unwrap_or(&[]);
+            // Each answer is read under its own guard: a frame that panics the parser is that
+            // servo's fault, the answers before it stay good.
+            let answer = self.guarded(|bus| {
+                Ok(bus
+                    .read_status_response_deadline(Instant::now() + per_answer)
+                    .map(|response| (response.packet_id(), response.parameters().to_vec(), response.alert())))
+            });
+            let (from, result) = match answer {
+                Err(BusError::Panicked(detail)) => {
+                    // The crate's read buffer still holds the broken frame: nothing after it can be read.
+                    results.push((id, Err(BusError::Malformed { id, detail })));
+                    results.extend(rest.iter().skip(1).map(|&later| (later, Err(BusError::Unread { id: later, after: id }))));
+                    break;
+                }
+                Err(other) => return Err(other),
+                Ok(Err(ReadError::Io(e))) if e.kind() == std::io::ErrorKind::TimedOut => {
+                    // Nothing more will come: every remaining servo is missing.
+                    results.extend(rest.iter().map(|&id| (id, Err(BusError::Timeout { id }))));
+                    break;
+                }
+                Ok(Err(ReadError::Io(e))) => return Err(BusError::Io(e.to_string())),
+                Ok(Err(e)) => (id, Err(read_error(id, e))),
+                Ok(Ok((from, data, _))) if data.len() != usize::from(count) => {
+                    (from, Err(BusError::Protocol { id: from, detail: format!("{} bytes instead of {count}", data.len()) }))
+                }
+                Ok(Ok((from, data, alert))) => (from, Ok(SyncReadData { data, alert })),
+            };
+            // Servos answer in the requested order: an answer from a later servo means the ones
+            // in between are missing.
+            match rest.iter().position(|&expected| expected == from) {
+                Some(skipped) => {
+                    results.extend(rest.iter().take(skipped).map(|&id| (id, Err(BusError::Timeout { id }))));
+                    results.push((from, result));
+                }
+                None => {
+                    results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") }))))
                 }
             }
-            Ok(results)
-        })
+        }
+        Ok(results)
+    }
+
+    fn reboot(&mut self, id: u8) -> Result<(), BusError> {
+        self.transfer(id, instruction_id::REBOOT, &[], 0).map(|_| ())
+    }
+
+    fn reconnect(&mut self) -> Result<(), BusError> {
+        let reopened = Self::open(&self.port, self.bus.baud_rate())?;
+        self.bus = reopened.bus;
+        Ok(())
     }
 }

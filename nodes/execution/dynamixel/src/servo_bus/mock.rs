@@ -29,6 +29,10 @@ pub struct MockState {
     pub sync_reads: usize,
     /// Max movement per sync read (ticks); 0 = jump to goal.
     pub max_step_ticks: i32,
+    /// Servos rebooted, in order.
+    pub reboots: Vec<u8>,
+    /// Number of reconnects asked for.
+    pub reconnects: usize,
 }
 
 /// Handle implementing [`ServoBus`]; clones share the state.
@@ -58,6 +62,8 @@ fn table_value(servo: &MockServo, address: u16) -> Option<i64> {
         mx28::HARDWARE_ERROR_STATUS => i64::from(servo.hardware_error),
         mx28::GOAL_POSITION => i64::from(servo.goal),
         mx28::PRESENT_POSITION => i64::from(servo.present),
+        // Present Input Voltage (12.0 V) followed by Present Temperature (32 °C).
+        mx28::PRESENT_INPUT_VOLTAGE => 120 | (32 << 16),
         _ => return None,
     })
 }
@@ -130,6 +136,21 @@ impl ServoBus for MockBus {
                 (id, result)
             })
             .collect())
+    }
+
+    fn reboot(&mut self, id: u8) -> Result<(), BusError> {
+        let mut state = self.state();
+        let servo = state.servos.get_mut(&id).filter(|s| !s.silent).ok_or(BusError::Timeout { id })?;
+        servo.hardware_error = 0;
+        servo.torque = false;
+        servo.goal = servo.present;
+        state.reboots.push(id);
+        Ok(())
+    }
+
+    fn reconnect(&mut self) -> Result<(), BusError> {
+        self.state().reconnects += 1;
+        Ok(())
     }
 }
 

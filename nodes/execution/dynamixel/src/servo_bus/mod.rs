@@ -2,7 +2,8 @@
 //! sync write, sync read with per-servo results), with three implementations: the real master
 //! ([`dynamixel::DynamixelBus`], `dynamixel2` on a serial port or the simulated pty chain), and an
 //! in-memory [`mock::MockBus`] for deterministic unit tests. Also the per-cycle helpers that turn
-//! per-servo results into typed faults (missing servo, timeout, CRC, hardware error bits).
+//! per-servo results into typed faults (missing servo, timeout, CRC, malformed frame, hardware error
+//! bits), and REBOOT / reconnect for recovery.
 
 pub mod dynamixel;
 pub mod mock;
@@ -22,8 +23,17 @@ pub enum BusError {
     Hardware { id: u8, bits: u8 },
     #[error("servo {id}: unexpected response: {detail}")]
     Protocol { id: u8, detail: String },
+    /// A status frame that cannot be parsed (e.g. a LEN field shorter than any status packet).
+    #[error("servo {id}: malformed status frame ({detail})")]
+    Malformed { id: u8, detail: String },
+    /// Not read: an earlier servo's malformed frame broke the sync read's answer burst.
+    #[error("servo {id}: not read (the answer burst broke at servo {after})")]
+    Unread { id: u8, after: u8 },
     #[error("bus I/O error: {0}")]
     Io(String),
+    /// The control loop cannot keep its cycle: answers take too long for the cycle budget.
+    #[error("bus too slow: {rate_hz:.1} cycles/s of {nominal_hz:.0} ({detail})")]
+    TooSlow { rate_hz: f64, nominal_hz: f64, detail: String },
     #[error("dynamixel2 panicked (isolated, bus still usable): {0}")]
     Panicked(String),
     #[error("invalid request: {0}")]
@@ -38,7 +48,9 @@ impl BusError {
             | BusError::Checksum { id }
             | BusError::Status { id, .. }
             | BusError::Hardware { id, .. }
-            | BusError::Protocol { id, .. } => Some(*id),
+            | BusError::Protocol { id, .. }
+            | BusError::Malformed { id, .. }
+            | BusError::Unread { id, .. } => Some(*id),
             _ => None,
         }
     }
@@ -80,6 +92,11 @@ pub trait ServoBus: Send {
     fn sync_write(&mut self, address: u16, count: u16, data: &[(u8, Vec<u8>)]) -> Result<(), BusError>;
     /// One sync read; every requested ID gets its own result (never silently dropped).
     fn sync_read(&mut self, ids: &[u8], address: u16, count: u16) -> Result<Vec<SyncReadResult>, BusError>;
+    /// Protocol 2.0 REBOOT (0x08): the servo answers, then restarts (hardware error cleared, torque
+    /// off, RAM back to its defaults) and is silent for its boot time.
+    fn reboot(&mut self, id: u8) -> Result<(), BusError>;
+    /// Close and reopen the port (after the adapter was unplugged and plugged in again).
+    fn reconnect(&mut self) -> Result<(), BusError>;
 }
 
 impl<B: ServoBus + ?Sized> ServoBus for Box<B> {
@@ -98,6 +115,12 @@ impl<B: ServoBus + ?Sized> ServoBus for Box<B> {
     fn sync_read(&mut self, ids: &[u8], address: u16, count: u16) -> Result<Vec<SyncReadResult>, BusError> {
         (**self).sync_read(ids, address, count)
     }
+    fn reboot(&mut self, id: u8) -> Result<(), BusError> {
+        (**self).reboot(id)
+    }
+    fn reconnect(&mut self) -> Result<(), BusError> {
+        (**self).reconnect()
+    }
 }
 
 /// Sync write of one 4-byte value per servo (e.g. Goal Position).
@@ -115,40 +138,77 @@ pub fn sync_write_u8(bus: &mut dyn ServoBus, address: u16, values: &[(u8, u8)]) 
 /// Present positions (ticks, in `ids` order) from one sync read of address 132; the first failing
 /// servo becomes the error. A set alert bit is resolved by reading Hardware Error Status (70).
 pub fn read_present_positions(bus: &mut dyn ServoBus, ids: &[u8]) -> Result<Vec<i32>, (BusError, Vec<Option<i32>>)> {
-    let results = bus.sync_read(ids, mx28::PRESENT_POSITION, 4).map_err(|e| (e, vec![None; ids.len()]))?;
-    let mut positions: Vec<Option<i32>> = vec![None; ids.len()];
+    let mut positions = vec![None; ids.len()];
+    let mut errors = vec![None; ids.len()];
+    match read_present_each(bus, ids, &mut positions, &mut errors) {
+        Ok(()) => Ok(positions.into_iter().map(|p| p.unwrap_or(0)).collect()),
+        Err(e) => Err((e, positions)),
+    }
+}
+
+/// [`read_present_positions`] into the caller's slots (one per id, overwritten): every servo's own
+/// result (position or error), and the first error as the result. The first servo with its alert
+/// bit set gets its Hardware Error Status read (one more transaction) when nothing else failed.
+pub fn read_present_each(
+    bus: &mut dyn ServoBus,
+    ids: &[u8],
+    positions: &mut [Option<i32>],
+    errors: &mut [Option<BusError>],
+) -> Result<(), BusError> {
+    positions.iter_mut().for_each(|p| *p = None);
+    errors.iter_mut().for_each(|e| *e = None);
+    let results = match bus.sync_read(ids, mx28::PRESENT_POSITION, 4) {
+        Ok(results) => results,
+        Err(e) => {
+            errors.iter_mut().for_each(|slot| *slot = Some(e.clone()));
+            return Err(e);
+        }
+    };
     let mut first_error: Option<BusError> = None;
-    let mut alerted: Vec<u8> = Vec::new();
-    for (slot, (id, result)) in positions.iter_mut().zip(results.iter()) {
-        match result {
+    let mut alerted: Option<usize> = None;
+    for (i, (id, result)) in results.iter().enumerate().take(ids.len()) {
+        let outcome = match result {
             Ok(read) => match <[u8; 4]>::try_from(read.data.as_slice()) {
                 Ok(bytes) => {
-                    *slot = Some(i32::from_le_bytes(bytes));
-                    if read.alert {
-                        alerted.push(*id);
+                    if let Some(slot) = positions.get_mut(i) {
+                        *slot = Some(i32::from_le_bytes(bytes));
                     }
+                    if read.alert && alerted.is_none() {
+                        alerted = Some(i);
+                    }
+                    None
                 }
-                Err(_) => {
-                    first_error.get_or_insert(BusError::Protocol { id: *id, detail: format!("{} bytes instead of 4", read.data.len()) });
-                }
+                Err(_) => Some(BusError::Protocol { id: *id, detail: format!("{} bytes instead of 4", read.data.len()) }),
             },
-            Err(e) => {
-                first_error.get_or_insert(e.clone());
+            Err(e) => Some(e.clone()),
+        };
+        if let Some(e) = outcome {
+            // An unread servo is not at fault: the servo that broke the burst is.
+            if first_error.is_none() && !matches!(e, BusError::Unread { .. }) {
+                first_error = Some(e.clone());
+            }
+            if let Some(slot) = errors.get_mut(i) {
+                *slot = Some(e);
             }
         }
     }
-    if results.len() != ids.len() {
-        let missing = ids.get(results.len()).copied().unwrap_or(0);
-        first_error.get_or_insert(BusError::Timeout { id: missing });
-    }
-    if first_error.is_none() {
-        if let Some(&id) = alerted.first() {
-            let bits = bus.read(id, mx28::HARDWARE_ERROR_STATUS, 1).ok().and_then(|data| data.first().copied()).unwrap_or(0);
-            first_error = Some(BusError::Hardware { id, bits });
+    if results.len() < ids.len() {
+        for (i, &id) in ids.iter().enumerate().skip(results.len()) {
+            first_error.get_or_insert(BusError::Timeout { id });
+            if let Some(slot) = errors.get_mut(i) {
+                *slot = Some(BusError::Timeout { id });
+            }
         }
     }
-    match first_error {
-        None => Ok(positions.into_iter().map(|p| p.unwrap_or(0)).collect()),
-        Some(e) => Err((e, positions)),
+    if first_error.is_none() {
+        if let Some((i, &id)) = alerted.and_then(|i| ids.get(i).map(|id| (i, id))) {
+            let bits = bus.read(id, mx28::HARDWARE_ERROR_STATUS, 1).ok().and_then(|data| data.first().copied()).unwrap_or(0);
+            let error = BusError::Hardware { id, bits };
+            if let Some(slot) = errors.get_mut(i) {
+                *slot = Some(error.clone());
+            }
+            first_error = Some(error);
+        }
     }
+    first_error.map_or(Ok(()), Err)
 }

@@ -3,7 +3,10 @@
 //! path (the node's `bus.port`, the ROBOTIS dynamixel-sdk, Dynamixel Wizard via socat...).
 //!
 //! Faults can be injected at run time with one command per stdin line:
-//! `silence <id>|all`, `crc <id>`, `malformed <id>`, `hwerr <id> <bits>`, `latency <ms>`, `move <id> <ticks>`, `clear`.
+//! `silence <id>|all`, `crc <id>`, `malformed <id>`, `wrongid <id> <claimed id>`, `hwerr <id> <bits>`,
+//! `latency <ms>`, `move <id> <ticks>`, `unplug`, `replug`, `clear`. `unplug` closes the pty (the
+//! master's I/O fails); `replug` opens a new one with the same servos, prints its path on stdout and
+//! re-points `--link` to it, so a master reconnecting to the link finds the chain again.
 
 use std::io::{BufRead, Write};
 use std::path::PathBuf;
@@ -34,12 +37,21 @@ pub struct SimBusArgs {
     /// Also create a symlink to the pty at this path (stable name for configs and tests).
     #[arg(long)]
     pub link: Option<PathBuf>,
+    /// How long a servo is silent after a REBOOT instruction, ms.
+    #[arg(long, default_value_t = 100.0)]
+    pub boot_ms: f64,
 }
 
 pub fn run(args: SimBusArgs) -> anyhow::Result<()> {
     let return_delay_register =
         u8::try_from(args.return_delay_us / 2).ok().filter(|r| *r <= 254).context("--return-delay-us must be at most 508")?;
-    let config = SimConfig { ids: (1..=args.servos).collect(), baud: args.baud, simulate_wire_time: args.wire_time, return_delay_register };
+    let config = SimConfig {
+        ids: (1..=args.servos).collect(),
+        baud: args.baud,
+        simulate_wire_time: args.wire_time,
+        return_delay_register,
+        boot_time: Duration::from_secs_f64(args.boot_ms / 1000.0),
+    };
     let chain = Arc::new(SimChain::spawn(config).context("starting the simulated servo chain")?);
     if let Some(link) = &args.link {
         let _ = std::fs::remove_file(link);
@@ -59,12 +71,16 @@ pub fn run(args: SimBusArgs) -> anyhow::Result<()> {
         chain.device_path().display(),
         args.baud
     );
+    if !(args.boot_ms.is_finite() && (0.0..=60_000.0).contains(&args.boot_ms)) {
+        anyhow::bail!("--boot-ms must be within 0..=60000, got {}", args.boot_ms);
+    }
     let control_chain = Arc::clone(&chain);
+    let control_link = args.link.clone();
     // Detached: it ends with the process (stdin may stay open forever).
     std::thread::spawn(move || {
         for line in std::io::stdin().lock().lines() {
             let Ok(line) = line else { break };
-            match apply_command(&control_chain, &line) {
+            match apply_command(&control_chain, control_link.as_deref(), &line) {
                 Ok(done) => eprintln!("sim-bus: {done}"),
                 Err(err) => eprintln!("sim-bus: {err}"),
             }
@@ -81,7 +97,7 @@ pub fn run(args: SimBusArgs) -> anyhow::Result<()> {
 }
 
 /// Parse and apply one fault-injection command.
-fn apply_command(chain: &SimChain, line: &str) -> anyhow::Result<String> {
+fn apply_command(chain: &SimChain, link: Option<&std::path::Path>, line: &str) -> anyhow::Result<String> {
     let words: Vec<&str> = line.split_whitespace().collect();
     let id = |i: usize| -> anyhow::Result<u8> { words.get(i).context("missing servo id")?.parse().context("servo id must be 1..=252") };
     match words.as_slice() {
@@ -128,11 +144,34 @@ fn apply_command(chain: &SimChain, line: &str) -> anyhow::Result<String> {
             chain.set_present(id, ticks);
             Ok(format!("servo {id} moved to {ticks}"))
         }
+        ["wrongid", _, claimed] => {
+            let id = id(1)?;
+            let claimed: u8 = claimed.parse().context("claimed id must be 0..=253")?;
+            chain.set_faults(|f| {
+                f.wrong_id.insert(id, claimed);
+            });
+            Ok(format!("servo {id} answers as servo {claimed}"))
+        }
+        ["unplug"] => {
+            chain.unplug();
+            Ok("unplugged (pty closed)".into())
+        }
+        ["replug"] => {
+            let path = chain.replug().context("replug")?;
+            if let Some(link) = link {
+                let _ = std::fs::remove_file(link);
+                std::os::unix::fs::symlink(&path, link).with_context(|| format!("re-pointing {}", link.display()))?;
+            }
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "{}", path.display())?;
+            stdout.flush()?;
+            Ok(format!("plugged in again on {}", path.display()))
+        }
         ["clear"] => {
             chain.set_faults(|f| *f = Default::default());
             Ok("faults cleared (hardware errors stay until reboot)".into())
         }
-        _ => anyhow::bail!("unknown command {line:?} (silence <id>|all, crc <id>, malformed <id>, hwerr <id> <bits>, latency <ms>, move <id> <ticks>, clear)"),
+        _ => anyhow::bail!("unknown command {line:?} (silence <id>|all, crc <id>, malformed <id>, wrongid <id> <claimed>, hwerr <id> <bits>, latency <ms>, move <id> <ticks>, unplug, replug, clear)"),
     }
 }
 

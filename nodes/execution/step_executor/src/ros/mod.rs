@@ -73,6 +73,8 @@ pub const PLAY_MOTION: &str = "/step_executor/play_motion";
 pub const STOP: &str = "/step_executor/stop";
 pub const ARM: &str = "/step_executor/arm";
 pub const RESET_ESTOP: &str = "/step_executor/reset_estop";
+/// Fault recovery: Protocol 2.0 REBOOT of the faulted (or named) servos, a lost port reopened.
+pub const REBOOT_SERVOS: &str = "/step_executor/reboot_servos";
 
 /// The longest the loop sleeps without input (it also wakes for status, joint states and jobs).
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -352,6 +354,21 @@ impl Executor {
         TriggerResponse { success: true, message }
     }
 
+    /// Reboot servos to clear a fault (see `srv/RebootServos.srv`); refused while playing.
+    fn reboot_servos(&mut self, request: srv::RebootServosRequest) -> srv::RebootServosResponse {
+        match self.runtime.reboot_servos(&request.ids) {
+            Ok((message, rebooted)) => {
+                tracing::info!("{message}");
+                srv::RebootServosResponse { success: true, message, rebooted }
+            }
+            Err(e) => srv::RebootServosResponse {
+                success: false,
+                message: format!("reboot_servos({:?}): {e}", request.ids),
+                rebooted: Vec::new(),
+            },
+        }
+    }
+
     /// Arm/disarm automatic execution on match; refused while an e-stop is latched or without a
     /// recent heartbeat (the deadman).
     fn arm(&mut self, request: SetBoolRequest) -> SetBoolResponse {
@@ -526,6 +543,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let tf_tree = SharedTf::default();
     let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
     let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
+    let mut reboot_servos_srv = ros.server::<srv::RebootServos>(REBOOT_SERVOS)?;
 
     // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
     // an event, or a periodic output is due.
@@ -549,6 +567,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     if let Some(listener) = clock_listener.as_mut() {
         wakeup.watch(&mut listener.subscription)?;
     }
+    wakeup.watch(&mut reboot_servos_srv)?;
     let job_waker = wakeup.waker();
     let jobs = Jobs::spawn(move || {
         let _ = job_waker.wake();
@@ -593,6 +612,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         more |= full(node::serve(&list_motions_srv, LIST_MOTIONS, &mut log, |r| executor.list_motions(r)));
         more |= full(node::serve(&play_motion_srv, PLAY_MOTION, &mut log, |r| executor.play_motion(r)));
         more |= play_action.serve(&mut executor.runtime, &mut log);
+        more |= full(node::serve(&reboot_servos_srv, REBOOT_SERVOS, &mut log, |r| executor.reboot_servos(r)));
         // Services whose work may take long: answered now, or by a job when it finishes.
         more |= serve_or_start(&select_target_srv, SELECT_TARGET, &mut executor, &jobs, &mut log, Executor::select_target);
         more |= serve_or_start(&save_motion_srv, SAVE_MOTION, &mut executor, &jobs, &mut log, Executor::save_motion);

@@ -11,7 +11,8 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use patchwalk_spl::transform::transform_patch;
 
 use crate::config::StepExecutorConfig;
-use crate::executor::{initialise_bus, Executor, Telemetry};
+use crate::executor::{initialise_bus, Executor, LoopSettings, Telemetry};
+use crate::health::BusHealth;
 use crate::library::{remove_stale_temp_files, validate_name, Keyframe, LibraryError, Motion, MotionLibrary};
 use crate::matcher::{MatchReport, Matcher};
 use crate::player::{JointSpec, Player, PlayerEvent, PlayerState};
@@ -169,7 +170,7 @@ impl Runtime {
             Err(e) => (None, Some(e.to_string())),
             Ok(mut bus) => match initialise_bus(bus.as_mut(), &player, &config.bus) {
                 Err(e) => (None, Some(e.to_string())),
-                Ok(()) => match Executor::spawn(bus, player, config.player.cycle()) {
+                Ok(()) => match Executor::spawn(bus, player, LoopSettings::from_config(&config)) {
                     Ok(executor) => (Some(executor), None),
                     Err(e) => (None, Some(e.to_string())),
                 },
@@ -314,6 +315,28 @@ impl Runtime {
             self.player_state = PlayerState::Idle;
         }
         Ok(if on { "torque on".into() } else { "torque off (compliant); fault cleared".into() })
+    }
+
+    /// Recovery from a servo fault: REBOOT `ids` (empty: the faulted servos; a lost port is reopened
+    /// first), then the executor re-reads the positions and holds torque off; a motion plays only
+    /// after an explicit `set_torque(true)`. Refused while a motion plays. Returns the message and
+    /// the ids rebooted.
+    pub fn reboot_servos(&mut self, ids: &[u8]) -> Result<(String, Vec<u8>), CommandError> {
+        let rebooted = self.bus()?.reboot(ids.to_vec())?;
+        self.torque = false;
+        self.last_fault = None;
+        self.player_state = PlayerState::Idle;
+        let message = if rebooted.is_empty() {
+            "port reopened; positions re-read; torque off (call set_torque true before playing)".to_string()
+        } else {
+            format!("rebooted servos {rebooted:?}; positions re-read; torque off (call set_torque true before playing)")
+        };
+        Ok((message, rebooted))
+    }
+
+    /// Per-servo and cycle health of the bus (`None` without a bus).
+    pub fn bus_health(&self) -> Option<BusHealth> {
+        self.bus.as_ref().map(Executor::health)
     }
 
     /// Append the present pose as a keyframe of the motion being trained.

@@ -38,7 +38,9 @@ use patchwalk_msgs::msg::{MapperStatus, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
 use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
+use patchwalk_ros::declared::{self as node_params, Declared};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::param_server::ParameterServer;
 use ros2_client::Publisher;
 
 /// Arguments of `patch_mapper run`.
@@ -126,9 +128,10 @@ pub struct MapperRosParams {
 impl Default for MapperRosParams {
     fn default() -> Self {
         Self {
-            depth_topic: "/camera/depth/image_raw".into(),
-            camera_info_topic: "/camera/depth/camera_info".into(),
-            imu_topic: "/imu/data".into(),
+            // Relative: they follow the node's namespace (`/camera/depth/image_raw` in the root one).
+            depth_topic: "camera/depth/image_raw".into(),
+            camera_info_topic: "camera/depth/camera_info".into(),
+            imu_topic: "imu/data".into(),
             status_period_s: 0.5,
             log_period_s: 2.0,
             publish_birds_eye_cloud: true,
@@ -138,7 +141,8 @@ impl Default for MapperRosParams {
     }
 }
 
-/// Output topic and service names of the node (the topic table of the README).
+/// Output topic and service names of the node (the topic table of the README) in the root namespace;
+/// the node creates them relative to itself (`~/patches`, see [`RosNode::relative`]).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
 pub const MARKERS_TOPIC: &str = "/patch_mapper/markers";
 pub const BIRDS_EYE_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
@@ -155,7 +159,36 @@ struct DepthJob {
 
 /// What the ROS loop hands the worker.
 enum WorkerInput {
-    Imu { stamp: f64, acceleration_in_imu: Vector3<f64> },
+    Imu {
+        stamp: f64,
+        acceleration_in_imu: Vector3<f64>,
+    },
+    /// New mapper parameters (a parameter set), from the next frame on.
+    Mapper {
+        config: Box<MapperConfig>,
+        accepted_at: Instant,
+    },
+}
+
+/// The parameters of the node that change while it runs (the rest are read at start): the loop's
+/// periods and stamp window at the next pass, the mapper's at the next frame, except its grid.
+pub const PARAMETERS: node_params::ParameterSpec<PatchMapperConfig> = node_params::ParameterSpec {
+    runtime: &["ros.status_period_s", "ros.log_period_s", "ros.max_stamp_skew_s", "mapper"],
+    restart: &["mapper.volume_edge_m", "mapper.seeds.cells_per_side"],
+    applied: "at the next frame (ros.*: at the next loop pass)",
+    validate: validate_config,
+};
+
+/// What a parameter set must keep true (checked again at start, where a failure is fatal).
+fn validate_config(config: &PatchMapperConfig) -> Result<(), String> {
+    let ros = &config.ros;
+    for (key, value) in [("ros.status_period_s", ros.status_period_s), ("ros.log_period_s", ros.log_period_s)] {
+        if Duration::try_from_secs_f64(value).is_err() {
+            return Err(format!("{key} = {value} is not a duration"));
+        }
+    }
+    ros.max_stamp_skew_s.validate().map_err(|e| format!("ros.max_stamp_skew_s: {e}"))?;
+    patchwalk_mapping::mapper::check_config(&config.mapper).map_err(|e| format!("mapper: {e}"))
 }
 
 /// Status shared by both threads (counters of MapperStatus, last error, timings).
@@ -299,6 +332,8 @@ struct Worker {
     last_reset: Option<ResetMark>,
     /// Set by the reset service, taken by the worker.
     reset_request: Arc<Mutex<Option<ResetMark>>>,
+    /// When the parameter set now waiting for its first frame was accepted.
+    parameters_since: Option<Instant>,
 }
 
 /// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
@@ -345,7 +380,13 @@ impl Worker {
 
     fn take_inputs(&mut self, inputs: &Receiver<WorkerInput>) {
         for input in inputs.try_iter() {
-            let WorkerInput::Imu { stamp, acceleration_in_imu } = input;
+            let (stamp, acceleration_in_imu) = match input {
+                WorkerInput::Imu { stamp, acceleration_in_imu } => (stamp, acceleration_in_imu),
+                WorkerInput::Mapper { config, accepted_at } => {
+                    self.set_mapper_config(*config, accepted_at);
+                    continue;
+                }
+            };
             // Kept for a pipeline built later (first CameraInfo, new intrinsics).
             self.recent_imu.push_back((stamp, acceleration_in_imu));
             while self.recent_imu.front().is_some_and(|(t, _)| *t < stamp - self.config.pipeline.imu_buffer_s) {
@@ -357,6 +398,18 @@ impl Worker {
                 }
             }
         }
+    }
+
+    /// A parameter set's mapper config: kept for later pipelines and given to the running one.
+    fn set_mapper_config(&mut self, config: MapperConfig, accepted_at: Instant) {
+        if let Some(pipeline) = self.pipeline.as_mut() {
+            if let Err(e) = pipeline.set_mapper_config(config.clone()) {
+                self.warn("parameters", format!("mapper parameters not applied: {e}"));
+                return;
+            }
+        }
+        self.config.mapper = config;
+        self.parameters_since = Some(accepted_at);
     }
 
     fn process(&mut self, job: DepthJob) {
@@ -397,6 +450,10 @@ impl Worker {
             with_status(&self.status, |s| s.frames_skipped += 1);
             return;
         }
+        if let Some(accepted_at) = self.parameters_since.take() {
+            let ms = accepted_at.elapsed().as_secs_f64() * 1e3;
+            tracing::info!("mapper parameters in effect from this frame, {ms:.1} ms after the set was accepted");
+        }
         let map = pipeline.map();
         let started = Instant::now();
         let array = publish::patch_array(map, &output.map_from_camera, &job.stamp);
@@ -427,31 +484,35 @@ impl Worker {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    node::init_tracing();
-    let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
-    let params = config.ros.clone();
+    node::init_tracing_with(&args.node.ros.log_levels);
+    let names = args.node.names("patch_mapper")?;
+    let loaded = args.node.load_config::<PatchMapperConfig>(&names)?;
+    let config = loaded.config;
+    let mut params = config.ros.clone();
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
+    let declared = Declared::new(&config, loaded.use_sim_time, &PARAMETERS)?;
 
-    let mut ros = RosNode::new("patch_mapper", network)?;
+    let mut ros = RosNode::with_names("patch_mapper", names, network)?;
     let mut depth_sub = ros.subscription::<Image>(&params.depth_topic, node::sensor_data_qos())?;
     let mut info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
     let mut imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
-    let patches_pub = ros.publisher::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
-    let markers_pub = ros.publisher::<MarkerArray>(MARKERS_TOPIC, node::reliable_qos())?;
-    let birds_eye_pub = ros.publisher::<PointCloud2>(BIRDS_EYE_TOPIC, node::reliable_qos())?;
-    let status_pub = ros.publisher::<MapperStatus>(STATUS_TOPIC, node::reliable_qos())?;
-    let mut reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+    let patches_pub = ros.publisher::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;
+    let markers_pub = ros.publisher::<MarkerArray>(&ros.relative(MARKERS_TOPIC), node::reliable_qos())?;
+    let birds_eye_pub = ros.publisher::<PointCloud2>(&ros.relative(BIRDS_EYE_TOPIC), node::reliable_qos())?;
+    let status_pub = ros.publisher::<MapperStatus>(&ros.relative(STATUS_TOPIC), node::reliable_qos())?;
+    let mut reset_srv = ros.server::<Trigger>(&ros.relative(RESET_SERVICE))?;
     let diagnostics_pub =
         ros.publisher::<patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray>(diagnostics::DIAGNOSTICS_TOPIC, node::reliable_qos())?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;
+    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()))?;
     wakeup.watch(&mut depth_sub)?;
     wakeup.watch(&mut info_sub)?;
     wakeup.watch(&mut imu_sub)?;
     wakeup.watch(&mut reset_srv)?;
 
-    let status_period = Duration::try_from_secs_f64(params.status_period_s)
+    let mut status_period = Duration::try_from_secs_f64(params.status_period_s)
         .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
     let log_period = Duration::try_from_secs_f64(params.log_period_s)
         .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
@@ -479,6 +540,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         dds_log: RateLimitedLog::new(log_period),
         last_reset: None,
         reset_request: reset.clone(),
+        parameters_since: None,
     };
     let worker_thread = {
         let (jobs, stop) = (job_rx.clone(), stop.clone());
@@ -488,13 +550,35 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Two logs so the middleware's and the messages' warnings are limited independently.
     let mut dds_log = RateLimitedLog::new(log_period);
     let mut log = RateLimitedLog::new(log_period);
-    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s);
+    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx.clone(), params.max_stamp_skew_s);
     let mut next_status = Instant::now();
     let mut diagnostics_window = diagnostics::MapperWindow::default();
     let mut next_diagnostics = Instant::now() + diagnostics::DIAGNOSTICS_PERIOD;
-    tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
+    tracing::info!(
+        depth = %ros.resolve_text(&params.depth_topic)?,
+        info = %ros.resolve_text(&params.camera_info_topic)?,
+        imu = %ros.resolve_text(&params.imu_topic)?,
+        "patch_mapper running"
+    );
 
     while !shutdown.requested() {
+        // Parameter sets: the loop's own at once, the mapper's from the worker's next frame.
+        if let Some(update) = parameters.take_update() {
+            let new = &update.config.ros;
+            status_period = Duration::try_from_secs_f64(new.status_period_s).unwrap_or(status_period);
+            next_status = next_status.min(Instant::now() + status_period);
+            if let Ok(period) = Duration::try_from_secs_f64(new.log_period_s) {
+                (log, dds_log) = (RateLimitedLog::new(period), RateLimitedLog::new(period));
+            }
+            state.stamp_window = new.max_stamp_skew_s;
+            if update.changed("mapper") {
+                let _ =
+                    input_tx.send(WorkerInput::Mapper { config: Box::new(update.config.mapper.clone()), accepted_at: update.accepted_at });
+            }
+            params = update.config.ros.clone();
+            let ms = update.accepted_at.elapsed().as_secs_f64() * 1e3;
+            tracing::info!("parameters {} taken by the loop {ms:.2} ms after the set was accepted", update.keys.join(", "));
+        }
         let mut more =
             node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
         more |= node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log)) >= 256;

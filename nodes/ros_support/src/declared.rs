@@ -210,7 +210,7 @@ fn flatten(prefix: &str, mapping: &Mapping, out: &mut Vec<(String, Value)>) {
 }
 
 fn to_parameter(value: &Value) -> (Kind, ParameterValue) {
-    let yaml = || (Kind::Yaml, ParameterValue::String(serde_yaml_ng::to_string(value).unwrap_or_default().trim_end().to_string()));
+    let yaml = || (Kind::Yaml, ParameterValue::String(flow_yaml(value)));
     match value {
         Value::Null => (Kind::Unset, ParameterValue::NotSet),
         Value::Bool(b) => (Kind::Typed(ParameterType::Bool), ParameterValue::Boolean(*b)),
@@ -234,6 +234,17 @@ fn to_parameter(value: &Value) -> (Kind, ParameterValue) {
             }
         }
         _ => yaml(),
+    }
+}
+
+/// One-line YAML (flow style) of a value: `[[1.0, 0.0], [0.0, 1.0]]`, `{joint: a, id: 1}`.
+fn flow_yaml(value: &Value) -> String {
+    let scalar = |v: &Value| serde_yaml_ng::to_string(v).unwrap_or_default().trim_end().to_string();
+    match value {
+        Value::Sequence(items) => format!("[{}]", items.iter().map(flow_yaml).collect::<Vec<_>>().join(", ")),
+        Value::Mapping(m) => format!("{{{}}}", m.iter().map(|(k, v)| format!("{}: {}", flow_yaml(k), flow_yaml(v))).collect::<Vec<_>>().join(", ")),
+        Value::Tagged(t) => format!("{} {}", t.tag, flow_yaml(&t.value)),
+        other => scalar(other),
     }
 }
 
@@ -377,7 +388,7 @@ mod tests {
         assert_eq!(d.get("inner.flags"), ParameterValue::BooleanArray(vec![true, false]));
         assert_eq!(d.get("inner.past_s"), ParameterValue::NotSet);
         assert_eq!(d.get("use_sim_time"), ParameterValue::Boolean(false));
-        assert!(matches!(d.get("inner.matrix"), ParameterValue::String(s) if s.contains("1.0")));
+        assert_eq!(d.get("inner.matrix"), ParameterValue::String("[[1.0, 0.0], [0.0, 1.0]]".into()));
         assert_eq!(d.get("nope"), ParameterValue::NotSet);
     }
 

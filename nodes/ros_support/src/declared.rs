@@ -242,7 +242,9 @@ fn flow_yaml(value: &Value) -> String {
     let scalar = |v: &Value| serde_yaml_ng::to_string(v).unwrap_or_default().trim_end().to_string();
     match value {
         Value::Sequence(items) => format!("[{}]", items.iter().map(flow_yaml).collect::<Vec<_>>().join(", ")),
-        Value::Mapping(m) => format!("{{{}}}", m.iter().map(|(k, v)| format!("{}: {}", flow_yaml(k), flow_yaml(v))).collect::<Vec<_>>().join(", ")),
+        Value::Mapping(m) => {
+            format!("{{{}}}", m.iter().map(|(k, v)| format!("{}: {}", flow_yaml(k), flow_yaml(v))).collect::<Vec<_>>().join(", "))
+        }
         Value::Tagged(t) => format!("{} {}", t.tag, flow_yaml(&t.value)),
         other => scalar(other),
     }

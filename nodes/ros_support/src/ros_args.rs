@@ -107,9 +107,8 @@ impl RosArgs {
         self.special("__ns", default_name).unwrap_or_else(|| "/".to_string())
     }
 
-    /// The remap rules (not `__ns`/`__node`) that apply to the node `default_name` (rcl matches a
-    /// `node:` prefix against the node's name before any `__node` remap... and after it: both are
-    /// accepted here).
+    /// The remap rules (not `__ns`/`__node`) that apply to the node: unprefixed ones, and those
+    /// whose `node:` prefix is its default name or its name after `__node`.
     pub fn remaps_for<'a>(&'a self, default_name: &'a str, node_name: &'a str) -> impl Iterator<Item = &'a Remap> + 'a {
         self.remaps
             .iter()

@@ -693,7 +693,7 @@ mod tests {
         msg.header.stamp = Time { sec: 3, nanosec: 500_000_000 };
         msg.linear_acceleration.z = 9.81;
         state.on_imu(&msg, &mut log);
-        let WorkerInput::Imu { stamp, acceleration_in_imu } = imu.try_recv().unwrap();
+        let WorkerInput::Imu { stamp, acceleration_in_imu } = imu.try_recv().unwrap() else { panic!("expected an IMU sample") };
         assert_eq!((stamp, acceleration_in_imu.z), (3.5, 9.81));
         msg.linear_acceleration.x = f64::NAN;
         state.on_imu(&msg, &mut log);

@@ -76,6 +76,8 @@ pub struct NodeNames {
     namespace: String,
     /// (expanded from, expanded to), in the order given.
     remaps: Vec<(String, String)>,
+    /// The security enclave of `--ros-args --enclave` (with the node's identity for convenience).
+    enclave: Option<String>,
 }
 
 impl NodeNames {
@@ -87,7 +89,7 @@ impl NodeNames {
         check_token(&name).map_err(|e| bad(&name, e))?;
         check_namespace(&namespace).map_err(|e| bad(&namespace, e))?;
         let namespace = if namespace.len() > 1 { namespace.trim_end_matches('/').to_string() } else { namespace };
-        let mut names = NodeNames { name, namespace, remaps: Vec::new() };
+        let mut names = NodeNames { name, namespace, remaps: Vec::new(), enclave: ros.enclave.clone() };
         let rules: Vec<(String, String)> = ros.remaps_for(default_name, &names.name).map(|r| (r.from.clone(), r.to.clone())).collect();
         for (from, to) in rules {
             let expanded = (names.expand(&from).map_err(|e| bad(&from, e))?, names.expand(&to).map_err(|e| bad(&to, e))?);
@@ -103,6 +105,11 @@ impl NodeNames {
 
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// `--ros-args --enclave`, if given.
+    pub fn enclave(&self) -> Option<&str> {
+        self.enclave.as_deref()
     }
 
     pub fn namespace(&self) -> &str {

@@ -208,7 +208,7 @@ impl RosNode {
         if network == DdsNetwork::Loopback {
             builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
         }
-        let security = crate::security::resolve(&crate::security::SecuritySettings::from_env(), None)?;
+        let security = crate::security::resolve(&crate::security::SecuritySettings::from_env(), names.enclave())?;
         match &security {
             crate::security::Security::Off => {}
             crate::security::Security::Permissive { reason } => {

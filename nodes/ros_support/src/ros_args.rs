@@ -8,7 +8,7 @@
 //! - `--params-file FILE`: parameters in the ROS 2 file format (see [`crate::params`]).
 //! - `--log-level [logger:=]level`: `debug`, `info`, `warn`, `error` or `fatal` (mapped onto the
 //!   `tracing` filter; `fatal` is `error`).
-//! - `-e/--enclave NAME`: accepted (no security enclaves in RustDDS); logged at start.
+//! - `-e/--enclave NAME`: the node's DDS Security enclave (see [`crate::security`]).
 //!
 //! Several `--ros-args` blocks may be given; a block ends at `--` or at the end of the command line.
 //! Everything outside the blocks is left for the node's own options. An unknown flag inside a block
@@ -117,11 +117,7 @@ impl RosArgs {
     }
 
     fn special(&self, key: &str, default_name: &str) -> Option<String> {
-        self.remaps
-            .iter()
-            .filter(|r| r.from == key && r.node.as_deref().is_none_or(|n| n == default_name))
-            .next_back()
-            .map(|r| r.to.clone())
+        self.remaps.iter().rfind(|r| r.from == key && r.node.as_deref().is_none_or(|n| n == default_name)).map(|r| r.to.clone())
     }
 }
 

@@ -3,8 +3,8 @@
 //! simulator drives the stamps. Every output of a node is stamped from its input's stamp or from
 //! [`NodeClock::now`], never from the wall clock directly.
 //!
-//! `use_sim_time` is given like any parameter: `--param use_sim_time=true` (or `use_sim_time:=true`);
-//! [`take_use_sim_time`] takes it out of the overrides before the node's own config is loaded.
+//! `use_sim_time` is given like any parameter (`-p use_sim_time:=true`, `--param use_sim_time=true` or a
+//! parameter file); [`crate::params::load_node_config`] takes it out of the node's config.
 
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -46,36 +46,6 @@ pub fn time_from_ns(ns: i64) -> Time {
         Ok(sec) => Time { sec, nanosec },
         Err(_) if sec < 0 => Time { sec: i32::MIN, nanosec: 0 },
         Err(_) => Time { sec: i32::MAX, nanosec: 999_999_999 },
-    }
-}
-
-/// Why `use_sim_time` cannot be read.
-#[derive(Debug, thiserror::Error)]
-#[error("parameter {USE_SIM_TIME}: {value:?} is not a boolean (true or false)")]
-pub struct UseSimTimeError {
-    pub value: String,
-}
-
-/// Removes every `use_sim_time=…` / `use_sim_time:=…` override from `params` and returns the last
-/// value (false when none).
-pub fn take_use_sim_time(params: &mut Vec<String>) -> Result<bool, UseSimTimeError> {
-    let mut use_sim_time = false;
-    let mut error = None;
-    params.retain(|text| {
-        let Some((key, value)) = text.split_once(":=").or_else(|| text.split_once('=')) else { return true };
-        if key.trim() != USE_SIM_TIME {
-            return true;
-        }
-        match value.trim().to_ascii_lowercase().as_str() {
-            "true" | "1" | "yes" | "on" => use_sim_time = true,
-            "false" | "0" | "no" | "off" => use_sim_time = false,
-            _ => error = Some(UseSimTimeError { value: value.to_string() }),
-        }
-        false
-    });
-    match error {
-        Some(e) => Err(e),
-        None => Ok(use_sim_time),
     }
 }
 
@@ -194,19 +164,6 @@ mod tests {
         assert_eq!(time_from_ns(-1), Time { sec: -1, nanosec: 999_999_999 });
         assert_eq!(time_from_ns(i64::MAX).sec, i32::MAX);
         assert!((stamp_s(&t) - 12.345).abs() < 1e-12);
-    }
-
-    #[test]
-    fn use_sim_time_is_taken_out_of_the_overrides() {
-        let mut params = vec!["ros.status_period_s=1".to_string(), "use_sim_time:=true".to_string(), "a.use_sim_time=false".to_string()];
-        assert!(take_use_sim_time(&mut params).unwrap());
-        assert_eq!(params, vec!["ros.status_period_s=1".to_string(), "a.use_sim_time=false".to_string()]);
-        let mut params = vec!["use_sim_time=true".to_string(), "use_sim_time=False".to_string()];
-        assert!(!take_use_sim_time(&mut params).unwrap());
-        assert!(params.is_empty());
-        let error = take_use_sim_time(&mut vec!["use_sim_time=maybe".to_string()]).unwrap_err();
-        assert!(error.to_string().contains("\"maybe\" is not a boolean"), "{error}");
-        assert!(!take_use_sim_time(&mut Vec::new()).unwrap());
     }
 
     #[test]

@@ -3,7 +3,12 @@
 //! - [`node`]: the participant on `ROS_DOMAIN_ID` (loopback only by default), QoS presets, typed
 //!   endpoints, the non-blocking `drain`/`serve`/`publish` helpers, shutdown on SIGINT/SIGTERM,
 //!   tracing, and [`node::RateLimitedLog`] for bad input that must not flood the log.
-//! - [`params`]: YAML configuration files with `--param key=value` overrides, unknown keys named.
+//! - [`params`]: YAML configuration files (plain or ROS 2 format) with `--param key=value`
+//!   overrides, unknown keys named.
+//! - [`ros_args`]: the ROS 2 command line (`--ros-args -r/-p/--params-file/--log-level ...`).
+//! - [`names`]: topic and service names resolved relative to the node (namespace, `~`, remaps).
+//! - [`declared`]: the node's config as declared ROS 2 parameters (dotted keys, typed, validated).
+//! - [`param_server`]: the rcl parameter services over them (`ros2 param list/get/set/describe`).
 //! - [`process`]: process CPU time for the benchmarks.
 //! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
 //! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
@@ -18,10 +23,14 @@
 //! against other ROS 2 implementations.
 
 pub mod clock;
+pub mod declared;
+pub mod names;
 pub mod node;
+pub mod param_server;
 pub mod params;
 pub mod patch_msg;
 pub mod process;
+pub mod ros_args;
 pub mod security;
 pub mod share;
 pub mod tf;

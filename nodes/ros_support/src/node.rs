@@ -5,6 +5,10 @@
 //!
 //! A node's `run` is a short straight sequence: `init_tracing` -> `load_config` -> `RosNode::new` ->
 //! create endpoints -> `while !shutdown.requested() { drain, serve, publish, sleep }`.
+//!
+//! Every endpoint name goes through the node's resolver ([`RosNode::resolve`], rcl's rules in
+//! [`crate::names`]): absolute names stay, relative and `~` private ones follow the node's
+//! namespace and name (`--ros-args -r __ns:=/robot1`), remaps apply to all of them.
 
 use std::collections::HashMap;
 use std::net::{IpAddr, Ipv4Addr};
@@ -17,10 +21,14 @@ use ros2_client::dds::rustdds::DomainParticipantBuilder;
 use ros2_client::dds::{Context, Node, Publisher, Server, ServiceMapping, Subscription};
 use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
 use ros2_client::service::RmwRequestId;
-use ros2_client::{MessageInfo, Name, NodeName, NodeOptions};
+use ros2_client::{MessageInfo, Name, NodeName, NodeOptions, ServiceTypeName};
 
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::interface::{RosMessage, RosService};
+
+use crate::names::NodeNames;
+use crate::params::{NodeConfig, ParamError};
+use crate::ros_args::{LogLevel, RosArgs, RosArgsError};
 
 /// Environment variable selecting the DDS network (`loopback` or `all`); `--dds-network` overrides it.
 pub const DDS_NETWORK_ENV: &str = "PATCHWALK_DDS_NETWORK";
@@ -75,17 +83,46 @@ impl DdsNetwork {
 }
 
 /// Command-line options every patchwalk node shares (flattened into each node's `RunArgs`).
+///
+/// The ROS 2 arguments (`--ros-args ... [--]`, see [`crate::ros_args`]) are taken out of the command
+/// line before clap sees it ([`parse_command_line`]) and land in `ros`.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct NodeArgs {
-    /// YAML parameter file; without it the embedded defaults are used.
+    /// YAML parameter file (plain or ROS 2 format); without it the embedded defaults are used.
+    /// Applied before the `--ros-args --params-file` files.
     #[arg(long, value_name = "FILE")]
     pub config: Option<std::path::PathBuf>,
-    /// Parameter override `dotted.key=value` (value parsed as YAML), applied after the file; repeatable.
+    /// Parameter override `dotted.key=value` (value parsed as YAML), applied after the files; repeatable.
     #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
     pub params: Vec<String>,
     /// DDS network: `loopback` (default) or `all`. Default from PATCHWALK_DDS_NETWORK.
     #[arg(long, value_enum)]
     pub dds_network: Option<DdsNetwork>,
+    /// The `--ros-args` of the command line.
+    #[arg(skip)]
+    pub ros: RosArgs,
+}
+
+impl NodeArgs {
+    /// The node's names under `--ros-args` (`__node`, `__ns`, remaps).
+    pub fn names(&self, default_name: &str) -> Result<NodeNames, NodeError> {
+        NodeNames::new(default_name, &self.ros)
+    }
+
+    /// The node's config: `--config`, then every `--params-file` (the blocks for this node), then
+    /// `--param` and `-p` in order.
+    pub fn load_config<T: serde::de::DeserializeOwned>(&self, names: &NodeNames) -> Result<NodeConfig<T>, ParamError> {
+        let files: Vec<&std::path::Path> = self.config.iter().chain(&self.ros.params_files).map(|p| p.as_path()).collect();
+        let overrides: Vec<String> = self.params.iter().cloned().chain(self.ros.params.iter().map(|p| p.as_override())).collect();
+        crate::params::load_node_config(Some(&names.fully_qualified()), &files, &overrides)
+    }
+}
+
+/// The command line of a node binary: the `--ros-args` blocks taken out, the rest parsed by clap
+/// (which exits with its usage message on a bad option).
+pub fn parse_command_line<C: clap::Parser>() -> Result<(C, RosArgs), RosArgsError> {
+    let (rest, ros) = crate::ros_args::split(std::env::args_os())?;
+    Ok((C::parse_from(rest), ros))
 }
 
 /// ROS domain from `ROS_DOMAIN_ID` (0 when unset or empty), as rcl does.
@@ -146,18 +183,32 @@ pub struct RosNode {
     spinner: Option<JoinHandle<()>>,
     context: Context,
     network: DdsNetwork,
+    names: NodeNames,
+    default_name: String,
 }
 
 impl RosNode {
     /// Create the DDS participant on `ROS_DOMAIN_ID` (restricted to 127.0.0.1 for `Loopback`) and the
-    /// node `/name`, and start its spinner on a thread.
+    /// node `/name`, and start its spinner on a thread (with ros2-client's parameter services).
     pub fn new(name: &str, network: DdsNetwork) -> Result<RosNode, NodeError> {
+        RosNode::create(name, NodeNames::plain(name)?, network, true)
+    }
+
+    /// The node `default_name` under its ROS arguments (`names`: namespace, name, remaps). Its
+    /// parameter services are the node's own ([`crate::param_server::ParameterServer`]).
+    pub fn with_names(default_name: &str, names: NodeNames, network: DdsNetwork) -> Result<RosNode, NodeError> {
+        RosNode::create(default_name, names, network, false)
+    }
+
+    fn create(default_name: &str, names: NodeNames, network: DdsNetwork, builtin_parameters: bool) -> Result<RosNode, NodeError> {
+        let name = names.name().to_string();
+        let name = name.as_str();
         let domain_id = ros_domain_id()?;
         let mut builder = DomainParticipantBuilder::new(domain_id);
         if network == DdsNetwork::Loopback {
             builder = builder.with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)]);
         }
-        let security = crate::security::resolve(&crate::security::SecuritySettings::from_env(), None)?;
+        let security = crate::security::resolve(&crate::security::SecuritySettings::from_env(), names.enclave())?;
         match &security {
             crate::security::Security::Off => {}
             crate::security::Security::Permissive { reason } => {
@@ -172,8 +223,9 @@ impl RosNode {
         let context =
             Context::from_domain_participant(participant).map_err(|e| NodeError::Participant { domain_id, reason: format!("{e:?}") })?;
         let node_err = |e: String| NodeError::Node { name: name.to_string(), reason: e };
-        let node_name = NodeName::new("/", name).map_err(|e| node_err(format!("{e:?}")))?;
-        let mut node = context.new_node(node_name, NodeOptions::new().enable_rosout(true)).map_err(|e| node_err(format!("{e:?}")))?;
+        let node_name = NodeName::new(names.namespace(), name).map_err(|e| node_err(format!("{e:?}")))?;
+        let options = NodeOptions::new().enable_rosout(true).start_parameter_services(builtin_parameters);
+        let mut node = context.new_node(node_name, options).map_err(|e| node_err(format!("{e:?}")))?;
         let spinner = node.spinner().map_err(|e| node_err(format!("{e:?}")))?;
         let spinner = std::thread::Builder::new()
             .name(format!("{name}-spinner"))
@@ -183,8 +235,30 @@ impl RosNode {
                 }
             })
             .map_err(|e| node_err(format!("cannot start the spinner thread: {e}")))?;
-        tracing::info!(node = name, domain_id, ?network, "ROS 2 node up");
-        Ok(RosNode { node: Some(node), spinner: Some(spinner), context, network })
+        tracing::info!(node = %names.fully_qualified(), domain_id, ?network, "ROS 2 node up");
+        Ok(RosNode { node: Some(node), spinner: Some(spinner), context, network, names, default_name: default_name.to_string() })
+    }
+
+    /// The node's name, namespace and remaps.
+    pub fn names(&self) -> &NodeNames {
+        &self.names
+    }
+
+    /// The name the node uses for `name` (`/abs`, `relative`, `~/private`), remaps applied.
+    pub fn resolve(&self, name: &str) -> Result<Name, NodeError> {
+        ros_name(&self.names.resolve(name)?)
+    }
+
+    /// [`RosNode::resolve`] as the fully qualified text (for logs).
+    pub fn resolve_text(&self, name: &str) -> Result<String, NodeError> {
+        self.names.resolve(name)
+    }
+
+    /// A root-namespace name of this node with its default name (`/step_executor/stop`, as the
+    /// README's table lists it) made relative to the node (`~/stop`; `/joint_states` ->
+    /// `joint_states`), so that it follows `__ns` and `__node`.
+    pub fn relative(&self, root_name: &str) -> String {
+        crate::names::relative_to_node(&self.default_name, root_name)
     }
 
     pub fn domain_id(&self) -> u16 {
@@ -206,7 +280,7 @@ impl RosNode {
     /// Typed publisher on `topic`.
     pub fn publisher<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Publisher<M>, NodeError> {
         let err = |e: String| NodeError::Endpoint { what: "publisher", name: topic.to_string(), reason: e };
-        let name = ros_name(topic)?;
+        let name = self.resolve(topic)?;
         let node = self.node(topic)?;
         let dds_topic = node.create_topic(&name, M::type_name(), &qos).map_err(|e| err(format!("{e:?}")))?;
         node.create_publisher::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
@@ -215,7 +289,7 @@ impl RosNode {
     /// Typed subscription on `topic`.
     pub fn subscription<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Subscription<M>, NodeError> {
         let err = |e: String| NodeError::Endpoint { what: "subscription", name: topic.to_string(), reason: e };
-        let name = ros_name(topic)?;
+        let name = self.resolve(topic)?;
         let node = self.node(topic)?;
         let dds_topic = node.create_topic(&name, M::type_name(), &qos).map_err(|e| err(format!("{e:?}")))?;
         node.create_subscription::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
@@ -223,15 +297,18 @@ impl RosNode {
 
     /// Typed service server `name` (ServiceMapping::Enhanced, the mapping rmw_fastrtps/cyclonedds use).
     pub fn server<S: RosService>(&mut self, name: &str) -> Result<Server<S::Request, S::Response>, NodeError> {
-        let service_name = ros_name(name)?;
+        self.server_of_type::<S::Request, S::Response>(name, &S::type_name())
+    }
+
+    /// Service server `name` of a service type given by name (the rcl_interfaces services).
+    pub fn server_of_type<Req, Resp>(&mut self, name: &str, type_name: &ServiceTypeName) -> Result<Server<Req, Resp>, NodeError>
+    where
+        Req: ros2_client::Message + Clone + 'static,
+        Resp: ros2_client::Message + 'static,
+    {
+        let service_name = self.resolve(name)?;
         self.node(name)?
-            .create_server::<S::Request, S::Response>(
-                ServiceMapping::Enhanced,
-                &service_name,
-                &S::type_name(),
-                service_qos(),
-                service_qos(),
-            )
+            .create_server::<Req, Resp>(ServiceMapping::Enhanced, &service_name, type_name, service_qos(), service_qos())
             .map_err(|e| NodeError::Endpoint { what: "service", name: name.to_string(), reason: format!("{e:?}") })
     }
 
@@ -404,8 +481,26 @@ pub const DEFAULT_LOG_FILTER: &str = "info,rustdds=error,rustdds::network::udp_l
 /// Logs to stderr through `tracing`; `RUST_LOG` overrides the default filter. The `log` records of
 /// ros2-client and RustDDS are forwarded (filtered by [`DEFAULT_LOG_FILTER`]).
 pub fn init_tracing() {
-    let filter =
-        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
+    init_tracing_with(&[]);
+}
+
+/// [`init_tracing`] with the `--ros-args --log-level` directives laid over the filter (over
+/// `RUST_LOG` too: the command line is the more specific).
+pub fn init_tracing_with(levels: &[LogLevel]) {
+    let base = std::env::var("RUST_LOG").ok().filter(|v| !v.trim().is_empty()).unwrap_or_else(|| DEFAULT_LOG_FILTER.to_string());
+    let mut directives: Vec<String> = base.split(',').map(str::to_string).collect();
+    for level in levels {
+        let directive = level.directive();
+        if level.logger.is_none() {
+            // A global level replaces the default level, not the per-crate quieting.
+            directives.retain(|d| d.contains('='));
+            directives.insert(0, directive);
+        } else {
+            directives.push(directive);
+        }
+    }
+    let filter = tracing_subscriber::EnvFilter::try_new(directives.join(","))
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     // Ignore the error of a second initialisation (tests, embedded use).
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)

@@ -28,10 +28,24 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    // `--ros-args ...` (what `ros2 run`/`ros2 launch` append) is taken out before the options.
+    let (cli, ros_args) = match patchwalk_ros::node::parse_command_line::<Cli>() {
+        Ok(parsed) => parsed,
+        Err(err) => {
+            eprintln!("step_executor: error: {err}");
+            return std::process::ExitCode::from(2);
+        }
+    };
     let result = match cli.command {
-        None => ros::run(ros::RunArgs::default()),
-        Some(Command::Run(args)) => ros::run(args),
+        // No subcommand (what launch_ros runs): the node.
+        None | Some(Command::Run(_)) => {
+            let mut args = match cli.command {
+                Some(Command::Run(args)) => args,
+                _ => ros::RunArgs::default(),
+            };
+            args.node.ros = ros_args;
+            ros::run(args)
+        }
         Some(Command::SimBus(args)) => cli::sim_bus::run(args),
         Some(Command::ImportMotion(args)) => cli::import_motion::run(args),
         Some(Command::ExportMotion(args)) => cli::export_motion::run(args),

@@ -314,6 +314,17 @@ impl Mapper {
         Ok(Self { map: PatchMap::new(frame_id, grid), config, frames: 0 })
     }
 
+    /// New parameters from the next frame on (a node's parameter set). The map's grid (volume edge,
+    /// seed cells per side) is fixed for the mapper's life; a change of it is refused.
+    pub fn set_config(&mut self, config: MapperConfig) -> Result<(), MapperError> {
+        check_config(&config)?;
+        if config.volume_edge_m != self.config.volume_edge_m || config.seeds.cells_per_side != self.config.seeds.cells_per_side {
+            return Err(MapperError::Config("volume_edge_m and seeds.cells_per_side are fixed while the mapper runs".into()));
+        }
+        self.config = config;
+        Ok(())
+    }
+
     /// Stages i–v on one frame; valid patches are added to the map.
     pub fn process(&mut self, input: &FrameInput) -> Result<FrameResult, MapperError> {
         let config = &self.config;
@@ -390,7 +401,8 @@ impl MapperConfig {
     }
 }
 
-fn check_config(config: &MapperConfig) -> Result<(), MapperError> {
+/// The checks [`Mapper::new`] makes on a configuration.
+pub fn check_config(config: &MapperConfig) -> Result<(), MapperError> {
     let bad = |what: &str| Err(MapperError::Config(what.to_string()));
     if !(config.foot_radius_m.is_finite() && config.foot_radius_m > 0.0) {
         return bad("foot_radius_m must be positive");

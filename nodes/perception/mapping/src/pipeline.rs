@@ -277,6 +277,11 @@ impl Pipeline {
         Ok(Self { config, tracker, mapper, imu: VecDeque::new(), imu_heard: false, last_stamp: None, intrinsics })
     }
 
+    /// New mapper parameters from the next frame on; see [`Mapper::set_config`].
+    pub fn set_mapper_config(&mut self, mapper: MapperConfig) -> Result<(), PipelineError> {
+        Ok(self.mapper.set_config(mapper)?)
+    }
+
     /// The patch map (patches in the `map` frame).
     pub fn map(&self) -> &PatchMap {
         &self.mapper.map

@@ -30,10 +30,24 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    // `--ros-args ...` (what `ros2 run`/`ros2 launch` append) is taken out before the options.
+    let (cli, ros_args) = match patchwalk_ros::node::parse_command_line::<Cli>() {
+        Ok(parsed) => parsed,
+        Err(err) => {
+            eprintln!("patch_mapper: error: {err}");
+            return std::process::ExitCode::from(2);
+        }
+    };
     let result = match cli.command {
-        None => ros::run(ros::RunArgs::default()),
-        Some(Command::Run(args)) => ros::run(args),
+        // No subcommand (what launch_ros runs): the node.
+        None | Some(Command::Run(_)) => {
+            let mut args = match cli.command {
+                Some(Command::Run(args)) => args,
+                _ => ros::RunArgs::default(),
+            };
+            args.node.ros = ros_args;
+            ros::run(args)
+        }
         Some(Command::Fit(args)) => cli::fit::run(args),
         Some(Command::Map(args)) => cli::map::run(args),
         Some(Command::Track(args)) => cli::track::run(args),

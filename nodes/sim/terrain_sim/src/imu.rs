@@ -141,7 +141,8 @@ mod tests {
     fn mapper_sim_config_has_the_default_mount() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../config/patch_mapper_sim.yaml");
         let config: serde_yaml_ng::Value = serde_yaml_ng::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
-        let rows: Vec<Vec<f64>> = serde_yaml_ng::from_value(config["mapper"]["acquire"]["camera_from_imu"].clone()).unwrap();
+        let params = &config["/**/patch_mapper"]["ros__parameters"];
+        let rows: Vec<Vec<f64>> = serde_yaml_ng::from_value(params["mapper"]["acquire"]["camera_from_imu"].clone()).unwrap();
         let configured = nalgebra::Matrix3::from_fn(|r, c| rows[r][c]);
         let mount = ImuConfig::default().camera_from_imu().unwrap().to_rotation_matrix().into_inner();
         assert!((configured - mount).norm() < 1e-12, "{configured} vs {mount}");

@@ -62,10 +62,23 @@ struct RecordArgs {
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    // `--ros-args ...` (what `ros2 run`/`ros2 launch` append) is taken out before the options.
+    let (cli, ros_args) = match patchwalk_ros::node::parse_command_line::<Cli>() {
+        Ok(parsed) => parsed,
+        Err(err) => {
+            eprintln!("terrain_sim: {err}");
+            return std::process::ExitCode::from(2);
+        }
+    };
     let result = match cli.command {
-        None => node::run(cli.run),
-        Some(Command::Run(args)) => node::run(args),
+        None | Some(Command::Run(_)) => {
+            let mut args = match cli.command {
+                Some(Command::Run(args)) => args,
+                _ => cli.run,
+            };
+            args.node.ros = ros_args;
+            node::run(args)
+        }
         Some(Command::Record(args)) => record(args),
         Some(Command::Scene(args)) => scene(args),
     };

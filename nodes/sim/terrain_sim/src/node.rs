@@ -24,7 +24,9 @@ use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, JointState, Regio
 use patchwalk_msgs::std_msgs::msg::{Header, UInt32};
 use patchwalk_robot_model::kinematics::{positions_by_name, RobotModel};
 use patchwalk_ros::clock::ClockPublisher;
+use patchwalk_ros::declared::{Declared, ParameterSpec};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::param_server::ParameterServer;
 use patchwalk_ros::tf::StaticTfBroadcaster;
 use patchwalk_ros::wait::Wakeup;
 use ros2_client::{MessageTypeName, Publisher, Subscription};
@@ -33,12 +35,23 @@ use terrain_sim::imu::ImuSample;
 use terrain_sim::motion::StanceTracker;
 use terrain_sim::sim::Simulator;
 
+/// Topic names in the root namespace (the README's table); the node creates them relative to itself
+/// (`camera/depth/image_raw`, `~/rock`, see [`RosNode::relative`]).
 pub const IMAGE_TOPIC: &str = "/camera/depth/image_raw";
 pub const CAMERA_INFO_TOPIC: &str = "/camera/depth/camera_info";
 pub const IMU_TOPIC: &str = "/imu/data";
 pub const JOINT_STATES_TOPIC: &str = "/joint_states";
 pub const PLACE_TOPIC: &str = "/terrain_sim/place_at_rock";
 pub const ROCK_TOPIC: &str = "/terrain_sim/rock";
+
+/// Every key of the simulator's config is a read-only parameter: the scene, camera and IMU are built
+/// at start.
+pub const PARAMETERS: ParameterSpec<SimConfig> =
+    ParameterSpec { runtime: &[], restart: &[], applied: "never (the simulator is built at start)", validate: accept };
+
+fn accept(_: &SimConfig) -> Result<(), String> {
+    Ok(())
+}
 
 /// `terrain_sim run` options.
 #[derive(clap::Args, Debug, Clone, Default)]
@@ -90,18 +103,22 @@ impl Robot {
 }
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
-    node::init_tracing();
-    let config: SimConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+    node::init_tracing_with(&args.node.ros.log_levels);
+    let names = args.node.names("terrain_sim")?;
+    let loaded = args.node.load_config::<SimConfig>(&names)?;
+    let config = loaded.config;
+    let declared = Declared::new(&config, loaded.use_sim_time, &PARAMETERS)?;
     let sim = Arc::new(Simulator::new(config.clone())?);
     let mut robot = load_robot(&config, args.node.config.as_deref());
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
-    let mut ros = RosNode::new("terrain_sim", network)?;
-    let image_pub = ros.publisher::<Image>(IMAGE_TOPIC, node::sensor_data_qos())?;
-    let info_pub = ros.publisher::<CameraInfo>(CAMERA_INFO_TOPIC, node::sensor_data_qos())?;
-    let imu_pub = ros.publisher::<Imu>(IMU_TOPIC, node::sensor_data_qos())?;
+    let mut ros = RosNode::with_names("terrain_sim", names, network)?;
+    let _parameters = ParameterServer::start(&mut ros, declared, None)?;
+    let image_pub = ros.publisher::<Image>(&ros.relative(IMAGE_TOPIC), node::sensor_data_qos())?;
+    let info_pub = ros.publisher::<CameraInfo>(&ros.relative(CAMERA_INFO_TOPIC), node::sensor_data_qos())?;
+    let imu_pub = ros.publisher::<Imu>(&ros.relative(IMU_TOPIC), node::sensor_data_qos())?;
     // Best effort matches both reliable and best-effort joint state publishers.
-    let mut joint_sub = ros.subscription::<JointState>(JOINT_STATES_TOPIC, node::sensor_data_qos())?;
+    let mut joint_sub = ros.subscription::<JointState>(&ros.relative(JOINT_STATES_TOPIC), node::sensor_data_qos())?;
     let mut place_sub: Subscription<UInt32> = std_msgs_subscription(&mut ros, PLACE_TOPIC, "UInt32")?;
     // The control loop sleeps until a placement or joint state arrives, or the rock report is due.
     let mut wakeup = Wakeup::new()?;
@@ -364,7 +381,7 @@ fn lock(pose: &Mutex<RobotPose>) -> MutexGuard<'_, RobotPose> {
 
 /// Publisher of a `std_msgs` type (not covered by `RosMessage`), reliable.
 fn std_msgs_publisher<M: ros2_client::Message>(ros: &mut RosNode, topic: &str, type_name: &str) -> anyhow::Result<Publisher<M>> {
-    let name = node::ros_name(topic)?;
+    let name = ros.resolve(&ros.relative(topic))?;
     let qos = node::reliable_qos();
     let ros_node = ros.node_mut().context("node is shutting down")?;
     let dds_topic = ros_node
@@ -379,7 +396,7 @@ fn std_msgs_subscription<M: ros2_client::Message + 'static>(
     topic: &str,
     type_name: &str,
 ) -> anyhow::Result<Subscription<M>> {
-    let name = node::ros_name(topic)?;
+    let name = ros.resolve(&ros.relative(topic))?;
     let qos = node::reliable_qos();
     let ros_node = ros.node_mut().context("node is shutting down")?;
     let dds_topic = ros_node

@@ -30,7 +30,9 @@ use patchwalk_msgs::sensor_msgs::msg::{JointState, PointCloud2};
 use patchwalk_msgs::srv;
 use patchwalk_msgs::std_srvs::srv::{SetBool, SetBoolRequest, SetBoolResponse, Trigger, TriggerResponse};
 use patchwalk_ros::clock::{ClockListener, NodeClock};
+use patchwalk_ros::declared::{Declared, ParameterSpec};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::param_server::ParameterServer;
 use patchwalk_ros::patch_msg;
 use patchwalk_ros::tf::{SharedTf, TfListener};
 use patchwalk_ros::wait::Wakeup;
@@ -57,7 +59,8 @@ pub struct RunArgs {
 /// `ros:` section holds the ROS-level parameters.
 pub type ExecutorFileView = step_executor::config::StepExecutorConfig;
 
-/// Topic and service names.
+/// Topic and service names in the root namespace (the README's table); the node creates them
+/// relative to itself (`~/stop`, `patch_mapper/patches`, see [`RosNode::relative`]).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
 /// The mapper's birds-eye cloud (map frame): what `select_target` MODE_FIT_AT_POINT fits.
 pub const CLOUD_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
@@ -75,6 +78,22 @@ pub const ARM: &str = "/step_executor/arm";
 pub const RESET_ESTOP: &str = "/step_executor/reset_estop";
 /// Fault recovery: Protocol 2.0 REBOOT of the faulted (or named) servos, a lost port reopened.
 pub const REBOOT_SERVOS: &str = "/step_executor/reboot_servos";
+
+/// The parameters of the node that change while it runs (the rest are read at start): the matcher's
+/// thresholds from the next patch map, the output rates at the next loop pass.
+pub const PARAMETERS: ParameterSpec<ExecutorFileView> = ParameterSpec {
+    runtime: &["matcher", "ros.status_rate_hz", "ros.joint_state_rate_hz"],
+    restart: &[],
+    applied: "at the next patch map (ros.*: at the next loop pass)",
+    validate: validate_config,
+};
+
+fn validate_config(config: &ExecutorFileView) -> Result<(), String> {
+    config.validate().map_err(|e| e.to_string())?;
+    period(config.ros.status_rate_hz, "ros.status_rate_hz").map_err(|e| e.to_string())?;
+    period(config.ros.joint_state_rate_hz, "ros.joint_state_rate_hz").map_err(|e| e.to_string())?;
+    Ok(())
+}
 
 /// The longest the loop sleeps without input (it also wakes for status, joint states and jobs).
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -498,19 +517,22 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
     Duration::try_from_secs_f64(1.0 / rate_hz).with_context(|| format!("{key} = {rate_hz}"))
 }
 
-pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
-    node::init_tracing();
-    let clock = NodeClock::new(patchwalk_ros::clock::take_use_sim_time(&mut args.node.params)?);
-    let config: ExecutorFileView = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    node::init_tracing_with(&args.node.ros.log_levels);
+    let names = args.node.names("step_executor")?;
+    let loaded = args.node.load_config::<ExecutorFileView>(&names)?;
+    let clock = NodeClock::new(loaded.use_sim_time);
+    let config = loaded.config;
     config.validate()?;
+    let declared = Declared::new(&config, loaded.use_sim_time, &PARAMETERS)?;
     let params = config.ros.clone();
     let urdf = tf::urdf_text(&config.urdf_path);
-    let status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
+    let mut status_period = period(params.status_rate_hz, "ros.status_rate_hz")?;
     let heartbeat_timeout = match Duration::try_from_secs_f64(params.heartbeat_timeout_s) {
         Ok(timeout) if timeout > Duration::ZERO => timeout,
         _ => anyhow::bail!("ros.heartbeat_timeout_s = {} must be a positive duration in s", params.heartbeat_timeout_s),
     };
-    let joint_state_period = period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
+    let mut joint_state_period = period(params.joint_state_rate_hz, "ros.joint_state_rate_hz")?;
     // Library, URDF and the servo bus thread (a missing bus or a broken library file is reported, not fatal).
     let (runtime, warnings) = Runtime::new(config)?;
     for warning in &warnings {
@@ -519,22 +541,22 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
 
-    let mut ros = RosNode::new("step_executor", network)?;
-    let mut patches_sub = ros.subscription::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
-    let mut cloud_sub = ros.subscription::<PointCloud2>(CLOUD_TOPIC, node::reliable_qos())?;
+    let mut ros = RosNode::with_names("step_executor", names, network)?;
+    let mut patches_sub = ros.subscription::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;
+    let mut cloud_sub = ros.subscription::<PointCloud2>(&ros.relative(CLOUD_TOPIC), node::reliable_qos())?;
     // Joint states come from the servo bus thread; nothing is published without a bus.
-    let joint_states_pub = ros.publisher::<JointState>(JOINT_STATES_TOPIC, node::reliable_qos())?;
-    let status_pub = ros.publisher::<ExecutorStatus>(STATUS_TOPIC, node::reliable_qos())?;
-    let mut set_torque_srv = ros.server::<SetBool>(SET_TORQUE)?;
-    let mut record_keyframe_srv = ros.server::<srv::RecordKeyframe>(RECORD_KEYFRAME)?;
-    let mut select_target_srv = ros.server::<srv::SelectTarget>(SELECT_TARGET)?;
-    let mut save_motion_srv = ros.server::<srv::SaveMotion>(SAVE_MOTION)?;
-    let mut list_motions_srv = ros.server::<srv::ListMotions>(LIST_MOTIONS)?;
-    let mut delete_motion_srv = ros.server::<srv::DeleteMotion>(DELETE_MOTION)?;
-    let mut play_motion_srv = ros.server::<srv::PlayMotion>(PLAY_MOTION)?;
-    let mut stop_srv = ros.server::<Trigger>(STOP)?;
-    let mut arm_srv = ros.server::<SetBool>(ARM)?;
-    let mut reset_estop_srv = ros.server::<Trigger>(RESET_ESTOP)?;
+    let joint_states_pub = ros.publisher::<JointState>(&ros.relative(JOINT_STATES_TOPIC), node::reliable_qos())?;
+    let status_pub = ros.publisher::<ExecutorStatus>(&ros.relative(STATUS_TOPIC), node::reliable_qos())?;
+    let mut set_torque_srv = ros.server::<SetBool>(&ros.relative(SET_TORQUE))?;
+    let mut record_keyframe_srv = ros.server::<srv::RecordKeyframe>(&ros.relative(RECORD_KEYFRAME))?;
+    let mut select_target_srv = ros.server::<srv::SelectTarget>(&ros.relative(SELECT_TARGET))?;
+    let mut save_motion_srv = ros.server::<srv::SaveMotion>(&ros.relative(SAVE_MOTION))?;
+    let mut list_motions_srv = ros.server::<srv::ListMotions>(&ros.relative(LIST_MOTIONS))?;
+    let mut delete_motion_srv = ros.server::<srv::DeleteMotion>(&ros.relative(DELETE_MOTION))?;
+    let mut play_motion_srv = ros.server::<srv::PlayMotion>(&ros.relative(PLAY_MOTION))?;
+    let mut stop_srv = ros.server::<Trigger>(&ros.relative(STOP))?;
+    let mut arm_srv = ros.server::<SetBool>(&ros.relative(ARM))?;
+    let mut reset_estop_srv = ros.server::<Trigger>(&ros.relative(RESET_ESTOP))?;
     let mut estop_topic = EStopTopic::new(&mut ros)?;
     let mut heartbeat_sub = ros.subscription::<Empty>(HEARTBEAT_TOPIC, heartbeat::heartbeat_qos())?;
     let mut play_action = PlayMotionAction::new(&mut ros)?;
@@ -568,6 +590,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         wakeup.watch(&mut listener.subscription)?;
     }
     wakeup.watch(&mut reboot_servos_srv)?;
+    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()))?;
     let job_waker = wakeup.waker();
     let jobs = Jobs::spawn(move || {
         let _ = job_waker.wake();
@@ -604,6 +627,18 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         let beats = node::drain(&heartbeat_sub, HEARTBEAT_TOPIC, 1024, &mut log, |_, _| {});
         if beats > 0 {
             executor.deadman.beat(Instant::now());
+        }
+        // Parameter sets (validated by the parameter thread): rates now, thresholds from the next map.
+        if let Some(update) = parameters.take_update() {
+            let ros_params = &update.config.ros;
+            status_period = period(ros_params.status_rate_hz, "ros.status_rate_hz").unwrap_or(status_period);
+            joint_state_period = period(ros_params.joint_state_rate_hz, "ros.joint_state_rate_hz").unwrap_or(joint_state_period);
+            next_status = next_status.min(Instant::now() + status_period);
+            if update.changed("matcher") {
+                executor.runtime.set_matcher_config(update.config.matcher.clone());
+            }
+            let ms = update.accepted_at.elapsed().as_secs_f64() * 1e3;
+            tracing::info!("parameters {} applied {ms:.2} ms after the set was accepted", update.keys.join(", "));
         }
         more |= full(node::serve(&reset_estop_srv, RESET_ESTOP, &mut log, |_| executor.reset_estop()));
         more |= full(node::serve(&arm_srv, ARM, &mut log, |r| executor.arm(r)));

@@ -457,6 +457,12 @@ impl Runtime {
         message
     }
 
+    /// New matcher thresholds (J 6.3 ds, ks, as, rs and the variants) from the next patch map on.
+    pub fn set_matcher_config(&mut self, matcher: crate::matcher::MatcherConfig) {
+        self.config.matcher = matcher;
+        self.rebuild_matcher();
+    }
+
     fn rebuild_matcher(&mut self) {
         self.matcher = Matcher::new(self.config.matcher.clone(), self.library.motions().iter().map(|m| &m.patch));
     }

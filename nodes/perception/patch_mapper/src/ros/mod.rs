@@ -45,7 +45,9 @@ use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
 use patchwalk_msgs::visualization_msgs::msg::MarkerArray;
 use patchwalk_ros::clock::{ClockListener, NodeClock};
+use patchwalk_ros::declared::{self as node_params, Declared};
 use patchwalk_ros::node::{self, NodeArgs, RateLimitedLog, RosNode, Shutdown};
+use patchwalk_ros::param_server::ParameterServer;
 use patchwalk_ros::tf::{SharedTf, TfBroadcaster, TfListener};
 use ros2_client::Publisher;
 
@@ -136,9 +138,10 @@ pub struct MapperRosParams {
 impl Default for MapperRosParams {
     fn default() -> Self {
         Self {
-            depth_topic: "/camera/depth/image_raw".into(),
-            camera_info_topic: "/camera/depth/camera_info".into(),
-            imu_topic: "/imu/data".into(),
+            // Relative: they follow the node's namespace (`/camera/depth/image_raw` in the root one).
+            depth_topic: "camera/depth/image_raw".into(),
+            camera_info_topic: "camera/depth/camera_info".into(),
+            imu_topic: "imu/data".into(),
             status_period_s: 0.5,
             log_period_s: 2.0,
             publish_birds_eye_cloud: true,
@@ -149,7 +152,8 @@ impl Default for MapperRosParams {
     }
 }
 
-/// Output topic and service names of the node (the topic table of the README).
+/// Output topic and service names of the node (the topic table of the README) in the root namespace;
+/// the node creates them relative to itself (`~/patches`, see [`RosNode::relative`]).
 pub const PATCHES_TOPIC: &str = "/patch_mapper/patches";
 pub const MARKERS_TOPIC: &str = "/patch_mapper/markers";
 pub const BIRDS_EYE_TOPIC: &str = "/patch_mapper/birds_eye_cloud";
@@ -168,7 +172,38 @@ struct DepthJob {
 
 /// What the ROS loop hands the worker.
 enum WorkerInput {
-    Imu { stamp: f64, acceleration_in_imu: Vector3<f64>, frame_id: String },
+    Imu {
+        stamp: f64,
+        acceleration_in_imu: Vector3<f64>,
+        frame_id: String,
+    },
+    /// New mapper parameters (a parameter set), from the next frame on.
+    Mapper {
+        config: Box<MapperConfig>,
+        accepted_at: Instant,
+    },
+}
+
+/// The parameters of the node that change while it runs (the rest are read at start): the loop's
+/// periods and stamp window at the next pass, the mapper's at the next frame, except its grid.
+pub const PARAMETERS: node_params::ParameterSpec<PatchMapperConfig> = node_params::ParameterSpec {
+    runtime: &["ros.status_period_s", "ros.log_period_s", "ros.max_stamp_skew_s", "mapper"],
+    restart: &["mapper.volume_edge_m", "mapper.seeds.cells_per_side"],
+    applied: "at the next frame (ros.*: at the next loop pass)",
+    validate: validate_config,
+};
+
+/// What a parameter set must keep true (checked again at start, where a failure is fatal).
+fn validate_config(config: &PatchMapperConfig) -> Result<(), String> {
+    let ros = &config.ros;
+    for (key, value) in [("ros.status_period_s", ros.status_period_s), ("ros.log_period_s", ros.log_period_s)] {
+        if Duration::try_from_secs_f64(value).is_err() {
+            return Err(format!("{key} = {value} is not a duration"));
+        }
+    }
+    ros.max_stamp_skew_s.validate().map_err(|e| format!("ros.max_stamp_skew_s: {e}"))?;
+    config.ros.tf.validate()?;
+    patchwalk_mapping::mapper::check_config(&config.mapper).map_err(|e| format!("mapper: {e}"))
 }
 
 /// Status shared by both threads (counters of MapperStatus, last error, timings).
@@ -321,6 +356,8 @@ struct Worker {
     extrinsics: tf::Extrinsics,
     /// The `frame_id` of the latest IMU sample.
     imu_frame: Option<String>,
+    /// When the parameter set now waiting for its first frame was accepted.
+    parameters_since: Option<Instant>,
 }
 
 /// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
@@ -367,10 +404,18 @@ impl Worker {
 
     fn take_inputs(&mut self, inputs: &Receiver<WorkerInput>) {
         for input in inputs.try_iter() {
-            let WorkerInput::Imu { stamp, acceleration_in_imu, frame_id } = input;
-            if self.imu_frame.as_deref() != Some(frame_id.as_str()) {
-                self.imu_frame = Some(frame_id);
-            }
+            let (stamp, acceleration_in_imu) = match input {
+                WorkerInput::Imu { stamp, acceleration_in_imu, frame_id } => {
+                    if self.imu_frame.as_deref() != Some(frame_id.as_str()) {
+                        self.imu_frame = Some(frame_id);
+                    }
+                    (stamp, acceleration_in_imu)
+                }
+                WorkerInput::Mapper { config, accepted_at } => {
+                    self.set_mapper_config(*config, accepted_at);
+                    continue;
+                }
+            };
             // Kept for a pipeline built later (first CameraInfo, new intrinsics).
             self.recent_imu.push_back((stamp, acceleration_in_imu));
             while self.recent_imu.front().is_some_and(|(t, _)| *t < stamp - self.config.pipeline.imu_buffer_s) {
@@ -382,6 +427,18 @@ impl Worker {
                 }
             }
         }
+    }
+
+    /// A parameter set's mapper config: kept for later pipelines and given to the running one.
+    fn set_mapper_config(&mut self, config: MapperConfig, accepted_at: Instant) {
+        if let Some(pipeline) = self.pipeline.as_mut() {
+            if let Err(e) = pipeline.set_mapper_config(config.clone()) {
+                self.warn("parameters", format!("mapper parameters not applied: {e}"));
+                return;
+            }
+        }
+        self.config.mapper = config;
+        self.parameters_since = Some(accepted_at);
     }
 
     fn process(&mut self, job: DepthJob) {
@@ -435,6 +492,10 @@ impl Worker {
             with_status(&self.status, |s| s.frames_skipped += 1);
             return;
         }
+        if let Some(accepted_at) = self.parameters_since.take() {
+            let ms = accepted_at.elapsed().as_secs_f64() * 1e3;
+            tracing::info!("mapper parameters in effect from this frame, {ms:.1} ms after the set was accepted");
+        }
         let map = pipeline.map();
         let started = Instant::now();
         let fixed_frame = self.config.ros.tf.fixed_frame.as_str();
@@ -476,23 +537,26 @@ impl Worker {
     }
 }
 
-pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
-    node::init_tracing();
-    let clock = NodeClock::new(patchwalk_ros::clock::take_use_sim_time(&mut args.node.params)?);
-    let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.node.config.as_deref(), &args.node.params)?;
-    let params = config.ros.clone();
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    node::init_tracing_with(&args.node.ros.log_levels);
+    let names = args.node.names("patch_mapper")?;
+    let loaded = args.node.load_config::<PatchMapperConfig>(&names)?;
+    let clock = NodeClock::new(loaded.use_sim_time);
+    let config = loaded.config;
+    let mut params = config.ros.clone();
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
+    let declared = Declared::new(&config, loaded.use_sim_time, &PARAMETERS)?;
 
-    let mut ros = RosNode::new("patch_mapper", network)?;
+    let mut ros = RosNode::with_names("patch_mapper", names, network)?;
     let mut depth_sub = ros.subscription::<Image>(&params.depth_topic, node::sensor_data_qos())?;
     let mut info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
     let mut imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
-    let patches_pub = ros.publisher::<PatchArray>(PATCHES_TOPIC, node::reliable_qos())?;
-    let markers_pub = ros.publisher::<MarkerArray>(MARKERS_TOPIC, node::reliable_qos())?;
-    let birds_eye_pub = ros.publisher::<PointCloud2>(BIRDS_EYE_TOPIC, node::reliable_qos())?;
-    let status_pub = ros.publisher::<MapperStatus>(STATUS_TOPIC, node::reliable_qos())?;
-    let mut reset_srv = ros.server::<Trigger>(RESET_SERVICE)?;
+    let patches_pub = ros.publisher::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;
+    let markers_pub = ros.publisher::<MarkerArray>(&ros.relative(MARKERS_TOPIC), node::reliable_qos())?;
+    let birds_eye_pub = ros.publisher::<PointCloud2>(&ros.relative(BIRDS_EYE_TOPIC), node::reliable_qos())?;
+    let status_pub = ros.publisher::<MapperStatus>(&ros.relative(STATUS_TOPIC), node::reliable_qos())?;
+    let mut reset_srv = ros.server::<Trigger>(&ros.relative(RESET_SERVICE))?;
     let diagnostics_pub =
         ros.publisher::<patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray>(diagnostics::DIAGNOSTICS_TOPIC, node::reliable_qos())?;
     let tf_tree = SharedTf::default();
@@ -501,6 +565,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;
+    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()))?;
     wakeup.watch(&mut depth_sub)?;
     wakeup.watch(&mut info_sub)?;
     wakeup.watch(&mut imu_sub)?;
@@ -510,7 +575,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         wakeup.watch(&mut listener.subscription)?;
     }
 
-    let status_period = Duration::try_from_secs_f64(params.status_period_s)
+    let mut status_period = Duration::try_from_secs_f64(params.status_period_s)
         .with_context(|| format!("ros.status_period_s = {} is not a duration", params.status_period_s))?;
     let log_period = Duration::try_from_secs_f64(params.log_period_s)
         .with_context(|| format!("ros.log_period_s = {} is not a duration", params.log_period_s))?;
@@ -544,6 +609,7 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
         tf: tf_tree,
         extrinsics,
         imu_frame: None,
+        parameters_since: None,
     };
     let worker_thread = {
         let (jobs, stop) = (job_rx.clone(), stop.clone());
@@ -553,11 +619,16 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
     // Two logs so the middleware's and the messages' warnings are limited independently.
     let mut dds_log = RateLimitedLog::new(log_period);
     let mut log = RateLimitedLog::new(log_period);
-    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx, params.max_stamp_skew_s, clock.clone());
+    let mut state = State::new(status.clone(), job_tx, job_rx, input_tx.clone(), params.max_stamp_skew_s, clock.clone());
     let mut next_status = Instant::now();
     let mut diagnostics_window = diagnostics::MapperWindow::default();
     let mut next_diagnostics = Instant::now() + diagnostics::DIAGNOSTICS_PERIOD;
-    tracing::info!(depth = %params.depth_topic, info = %params.camera_info_topic, imu = %params.imu_topic, "patch_mapper running");
+    tracing::info!(
+        depth = %ros.resolve_text(&params.depth_topic)?,
+        info = %ros.resolve_text(&params.camera_info_topic)?,
+        imu = %ros.resolve_text(&params.imu_topic)?,
+        "patch_mapper running"
+    );
 
     while !shutdown.requested() {
         // Time and the TF tree first: the inputs below are checked against them.
@@ -565,6 +636,23 @@ pub fn run(mut args: RunArgs) -> anyhow::Result<()> {
             listener.drain();
         }
         let mut more = tf_listener.drain();
+        // Parameter sets: the loop's own at once, the mapper's from the worker's next frame.
+        if let Some(update) = parameters.take_update() {
+            let new = &update.config.ros;
+            status_period = Duration::try_from_secs_f64(new.status_period_s).unwrap_or(status_period);
+            next_status = next_status.min(Instant::now() + status_period);
+            if let Ok(period) = Duration::try_from_secs_f64(new.log_period_s) {
+                (log, dds_log) = (RateLimitedLog::new(period), RateLimitedLog::new(period));
+            }
+            state.stamp_window = new.max_stamp_skew_s;
+            if update.changed("mapper") {
+                let _ =
+                    input_tx.send(WorkerInput::Mapper { config: Box::new(update.config.mapper.clone()), accepted_at: update.accepted_at });
+            }
+            params = update.config.ros.clone();
+            let ms = update.accepted_at.elapsed().as_secs_f64() * 1e3;
+            tracing::info!("parameters {} taken by the loop {ms:.2} ms after the set was accepted", update.keys.join(", "));
+        }
         more |= node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
         more |= node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log)) >= 256;
         more |= node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log)) >= 8;
@@ -678,7 +766,7 @@ mod tests {
         msg.header.stamp = Time { sec: 3, nanosec: 500_000_000 };
         msg.linear_acceleration.z = 9.81;
         state.on_imu(&msg, &mut log);
-        let WorkerInput::Imu { stamp, acceleration_in_imu, .. } = imu.try_recv().unwrap();
+        let WorkerInput::Imu { stamp, acceleration_in_imu, .. } = imu.try_recv().unwrap() else { panic!("expected an IMU sample") };
         assert_eq!((stamp, acceleration_in_imu.z), (3.5, 9.81));
         msg.linear_acceleration.x = f64::NAN;
         state.on_imu(&msg, &mut log);

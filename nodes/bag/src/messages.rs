@@ -44,9 +44,12 @@ impl Time {
         }
     }
 
-    /// The time of `seconds` (rounded to the nanosecond).
+    /// The time of `seconds` (rounded to the nanosecond; whole seconds and the fraction are
+    /// converted apart, as `seconds * 1e9` would lose the nanoseconds of an epoch time).
     pub fn from_seconds(seconds: f64) -> Self {
-        Self::from_nanos((seconds * 1e9).round() as i64)
+        let whole = seconds.floor();
+        let fraction_ns = ((seconds - whole) * 1e9).round() as i64;
+        Self::from_nanos((whole as i64).saturating_mul(1_000_000_000).saturating_add(fraction_ns))
     }
 
     pub fn nanos(&self) -> i64 {
@@ -441,9 +444,13 @@ mod tests {
 
     #[test]
     fn times_convert_to_and_from_seconds() {
+        assert_eq!(Time::from_seconds(2.5), Time { sec: 2, nanosec: 500_000_000 });
+        assert_eq!(Time::from_seconds(-0.25), Time { sec: -1, nanosec: 750_000_000 });
+        // An epoch stamp to the precision of its f64 (0.24 µs at 1.3e9 s); `seconds * 1e9` would round to 256 ns steps on top.
         let t = Time::from_seconds(1305031102.160407);
-        assert_eq!(t, Time { sec: 1305031102, nanosec: 160_407_000 });
-        assert!((t.seconds() - 1305031102.160407).abs() < 1e-6);
+        assert_eq!(t.sec, 1305031102);
+        assert!(t.nanosec.abs_diff(160_407_000) < 120, "{t:?}");
+        assert_eq!(Time::from_seconds(t.seconds()), t);
         assert_eq!(Time::from_nanos(-1), Time { sec: -1, nanosec: 999_999_999 });
         assert_eq!(Time::from_nanos(i64::MAX).sec, i32::MAX);
         assert_eq!(Time::from_nanos(1_500_000_000).nanos(), 1_500_000_000);

@@ -9,12 +9,15 @@ use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 
 use mcap::records::Record;
-use mcap::sans_io::{LinearReadEvent, LinearReader};
+use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use crate::cdr::CdrError;
 use crate::messages::RosMessage;
 use crate::metadata::StorageFilesFile;
 use crate::BagError;
+
+/// Largest record accepted inside a compressed chunk of a file smaller than it.
+const MAX_RECORD_IN_CHUNK: usize = 1 << 30;
 
 /// One message of a bag.
 #[derive(Debug, Clone, Copy)]
@@ -156,7 +159,11 @@ fn read_file(
     let mcap_error = |source| BagError::Mcap { path: path.to_path_buf(), source };
     let layout = |reason: String| BagError::Layout { path: path.to_path_buf(), reason };
     let mut file = std::fs::File::open(path).map_err(|source| BagError::Io { path: path.to_path_buf(), source })?;
-    let mut reader = LinearReader::new();
+    // A corrupt length field must not make the reader allocate it: no record is longer than the
+    // file, or than 1 GiB where a compressed chunk holds more than the file's size.
+    let file_len = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let limit = usize::try_from(file_len).unwrap_or(usize::MAX).max(MAX_RECORD_IN_CHUNK);
+    let mut reader = LinearReader::new_with_options(LinearReaderOptions::default().with_record_length_limit(limit));
     let mut schemas: HashMap<u16, Schema> = HashMap::new();
     let mut channels: HashMap<u16, Channel> = HashMap::new();
     while let Some(event) = reader.next_event() {
@@ -317,13 +324,13 @@ mod tests {
         let bytes = std::fs::read(&file).unwrap();
         let cut = dir.path().join("cut.mcap");
         std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-        let mut seen = 0;
-        let result = BagReader::open(&cut).unwrap().for_each(|_| {
-            seen += 1;
-            ControlFlow::Continue(())
-        });
-        assert!(seen < 7, "{seen}");
+        let result = BagReader::open(&cut).unwrap().for_each(|_| ControlFlow::Continue(()));
         assert!(matches!(result, Err(BagError::Mcap { .. })), "{result:?}");
+        // A record claiming an absurd length after a valid magic is an error, not an allocation.
+        let mut huge = b"\x89MCAP0\r\n".to_vec();
+        huge.extend_from_slice(&[0x01, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x6e]);
+        std::fs::write(&cut, &huge).unwrap();
+        assert!(matches!(BagReader::open(&cut).unwrap().for_each(|_| ControlFlow::Continue(())), Err(BagError::Mcap { .. })));
         std::fs::write(&cut, b"not an mcap file at all").unwrap();
         assert!(matches!(BagReader::open(&cut).unwrap().for_each(|_| ControlFlow::Continue(())), Err(BagError::Mcap { .. })));
         assert!(BagReader::open(dir.path()).is_err());

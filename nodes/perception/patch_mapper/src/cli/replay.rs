@@ -57,7 +57,7 @@ pub struct ReplayArgs {
     /// Override `dotted.key=value` (YAML value), as for `patch_mapper run`.
     #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
     pub params: Vec<String>,
-    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt and pictures.
+    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt, stats.json and pictures.
     #[arg(long, default_value = "replay_out")]
     pub out: PathBuf,
     /// Write a birds-eye picture every n frames (0: only the last frame).

@@ -239,7 +239,10 @@ mod tests {
         }
     }
 
-    fn collect(reader: &BagReader) -> Result<Vec<(String, String, usize, u64, Vec<u8>)>, BagError> {
+    /// topic, schema name, index, log time, data.
+    type Row = (String, String, usize, u64, Vec<u8>);
+
+    fn collect(reader: &BagReader) -> Result<Vec<Row>, BagError> {
         let mut out = Vec::new();
         reader.for_each(|m| {
             out.push((m.topic.to_string(), m.schema_name.to_string(), m.index, m.log_time_ns, m.data.to_vec()));

@@ -58,7 +58,7 @@ pub enum BagInputError {
     #[error(transparent)]
     Bag(#[from] BagError),
     #[error("{path}: no usable {what} on topic {topic}{}", .cause.as_ref().map(|c| format!(" (first problem: {c})")).unwrap_or_default())]
-    Missing { path: String, what: &'static str, topic: String, cause: Option<MessageError> },
+    Missing { path: String, what: &'static str, topic: String, cause: Option<Box<MessageError>> },
 }
 
 /// Depth in metres from a `sensor_msgs/Image` (16UC1/mono16 millimetres, 32FC1 metres).
@@ -233,7 +233,7 @@ impl BagInput {
             path: path_text.clone(),
             what,
             topic: topic.to_string(),
-            cause: errors.iter().find(|e| e.topic == topic).cloned(),
+            cause: errors.iter().find(|e| e.topic == topic).cloned().map(Box::new),
         };
         let Some(intrinsics) = intrinsics else {
             return Err(match broken {

@@ -2,12 +2,13 @@
 //!
 //! `scene` (table + rocks, J 6.3 Fig. 10) → `motion` (robot/head pose in front of a rock) →
 //! `camera` (Carmine 1.09-like depth camera with Murray–Little noise, J 2.1) and `imu` (100 Hz
-//! gravity + noise, J 2.2) → `record` (TUM-format dataset). The ROS 2 node is in the binary.
+//! gravity + noise, J 2.2) → `record` (TUM-format dataset) and `record_bag` (rosbag2 MCAP bag). The ROS 2 node is in the binary.
 
 pub mod camera;
 pub mod config;
 pub mod imu;
 pub mod motion;
 pub mod record;
+pub mod record_bag;
 pub mod scene;
 pub mod sim;

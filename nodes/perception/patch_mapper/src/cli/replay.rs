@@ -1,18 +1,24 @@
 //! `patch_mapper replay <dataset>`: the node's whole per-frame pipeline (gravity from the IMU, TSDF
 //! fusion + ICP, moving volume, birds-eye raycast, patch mapping and tracking) run offline over a
-//! recorded dataset, with the node's configuration (`config/patch_mapper.yaml` + `--param`).
+//! recorded dataset or rosbag2 MCAP bag, with the node's configuration (`config/patch_mapper.yaml` +
+//! `--param`).
 //! What the node would publish, without ROS: the final patch map as JSON lines, every seed's
 //! verdict per frame, the trajectory, and birds-eye pictures with the frame's patches (J Fig. 6
-//! colours). With ground truth (`groundtruth.txt`, e.g. from `terrain_sim record`) the patches are
-//! also given in the dataset's world frame, to compare with the scene's footholds.
+//! colours). With ground truth (`groundtruth.txt`, e.g. from `terrain_sim record`, a `--groundtruth`
+//! file, or a bag's ground-truth pose topic) the patches are also given in the dataset's world frame,
+//! to compare with the scene's footholds, and the trajectory's ATE is measured. `stats.json` holds
+//! the throughput and the ATE.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
-use patchwalk_fusion::dataset::{write_tum_poses, Dataset, StampedPose};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_fusion::dataset::{nearest_by_time, read_tum_poses, write_tum_poses, AccelSample, Dataset, StampedPose};
+use patchwalk_fusion::trajectory::absolute_trajectory_rmse;
 use patchwalk_mapping::mapper::FrameSummary;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
 use patchwalk_mapping::record::PatchRecord;
@@ -20,20 +26,38 @@ use patchwalk_mapping::render::render_patches;
 use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
+use super::bag_input::{BagInput, BagTopics};
 use crate::ros::PatchMapperConfig;
 
 /// Arguments of `patch_mapper replay`.
 #[derive(clap::Args, Debug)]
 pub struct ReplayArgs {
-    /// Dataset: TUM directory (depth.txt + accelerometer.txt [+ groundtruth.txt]).
+    /// Dataset: TUM directory (depth.txt + accelerometer.txt [+ groundtruth.txt]), or a rosbag2 MCAP
+    /// bag (a `.mcap` file or a bag directory with metadata.yaml).
     pub dataset: PathBuf,
+    /// Depth image topic of a bag (`sensor_msgs/msg/Image`, 16UC1 or 32FC1); default: the node's `ros.depth_topic`.
+    #[arg(long)]
+    pub depth_topic: Option<String>,
+    /// CameraInfo topic of a bag; default: the node's `ros.camera_info_topic`.
+    #[arg(long)]
+    pub camera_info_topic: Option<String>,
+    /// IMU topic of a bag (`sensor_msgs/msg/Imu`); default: the node's `ros.imu_topic`.
+    #[arg(long)]
+    pub imu_topic: Option<String>,
+    /// Ground-truth camera pose topic of a bag (`geometry_msgs/msg/PoseStamped`, or
+    /// `tf2_msgs/msg/TFMessage` with the camera frame as child), used when present.
+    #[arg(long, default_value = "/groundtruth")]
+    pub groundtruth_topic: String,
+    /// Ground-truth camera poses (TUM format: `t tx ty tz qx qy qz qw`), instead of the dataset's own.
+    #[arg(long)]
+    pub groundtruth: Option<PathBuf>,
     /// The node's YAML configuration (config/patch_mapper.yaml); embedded defaults when omitted.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Override `dotted.key=value` (YAML value), as for `patch_mapper run`.
     #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
     pub params: Vec<String>,
-    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt and pictures.
+    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt, stats.json and pictures.
     #[arg(long, default_value = "replay_out")]
     pub out: PathBuf,
     /// Write a birds-eye picture every n frames (0: only the last frame).
@@ -69,57 +93,245 @@ struct MapLine {
     record: PatchRecord,
 }
 
+/// stats.json: how fast the replay ran and how well it tracked.
+#[derive(Serialize)]
+struct Stats {
+    input: String,
+    frames: usize,
+    frames_skipped: usize,
+    messages_skipped: usize,
+    seconds: f64,
+    frames_per_s: f64,
+    pipeline_median_ms: f64,
+    ate_m: Option<f64>,
+    ate_frames: usize,
+    patches: usize,
+}
+
+/// The recorded input: a dataset directory or a bag, and what the replay loop needs of it.
+enum Input {
+    Dataset(Dataset),
+    Bag(BagInput),
+}
+
+/// A rosbag2 bag: an `.mcap` file or a directory with `metadata.yaml`.
+pub fn is_bag(path: &Path) -> bool {
+    (path.is_file() && path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"))) || path.join("metadata.yaml").is_file()
+}
+
+impl Input {
+    fn open(args: &ReplayArgs, config: &PatchMapperConfig) -> Result<Self> {
+        if !is_bag(&args.dataset) {
+            let dataset = Dataset::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
+            return Ok(Input::Dataset(dataset));
+        }
+        let topics = BagTopics {
+            depth: args.depth_topic.clone().unwrap_or_else(|| config.ros.depth_topic.clone()),
+            camera_info: args.camera_info_topic.clone().unwrap_or_else(|| config.ros.camera_info_topic.clone()),
+            imu: args.imu_topic.clone().unwrap_or_else(|| config.ros.imu_topic.clone()),
+            groundtruth: args.groundtruth_topic.clone(),
+        };
+        let bag = BagInput::open(&args.dataset, topics).with_context(|| format!("reading the bag {}", args.dataset.display()))?;
+        Ok(Input::Bag(bag))
+    }
+
+    fn intrinsics(&self) -> Intrinsics {
+        match self {
+            Input::Dataset(d) => d.intrinsics,
+            Input::Bag(b) => b.intrinsics,
+        }
+    }
+
+    fn frame_stamps(&self) -> Vec<f64> {
+        match self {
+            Input::Dataset(d) => d.frames.iter().map(|f| f.timestamp).collect(),
+            Input::Bag(b) => b.frames.iter().map(|f| f.timestamp).collect(),
+        }
+    }
+
+    fn accelerometer(&self) -> &[AccelSample] {
+        match self {
+            Input::Dataset(d) => &d.accelerometer,
+            Input::Bag(b) => &b.accelerometer,
+        }
+    }
+
+    fn groundtruth(&self) -> &[StampedPose] {
+        match self {
+            Input::Dataset(d) => &d.groundtruth,
+            Input::Bag(b) => &b.groundtruth,
+        }
+    }
+}
+
+/// Ground-truth pose nearest in time to `timestamp`, if one lies within `max_gap` seconds.
+fn groundtruth_near(poses: &[StampedPose], timestamp: f64, max_gap: f64) -> Option<StampedPose> {
+    nearest_by_time(poses, timestamp, |pose| pose.timestamp).filter(|pose| (pose.timestamp - timestamp).abs() <= max_gap).copied()
+}
+
+/// Largest gap between a frame and its ground-truth pose (TUM's association window).
+const GROUNDTRUTH_MAX_GAP_S: f64 = 0.02;
+
 pub fn run(args: ReplayArgs) -> Result<()> {
     let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.config.as_deref(), &args.params)?;
-    let dataset = Dataset::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
-    let mut pipeline = Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), dataset.intrinsics)?;
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let seeds_path = args.out.join("seeds.jsonl");
-    let mut seeds_out =
-        std::io::BufWriter::new(std::fs::File::create(&seeds_path).with_context(|| format!("creating {}", seeds_path.display()))?);
-    let count = dataset.frames.len().min(args.max_frames.unwrap_or(usize::MAX));
-    let bar = ProgressBar::new(count as u64);
-    bar.set_style(
-        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed_precise} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let mut next_imu = 0;
-    let mut world_from_map: Option<Isometry3<f64>> = None;
-    let mut trajectory = Vec::new();
-    let mut summary = FrameSummary::default();
-    let (mut skipped, mut total_ms) = (0usize, Vec::new());
-    for index in 0..count {
-        let frame = &dataset.frames[index];
-        // The IMU samples up to the frame stamp (+ the averaging half window), in stamp order, as a driver delivers them.
-        let until = frame.timestamp + config.mapper.acquire.accel_half_window_s;
-        while let Some(sample) = dataset.accelerometer.get(next_imu).filter(|s| s.timestamp <= until) {
-            if let Err(err) = pipeline.push_imu(sample.timestamp, sample.acceleration_in_imu) {
-                bar.println(format!("IMU sample {next_imu} skipped: {err}"));
+    let input = Input::open(&args, &config)?;
+    let stamps = input.frame_stamps();
+    let count = stamps.len().min(args.max_frames.unwrap_or(usize::MAX));
+    let groundtruth = match &args.groundtruth {
+        Some(path) => read_tum_poses(path).with_context(|| format!("reading ground truth {}", path.display()))?,
+        None => input.groundtruth().to_vec(),
+    };
+    if let Input::Bag(bag) = &input {
+        report_bag_errors(bag);
+    }
+    let started = Instant::now();
+    let mut replay = Replay::new(&args, &config, input.intrinsics(), input.accelerometer(), &groundtruth, count)?;
+    // Why the bag could not be read to its end: reported after the frames before the damage are written.
+    let mut damage = None;
+    match &input {
+        Input::Dataset(dataset) => {
+            for (index, timestamp) in stamps.iter().take(count).enumerate() {
+                replay.frame(index, *timestamp, Ok(dataset.load_depth(index)?))?;
             }
-            next_imu += 1;
         }
-        let depth = dataset.load_depth(index)?;
-        let output = match pipeline.process(&depth, frame.timestamp) {
+        Input::Bag(bag) => {
+            // The bag's depth frames are decoded on a second thread while the pipeline runs.
+            let streamed = std::thread::scope(|scope| -> Result<Result<(), patchwalk_bag::BagError>> {
+                let (sender, receiver) = crossbeam_channel::bounded(2);
+                let reader = scope.spawn(move || bag.stream_depth(count, |index, depth| sender.send((index, depth)).is_ok()));
+                let mut replayed = Ok(());
+                for (index, depth) in receiver.iter() {
+                    let timestamp = stamps.get(index).copied().unwrap_or(f64::NAN);
+                    replayed = replay.frame(index, timestamp, depth.map_err(|e| e.to_string()));
+                    if replayed.is_err() {
+                        break;
+                    }
+                }
+                // Dropping the receiver stops the reading thread.
+                drop(receiver);
+                let streamed = reader.join().map_err(|_| anyhow::anyhow!("the bag reading thread failed"))?;
+                replayed.map(|()| streamed)
+            })?;
+            damage = bag.broken.as_ref().map(ToString::to_string).or_else(|| streamed.err().map(|e| e.to_string()));
+        }
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let messages_skipped = match &input {
+        Input::Bag(bag) => bag.errors.len(),
+        Input::Dataset(_) => 0,
+    };
+    replay.finish(&args, elapsed, messages_skipped)?;
+    match damage {
+        Some(err) => anyhow::bail!("the bag could not be read to its end (the frames before the damage were replayed): {err}"),
+        None => Ok(()),
+    }
+}
+
+/// Prints the skipped messages of a bag: up to 5 per topic, then a count.
+fn report_bag_errors(bag: &BagInput) {
+    let mut shown: std::collections::BTreeMap<&str, usize> = std::collections::BTreeMap::new();
+    for err in &bag.errors {
+        let n = shown.entry(err.topic.as_str()).or_default();
+        *n += 1;
+        if *n <= 5 {
+            eprintln!("skipped: {err}");
+        }
+    }
+    for (topic, n) in shown.iter().filter(|(_, n)| **n > 5) {
+        eprintln!("skipped: {} more messages of {topic}", n - 5);
+    }
+}
+
+/// The replay loop's state: the pipeline, the outputs being written, the trajectory.
+struct Replay<'a> {
+    pipeline: Pipeline,
+    accelerometer: &'a [AccelSample],
+    groundtruth: &'a [StampedPose],
+    half_window_s: f64,
+    out: PathBuf,
+    picture_every: usize,
+    count: usize,
+    seeds_path: PathBuf,
+    seeds_out: std::io::BufWriter<std::fs::File>,
+    bar: ProgressBar,
+    next_imu: usize,
+    world_from_map: Option<Isometry3<f64>>,
+    trajectory: Vec<StampedPose>,
+    summary: FrameSummary,
+    skipped: usize,
+    total_ms: Vec<f64>,
+}
+
+impl<'a> Replay<'a> {
+    fn new(
+        args: &ReplayArgs,
+        config: &PatchMapperConfig,
+        intrinsics: Intrinsics,
+        accelerometer: &'a [AccelSample],
+        groundtruth: &'a [StampedPose],
+        count: usize,
+    ) -> Result<Self> {
+        let pipeline = Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), intrinsics)?;
+        std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+        let seeds_path = args.out.join("seeds.jsonl");
+        let seeds_out =
+            std::io::BufWriter::new(std::fs::File::create(&seeds_path).with_context(|| format!("creating {}", seeds_path.display()))?);
+        let bar = ProgressBar::new(count as u64);
+        bar.set_style(
+            ProgressStyle::with_template("{bar:40} {pos}/{len} frames {elapsed_precise} {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        Ok(Self {
+            pipeline,
+            accelerometer,
+            groundtruth,
+            half_window_s: config.mapper.acquire.accel_half_window_s,
+            out: args.out.clone(),
+            picture_every: args.picture_every,
+            count,
+            seeds_path,
+            seeds_out,
+            bar,
+            next_imu: 0,
+            world_from_map: None,
+            trajectory: Vec::new(),
+            summary: FrameSummary::default(),
+            skipped: 0,
+            total_ms: Vec::new(),
+        })
+    }
+
+    /// Runs the pipeline on frame `index` (or counts it skipped when its depth could not be read).
+    fn frame(&mut self, index: usize, timestamp: f64, depth: std::result::Result<DepthImage, String>) -> Result<()> {
+        // The IMU samples up to the frame stamp (+ the averaging half window), in stamp order, as a driver delivers them.
+        let until = timestamp + self.half_window_s;
+        while let Some(sample) = self.accelerometer.get(self.next_imu).filter(|s| s.timestamp <= until) {
+            if let Err(err) = self.pipeline.push_imu(sample.timestamp, sample.acceleration_in_imu) {
+                self.bar.println(format!("IMU sample {} skipped: {err}", self.next_imu));
+            }
+            self.next_imu += 1;
+        }
+        let output = match depth.map_err(anyhow::Error::msg).and_then(|d| Ok(self.pipeline.process(&d, timestamp)?)) {
             Ok(output) => output,
             Err(err) => {
-                bar.println(format!("frame {index} skipped: {err}"));
-                skipped += 1;
-                bar.inc(1);
-                continue;
+                self.bar.println(format!("frame {index} skipped: {err}"));
+                self.skipped += 1;
+                self.bar.inc(1);
+                return Ok(());
             }
         };
-        if world_from_map.is_none() {
-            world_from_map =
-                dataset.groundtruth_near(frame.timestamp, 0.02).map(|gt| gt.world_from_camera * output.map_from_camera.inverse());
+        if self.world_from_map.is_none() {
+            self.world_from_map = groundtruth_near(self.groundtruth, timestamp, GROUNDTRUTH_MAX_GAP_S)
+                .map(|gt| gt.world_from_camera * output.map_from_camera.inverse());
         }
-        trajectory.push(StampedPose { timestamp: frame.timestamp, world_from_camera: output.map_from_camera });
-        summary.add(&output.mapped);
-        total_ms.push(output.timings.total_ms);
+        self.trajectory.push(StampedPose { timestamp, world_from_camera: output.map_from_camera });
+        self.summary.add(&output.mapped);
+        self.total_ms.push(output.timings.total_ms);
         for outcome in &output.seeds {
             let Some(patch) = outcome.patch_in_camera.as_ref().and_then(|p| transform_patch(p, &output.map_from_birds_eye)) else {
                 continue;
             };
-            let center_in_world = world_from_map.map(|w| (w * nalgebra::Point3::from(patch.center)).coords.into());
+            let center_in_world = self.world_from_map.map(|w| (w * nalgebra::Point3::from(patch.center)).coords.into());
             let line = SeedLine {
                 frame: index,
                 neighbourhood_points: outcome.neighbourhood_size,
@@ -127,51 +339,89 @@ pub fn run(args: ReplayArgs) -> Result<()> {
                 center_in_world,
                 record: PatchRecord::with_verdict(patch, &outcome.verdict, outcome.validation.as_ref()),
             };
-            serde_json::to_writer(&mut seeds_out, &line)?;
-            seeds_out.write_all(b"\n")?;
+            serde_json::to_writer(&mut self.seeds_out, &line)?;
+            self.seeds_out.write_all(b"\n")?;
         }
-        let last = index + 1 == count;
-        if last || (args.picture_every > 0 && index % args.picture_every == 0) {
-            let path = args.out.join(format!("birds_eye_{index:05}.png"));
+        let last = index + 1 == self.count;
+        if last || (self.picture_every > 0 && index % self.picture_every == 0) {
+            let path = self.out.join(format!("birds_eye_{index:05}.png"));
             render_patches(&output.birds_eye.depth, &output.birds_eye.intrinsics, &output.seeds).save_png(&path)?;
         }
         if last {
             // The last birds-eye cloud in the map frame, as CSV (x,y,z), readable by `patch_mapper fit`.
             let cloud = birds_eye_points_in_map(&output.birds_eye, &output.map_from_birds_eye);
             let text: String = cloud.iter().map(|p| format!("{},{},{}\n", p.x, p.y, p.z)).collect();
-            let path = args.out.join("birds_eye_last_in_map.csv");
+            let path = self.out.join("birds_eye_last_in_map.csv");
             std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         }
-        bar.set_message(format!("{} patches in the map", pipeline.map().len()));
-        bar.inc(1);
+        self.bar.set_message(format!("{} patches in the map", self.pipeline.map().len()));
+        self.bar.inc(1);
+        Ok(())
     }
-    bar.finish_and_clear();
-    seeds_out.flush()?;
-    write_tum_poses(&args.out.join("trajectory.txt"), &trajectory)?;
-    let map_path = args.out.join("patches.jsonl");
-    let mut map_out =
-        std::io::BufWriter::new(std::fs::File::create(&map_path).with_context(|| format!("creating {}", map_path.display()))?);
-    for mapped in pipeline.map().patches() {
-        let line = MapLine {
-            id: mapped.id,
-            first_seen: mapped.first_seen,
-            last_seen: mapped.last_seen,
-            center_in_world: world_from_map.map(|w| (w * nalgebra::Point3::from(mapped.patch.center)).coords.into()),
-            normal_in_world: world_from_map.map(|w| (w.rotation * mapped.patch.normal()).into()),
-            record: PatchRecord::mapped(mapped.patch.clone()),
+
+    /// The trajectory's ATE against the ground truth (poses matched within the association window).
+    fn ate(&self) -> (Option<f64>, usize) {
+        let (estimate, reference): (Vec<_>, Vec<_>) = self
+            .trajectory
+            .iter()
+            .filter_map(|pose| {
+                groundtruth_near(self.groundtruth, pose.timestamp, GROUNDTRUTH_MAX_GAP_S)
+                    .map(|gt| (pose.world_from_camera, gt.world_from_camera))
+            })
+            .unzip();
+        let ate = if estimate.len() >= 3 { absolute_trajectory_rmse(&estimate, &reference) } else { None };
+        (ate, estimate.len())
+    }
+
+    fn finish(mut self, args: &ReplayArgs, elapsed_s: f64, messages_skipped: usize) -> Result<()> {
+        self.bar.finish_and_clear();
+        self.seeds_out.flush()?;
+        write_tum_poses(&self.out.join("trajectory.txt"), &self.trajectory)?;
+        let map_path = self.out.join("patches.jsonl");
+        let mut map_out =
+            std::io::BufWriter::new(std::fs::File::create(&map_path).with_context(|| format!("creating {}", map_path.display()))?);
+        for mapped in self.pipeline.map().patches() {
+            let line = MapLine {
+                id: mapped.id,
+                first_seen: mapped.first_seen,
+                last_seen: mapped.last_seen,
+                center_in_world: self.world_from_map.map(|w| (w * nalgebra::Point3::from(mapped.patch.center)).coords.into()),
+                normal_in_world: self.world_from_map.map(|w| (w.rotation * mapped.patch.normal()).into()),
+                record: PatchRecord::mapped(mapped.patch.clone()),
+            };
+            serde_json::to_writer(&mut map_out, &line)?;
+            map_out.write_all(b"\n")?;
+        }
+        map_out.flush()?;
+        let mut total_ms = self.total_ms.clone();
+        total_ms.sort_by(f64::total_cmp);
+        let median = total_ms.get(total_ms.len() / 2).copied().unwrap_or(f64::NAN);
+        let (count, skipped, summary) = (self.count, self.skipped, &self.summary);
+        println!(
+            "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} | failed {} skipped {}",
+            summary.seeds, summary.fitted, summary.valid, summary.residual, summary.coverage, summary.curvature, summary.failed, summary.skipped
+        );
+        let (ate, ate_frames) = self.ate();
+        let frames_per_s = count as f64 / elapsed_s.max(1e-9);
+        let ate_text = ate.map_or_else(|| "no ground truth".to_string(), |a| format!("ATE {:.2} mm over {ate_frames} frames", a * 1e3));
+        println!("replay: {count} frames in {elapsed_s:.2} s ({frames_per_s:.2} frames/s, reading included); {ate_text}");
+        println!("final map: {} patches -> {}; seeds -> {}", self.pipeline.map().len(), map_path.display(), self.seeds_path.display());
+        let stats = Stats {
+            input: args.dataset.display().to_string(),
+            frames: count,
+            frames_skipped: skipped,
+            messages_skipped,
+            seconds: elapsed_s,
+            frames_per_s,
+            pipeline_median_ms: median,
+            ate_m: ate,
+            ate_frames,
+            patches: self.pipeline.map().len(),
         };
-        serde_json::to_writer(&mut map_out, &line)?;
-        map_out.write_all(b"\n")?;
+        let path = self.out.join("stats.json");
+        std::fs::write(&path, serde_json::to_string_pretty(&stats)?).with_context(|| format!("writing {}", path.display()))?;
+        Ok(())
     }
-    map_out.flush()?;
-    total_ms.sort_by(f64::total_cmp);
-    let median = total_ms.get(total_ms.len() / 2).copied().unwrap_or(f64::NAN);
-    println!(
-        "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} | failed {} skipped {}",
-        summary.seeds, summary.fitted, summary.valid, summary.residual, summary.coverage, summary.curvature, summary.failed, summary.skipped
-    );
-    println!("final map: {} patches -> {}; seeds -> {}", pipeline.map().len(), map_path.display(), seeds_path.display());
-    Ok(())
 }
 
 #[cfg(test)]

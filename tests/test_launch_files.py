@@ -181,8 +181,6 @@ def _params_cases():
     return [pytest.param(f, n, id=f"{f}:{n.name}") for f, n in _patchwalk_nodes() if n.args and n.args[0] == "run"]
 
 
-@pytest.mark.xfail(strict=False, reason="the nodes do not take rcl's --ros-args (--params-file, -r from:=to, __node) yet; "
-                                       "launch_ros starts them with these arguments")
 @pytest.mark.parametrize("launch_name, node", _params_cases())
 def test_node_comes_up_with_the_ros_args_launch_ros_passes(ros, log_dir, tmp_path, launch_name, node):
     """`<exe> <args> --ros-args -r __node:=N --params-file F... -r from:=to`, as launch_ros builds it (the

@@ -114,7 +114,7 @@ fn action_qos() -> ActionServerQosPolicies {
 impl PlayMotionAction {
     pub fn new(ros: &mut RosNode) -> Result<Self, NodeError> {
         let err = |reason: String| NodeError::Endpoint { what: "action server", name: PLAY_MOTION_ACTION.to_string(), reason };
-        let name = node::ros_name(PLAY_MOTION_ACTION)?;
+        let name = ros.resolve(&ros.relative(PLAY_MOTION_ACTION))?;
         let node = ros.node_mut().ok_or_else(|| err("the node is shutting down".into()))?;
         let server = node
             .create_action_server::<PlayMotionGoal, PlayMotionResult, PlayMotionFeedback>(

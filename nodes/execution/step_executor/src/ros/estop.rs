@@ -36,8 +36,8 @@ pub struct EStopTopic {
 
 impl EStopTopic {
     pub fn new(ros: &mut RosNode) -> Result<Self, NodeError> {
-        let sub = ros.subscription::<Bool>(ESTOP_TOPIC, latched_qos())?;
-        let state_pub = ros.publisher::<Bool>(ESTOP_STATE_TOPIC, latched_qos())?;
+        let sub = ros.subscription::<Bool>(&ros.relative(ESTOP_TOPIC), latched_qos())?;
+        let state_pub = ros.publisher::<Bool>(&ros.relative(ESTOP_STATE_TOPIC), latched_qos())?;
         Ok(Self { sub, state_pub, published: None })
     }
 

@@ -558,14 +558,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut arm_srv = ros.server::<SetBool>(&ros.relative(ARM))?;
     let mut reset_estop_srv = ros.server::<Trigger>(&ros.relative(RESET_ESTOP))?;
     let mut estop_topic = EStopTopic::new(&mut ros)?;
-    let mut heartbeat_sub = ros.subscription::<Empty>(HEARTBEAT_TOPIC, heartbeat::heartbeat_qos())?;
+    let mut heartbeat_sub = ros.subscription::<Empty>(&ros.relative(HEARTBEAT_TOPIC), heartbeat::heartbeat_qos())?;
     let mut play_action = PlayMotionAction::new(&mut ros)?;
     let diagnostics_pub = ros.publisher::<DiagnosticArray>(DIAGNOSTICS_TOPIC, node::reliable_qos())?;
     let _robot_description_pub = tf::publish_robot_description(&mut ros, urdf)?;
     let tf_tree = SharedTf::default();
     let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
     let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
-    let mut reboot_servos_srv = ros.server::<srv::RebootServos>(REBOOT_SERVOS)?;
+    let mut reboot_servos_srv = ros.server::<srv::RebootServos>(&ros.relative(REBOOT_SERVOS))?;
 
     // The loop sleeps until an input is ready, a job finishes, the bus thread has a motion cycle or
     // an event, or a periodic output is due.

@@ -38,7 +38,7 @@ pub fn urdf_text(urdf_path: &Path) -> String {
 
 /// Publishes the URDF once (transient local keeps it for late subscribers).
 pub fn publish_robot_description(ros: &mut RosNode, urdf: String) -> Result<Publisher<StringMsg>, NodeError> {
-    let publisher = ros.publisher::<StringMsg>(ROBOT_DESCRIPTION_TOPIC, robot_description_qos())?;
+    let publisher = ros.publisher::<StringMsg>(&ros.relative(ROBOT_DESCRIPTION_TOPIC), robot_description_qos())?;
     node::publish(&publisher, ROBOT_DESCRIPTION_TOPIC, StringMsg { data: urdf }, &mut RateLimitedLog::default());
     Ok(publisher)
 }

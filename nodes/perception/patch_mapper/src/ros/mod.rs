@@ -824,7 +824,7 @@ mod tests {
         assert!(imu.try_recv().is_err(), "11 s ahead of simulated time");
         sample.header.stamp = Time { sec: 0, nanosec: 0 };
         state.on_imu(&sample, &mut log);
-        let WorkerInput::Imu { stamp, .. } = imu.try_recv().unwrap();
+        let WorkerInput::Imu { stamp, .. } = imu.try_recv().unwrap() else { panic!("expected an IMU sample") };
         assert_eq!(stamp, 20.0, "an unset stamp is the node clock's now");
     }
 }

@@ -65,8 +65,6 @@ def test_keystore_has_the_sros2_layout_and_verifies(keystore):
 
 def test_only_credentialed_participants_see_a_secured_executor(ros, start_node, keystore):
     from patchwalk_msgs.msg import ExecutorStatus
-    from std_srvs.srv import SetBool
-
     executor = start_node("step_executor", "--param", "ros.status_rate_hz=20",
                           env=secure(keystore, "/patchwalk/step_executor"))
     # An operator with valid credentials sees the (encrypted) status.
@@ -87,12 +85,12 @@ def test_only_credentialed_participants_see_a_secured_executor(ros, start_node, 
                              capture_output=True, text=True, timeout=60, cwd=pw.REPO)
     assert refused.returncode != 0
     assert "Not allowed to create a DataWriter to topic rq/step_executor/armRequest" in refused.stderr, refused.stderr
-    # rclpy (Fast DDS without security plugins) is unauthenticated too.
+    # rclpy (Fast DDS without security plugins) is unauthenticated too: no status reaches it. (Whether a
+    # service looks ready is no proof either way: endpoints of nodes killed by earlier tests on this
+    # domain stay in rclpy's discovery cache until their lease ends.)
     status = ros.collect(ExecutorStatus, "/step_executor/status")
-    client = ros.client(SetBool, "/step_executor/arm")
     time.sleep(3.0)
     assert not status.messages
-    assert not client.service_is_ready()
     assert executor.alive()
 
 

@@ -145,6 +145,10 @@ def test_injected_faults_are_seen_by_the_sdk(sim_bus, sdk):
     assert error & ALERT and value == 0x20
     result, error = packet.reboot(port, 5)
     assert result == dxl.COMM_SUCCESS
+    # A rebooting servo is silent for its boot time (as a real MX-28): ping until it answers.
+    deadline = time.monotonic() + 5.0
+    while packet.ping(port, 5)[1] != dxl.COMM_SUCCESS:
+        assert time.monotonic() < deadline, "servo 5 did not answer within 5 s of its reboot"
     value, result, error = packet.read1ByteTxRx(port, 5, ADDR_HW_ERROR)
     ok(result, error)
     assert value == 0

@@ -4,7 +4,9 @@
 
 use ros2_client::{ActionTypeName, Message, MessageTypeName, ServiceTypeName};
 
-use crate::{action, diagnostic_msgs, msg, rosgraph_msgs, sensor_msgs, srv, std_msgs, std_srvs, tf2_msgs, visualization_msgs};
+use crate::{
+    action, diagnostic_msgs, msg, rcl_interfaces, rosgraph_msgs, sensor_msgs, srv, std_msgs, std_srvs, tf2_msgs, visualization_msgs,
+};
 
 /// A message type with its ROS 2 name `package/msg/Name`.
 pub trait RosMessage: Message + Clone + Send + 'static {
@@ -133,6 +135,10 @@ ros_message!("tf2_msgs",
 
 ros_message!("rosgraph_msgs",
     rosgraph_msgs::msg::Clock => "Clock",
+);
+
+ros_message!("rcl_interfaces",
+    rcl_interfaces::msg::Log => "Log",
 );
 
 ros_service!("patchwalk_msgs",

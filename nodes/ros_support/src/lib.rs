@@ -17,6 +17,7 @@
 //!   directory (ament index, for a colcon install), source tree.
 //! - [`tf_buffer`]: a transform tree (static + dynamic with interpolation), `target_from_source`
 //!   lookups at a stamp; [`tf`]: its `/tf` + `/tf_static` listener and broadcasters (tf2_ros QoS).
+//! - [`rosout`]: the node's log lines on `/rosout` (`rcl_interfaces/msg/Log`).
 //! - [`clock`]: the node clock (wall, or `/clock` with `use_sim_time`) and a `/clock` publisher.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
@@ -31,6 +32,7 @@ pub mod params;
 pub mod patch_msg;
 pub mod process;
 pub mod ros_args;
+pub mod rosout;
 pub mod security;
 pub mod share;
 pub mod tf;

@@ -185,6 +185,8 @@ pub struct RosNode {
     network: DdsNetwork,
     names: NodeNames,
     default_name: String,
+    /// Publishes the log lines on `/rosout`; stopped before the node goes.
+    rosout: Option<crate::rosout::RosoutForwarder>,
 }
 
 impl RosNode {
@@ -236,7 +238,35 @@ impl RosNode {
             })
             .map_err(|e| node_err(format!("cannot start the spinner thread: {e}")))?;
         tracing::info!(node = %names.fully_qualified(), domain_id, ?network, "ROS 2 node up");
-        Ok(RosNode { node: Some(node), spinner: Some(spinner), context, network, names, default_name: default_name.to_string() })
+        let mut ros = RosNode {
+            node: Some(node),
+            spinner: Some(spinner),
+            context,
+            network,
+            names,
+            default_name: default_name.to_string(),
+            rosout: None,
+        };
+        ros.start_rosout()?;
+        Ok(ros)
+    }
+
+    /// Forward the log lines to `/rosout` (rcl's topic and QoS), named by the node.
+    fn start_rosout(&mut self) -> Result<(), NodeError> {
+        let publisher =
+            self.publisher::<patchwalk_msgs::rcl_interfaces::msg::Log>(crate::rosout::ROSOUT_TOPIC, crate::rosout::rosout_qos())?;
+        let logger = self.names.fully_qualified().trim_start_matches('/').replace('/', ".");
+        let forwarder = crate::rosout::RosoutForwarder::start(logger, crate::rosout::take_queue(), move |msg| {
+            // A failed write is not logged: that line would come back here.
+            let _ = publisher.publish(msg);
+        })
+        .map_err(|e| NodeError::Endpoint {
+            what: "publisher",
+            name: crate::rosout::ROSOUT_TOPIC.into(),
+            reason: e.to_string(),
+        })?;
+        self.rosout = Some(forwarder);
+        Ok(())
     }
 
     /// The node's name, namespace and remaps.
@@ -336,6 +366,7 @@ impl Drop for RosNode {
     fn drop(&mut self) {
         // Dropping the node tells the spinner to stop; then wait for it so the participant leaves the
         // graph cleanly when the context is dropped.
+        drop(self.rosout.take());
         drop(self.node.take());
         if let Some(handle) = self.spinner.take() {
             if handle.join().is_err() {
@@ -502,11 +533,14 @@ pub fn init_tracing_with(levels: &[LogLevel]) {
     let filter = tracing_subscriber::EnvFilter::try_new(directives.join(","))
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(DEFAULT_LOG_FILTER));
     // Ignore the error of a second initialisation (tests, embedded use).
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .with_writer(std::io::stderr)
-        .try_init();
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    let stderr =
+        tracing_subscriber::fmt::layer().with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr())).with_writer(std::io::stderr);
+    // The same lines go to /rosout once a node is up (crate::rosout).
+    if tracing_subscriber::registry().with(filter).with(stderr).with(crate::rosout::RosoutLayer).try_init().is_ok() {
+        crate::rosout::open_early();
+    }
 }
 
 /// At most one warning per key and period, with the number of suppressed ones (journal-style

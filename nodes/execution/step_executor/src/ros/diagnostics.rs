@@ -10,6 +10,7 @@ use patchwalk_msgs::std_msgs::msg::Header;
 use patchwalk_ros::node;
 use step_executor::config::ServoConfig;
 use step_executor::executor::Telemetry;
+use step_executor::health::BusHealth;
 use step_executor::runtime::{RunState, RuntimeStatus};
 
 /// The diagnostics topic (REP-107).
@@ -73,7 +74,16 @@ pub struct Snapshot<'a> {
     pub heartbeat_timeout: Duration,
     pub deadman_engaged: bool,
     pub action_goal_active: bool,
+    /// The bus thread's health record (per servo and for the cycle), when there is a bus.
+    pub health: Option<&'a BusHealth>,
 }
+
+/// Present temperature from which a servo is reported WARN (the MX-28 shuts down at its limit, 80 °C
+/// by default).
+pub const HOT_C: u8 = 70;
+/// The MX-28's default input voltage limits (Min/Max Voltage Limit, 9.5 V and 16.0 V): outside them
+/// the servo sets its input-voltage error.
+pub const VOLTAGE_RANGE_V: (f64, f64) = (9.5, 16.0);
 
 fn kv(key: &str, value: impl ToString) -> KeyValue {
     KeyValue { key: key.to_string(), value: value.to_string() }
@@ -123,9 +133,8 @@ fn bus_status(s: &Snapshot<'_>) -> DiagnosticStatus {
     }
 }
 
-/// One status per servo from what the telemetry carries today (whether the servo answered its
-/// position read, the position). Per-servo bus health (communication errors, hardware-error bits,
-/// temperature, voltage) is added here when the telemetry carries it.
+/// One status per servo: whether it answered its position read, the position, and from the bus
+/// health its communication errors, hardware-error bits, temperature and input voltage.
 pub fn servo_statuses(s: &Snapshot<'_>, window: &CycleWindow) -> Vec<DiagnosticStatus> {
     if !s.has_bus {
         return Vec::new();
@@ -142,9 +151,34 @@ pub fn servo_statuses(s: &Snapshot<'_>, window: &CycleWindow) -> Vec<DiagnosticS
             if let Some(q) = position {
                 values.push(kv("position_rad", format!("{q:.4}")));
             }
+            let health = s.health.and_then(|h| h.servos.iter().find(|v| v.id == servo.id));
+            if let Some(h) = health {
+                values.push(kv("comm_errors", h.comm_errors));
+                values.push(kv("hardware_error", format!("0x{:02x}", h.hardware_error)));
+                if let Some(e) = &h.last_error {
+                    values.push(kv("last_error", e));
+                }
+                if let Some(t) = h.temperature_c {
+                    values.push(kv("temperature_c", t));
+                }
+                if let Some(v) = h.input_voltage_v {
+                    values.push(kv("input_voltage_v", format!("{v:.1}")));
+                }
+            }
             let faulted = s.status.state == RunState::HoldingFault && s.status.fault_servo_id == servo.id;
+            let hardware = health.map_or(0, |h| h.hardware_error);
+            let hot = health.and_then(|h| h.temperature_c).filter(|t| *t >= HOT_C);
+            let voltage = health.and_then(|h| h.input_voltage_v).filter(|v| *v < VOLTAGE_RANGE_V.0 || *v > VOLTAGE_RANGE_V.1);
             match (faulted, position, missed) {
                 (true, _, _) => status(ERROR, &name, format!("faulted: {}", s.status.last_fault), values),
+                _ if hardware != 0 => {
+                    let names = patchwalk_dynamixel::mx28::hardware_error_names(hardware).join(", ");
+                    status(ERROR, &name, format!("hardware error 0x{hardware:02x} ({names}): reboot_servos clears it"), values)
+                }
+                _ if hot.is_some() => status(WARN, &name, format!("{} °C, near the shutdown limit", hot.unwrap_or_default()), values),
+                _ if voltage.is_some() => {
+                    status(WARN, &name, format!("input {:.1} V outside 9.5–16.0 V", voltage.unwrap_or_default()), values)
+                }
                 (false, None, _) => status(WARN, &name, "no position reading in the last cycle", values),
                 (false, Some(_), m) if m > 0 => status(WARN, &name, format!("{m} position reads failed in the last second"), values),
                 _ => status(OK, &name, "answering", values),
@@ -157,11 +191,18 @@ fn cycle_status(s: &Snapshot<'_>, window: &CycleWindow, now: Instant) -> Diagnos
     let nominal_hz = 1.0 / s.cycle.as_secs_f64();
     let seconds = window.since.map_or(0.0, |since| now.duration_since(since).as_secs_f64());
     let rate = if seconds > 0.0 { window.cycles as f64 / seconds } else { 0.0 };
-    let values = vec![
+    let mut values = vec![
         kv("rate_hz", format!("{rate:.1}")),
         kv("nominal_hz", format!("{nominal_hz:.1}")),
         kv("max_bus_time_ms", format!("{:.2}", window.max_busy.as_secs_f64() * 1e3)),
     ];
+    if let Some(h) = s.health {
+        values.push(kv("period_p50_ms", format!("{:.3}", h.cycle_period_p50_ms)));
+        values.push(kv("period_p99_ms", format!("{:.3}", h.cycle_period_p99_ms)));
+        values.push(kv("bus_time_p99_ms", format!("{:.3}", h.cycle_busy_p99_ms)));
+        values.push(kv("deadline_misses", h.deadline_misses));
+        values.push(kv("scheduling", &h.scheduling));
+    }
     if !s.has_bus {
         return status(OK, "control cycle", "not running (no servo bus)", values);
     }
@@ -249,6 +290,7 @@ mod tests {
             heartbeat_timeout: Duration::from_millis(500),
             deadman_engaged: false,
             action_goal_active: false,
+            health: None,
         }
     }
 
@@ -285,6 +327,41 @@ mod tests {
         assert_eq!(safety.level, WARN);
         assert!(safety.message.contains("reset_estop"), "{}", safety.message);
         assert!(safety.values.iter().any(|v| v.key == "heartbeat_age_s" && v.value == "never"));
+    }
+
+    #[test]
+    fn bus_health_reports_hardware_errors_heat_and_voltage_per_servo() {
+        use step_executor::health::ServoHealth;
+        let st = runtime_status(RunState::Idle);
+        let servos = servos();
+        let mut window = CycleWindow::default();
+        window.add(&[telemetry(vec![Some(0.1), Some(0.2)])]);
+        let health = BusHealth {
+            servos: vec![
+                ServoHealth { id: 1, hardware_error: 0x04, temperature_c: Some(81), input_voltage_v: Some(12.0), ..Default::default() },
+                ServoHealth { id: 2, comm_errors: 3, temperature_c: Some(72), input_voltage_v: Some(12.1), ..Default::default() },
+            ],
+            cycle_period_p99_ms: 8.2,
+            scheduling: "SCHED_FIFO priority 50".into(),
+            ..Default::default()
+        };
+        let snap = Snapshot { health: Some(&health), ..snapshot(&st, &servos) };
+        let array = diagnostics(&snap, &mut window, Instant::now());
+        let one = find(&array, "servo 1 (j1)");
+        assert_eq!(one.level, ERROR);
+        assert!(one.message.contains("overheating") && one.message.contains("reboot_servos"), "{}", one.message);
+        assert!(one.values.iter().any(|v| v.key == "temperature_c" && v.value == "81"));
+        let two = find(&array, "servo 2 (j2)");
+        assert_eq!(two.level, WARN, "{}", two.message);
+        assert!(two.message.contains("72 °C"), "{}", two.message);
+        assert!(two.values.iter().any(|v| v.key == "comm_errors" && v.value == "3"));
+        let cycle = find(&array, "control cycle");
+        assert!(cycle.values.iter().any(|v| v.key == "scheduling" && v.value.contains("SCHED_FIFO")));
+        let cool =
+            BusHealth { servos: vec![ServoHealth { id: 2, input_voltage_v: Some(8.1), ..Default::default() }], ..Default::default() };
+        let snap = Snapshot { health: Some(&cool), ..snapshot(&st, &servos) };
+        let low = diagnostics(&snap, &mut window, Instant::now());
+        assert!(find(&low, "servo 2 (j2)").message.contains("8.1 V"));
     }
 
     #[test]

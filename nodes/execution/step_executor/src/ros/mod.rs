@@ -691,7 +691,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             next_status = now + status_period;
         }
         if now >= next_diagnostics {
+            let health = executor.runtime.bus_health();
             let snapshot = Snapshot {
+                health: health.as_ref(),
                 status: &status,
                 has_bus,
                 servos: &servos,

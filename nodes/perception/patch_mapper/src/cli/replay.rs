@@ -119,17 +119,27 @@ pub fn is_bag(path: &Path) -> bool {
     (path.is_file() && path.extension().is_some_and(|e| e.eq_ignore_ascii_case("mcap"))) || path.join("metadata.yaml").is_file()
 }
 
+/// A topic name as a bag records it: `camera/depth/image_raw` → `/camera/depth/image_raw`.
+fn bag_topic(name: &str) -> String {
+    if name.starts_with('/') {
+        name.to_string()
+    } else {
+        format!("/{name}")
+    }
+}
+
 impl Input {
     fn open(args: &ReplayArgs, config: &PatchMapperConfig) -> Result<Self> {
         if !is_bag(&args.dataset) {
             let dataset = Dataset::open(&args.dataset).with_context(|| format!("opening {}", args.dataset.display()))?;
             return Ok(Input::Dataset(dataset));
         }
+        // Bags record fully qualified names; the node's relative defaults are those of the root namespace.
         let topics = BagTopics {
-            depth: args.depth_topic.clone().unwrap_or_else(|| config.ros.depth_topic.clone()),
-            camera_info: args.camera_info_topic.clone().unwrap_or_else(|| config.ros.camera_info_topic.clone()),
-            imu: args.imu_topic.clone().unwrap_or_else(|| config.ros.imu_topic.clone()),
-            groundtruth: args.groundtruth_topic.clone(),
+            depth: bag_topic(args.depth_topic.as_ref().unwrap_or(&config.ros.depth_topic)),
+            camera_info: bag_topic(args.camera_info_topic.as_ref().unwrap_or(&config.ros.camera_info_topic)),
+            imu: bag_topic(args.imu_topic.as_ref().unwrap_or(&config.ros.imu_topic)),
+            groundtruth: bag_topic(&args.groundtruth_topic),
         };
         let bag = BagInput::open(&args.dataset, topics).with_context(|| format!("reading the bag {}", args.dataset.display()))?;
         Ok(Input::Bag(bag))

@@ -17,6 +17,7 @@
 //!   directory (ament index, for a colcon install), source tree.
 //! - [`tf_buffer`]: a transform tree (static + dynamic with interpolation), `target_from_source`
 //!   lookups at a stamp; [`tf`]: its `/tf` + `/tf_static` listener and broadcasters (tf2_ros QoS).
+//! - [`diagnostics`]: `/diagnostics` (REP-107) statuses and arrays.
 //! - [`rosout`]: the node's log lines on `/rosout` (`rcl_interfaces/msg/Log`).
 //! - [`clock`]: the node clock (wall, or `/clock` with `use_sim_time`) and a `/clock` publisher.
 //!
@@ -25,6 +26,7 @@
 
 pub mod clock;
 pub mod declared;
+pub mod diagnostics;
 pub mod names;
 pub mod node;
 pub mod param_server;

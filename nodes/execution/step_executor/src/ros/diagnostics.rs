@@ -6,17 +6,13 @@
 use std::time::{Duration, Instant};
 
 use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
-use patchwalk_msgs::std_msgs::msg::Header;
-use patchwalk_ros::node;
 use step_executor::config::ServoConfig;
 use step_executor::executor::Telemetry;
 use step_executor::health::BusHealth;
 use step_executor::runtime::{RunState, RuntimeStatus};
 
-/// The diagnostics topic (REP-107).
-pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
-/// How often the array is published.
-pub const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
+use patchwalk_ros::diagnostics::kv;
+pub use patchwalk_ros::diagnostics::{DIAGNOSTICS_PERIOD, DIAGNOSTICS_TOPIC};
 /// The hardware id of every status: the node's name.
 pub const HARDWARE_ID: &str = "step_executor";
 
@@ -85,18 +81,8 @@ pub const HOT_C: u8 = 70;
 /// the servo sets its input-voltage error.
 pub const VOLTAGE_RANGE_V: (f64, f64) = (9.5, 16.0);
 
-fn kv(key: &str, value: impl ToString) -> KeyValue {
-    KeyValue { key: key.to_string(), value: value.to_string() }
-}
-
 fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
-    DiagnosticStatus {
-        level,
-        name: format!("{HARDWARE_ID}: {name}"),
-        message: message.into(),
-        hardware_id: HARDWARE_ID.to_string(),
-        values,
-    }
+    patchwalk_ros::diagnostics::status(HARDWARE_ID, level, name, message, values)
 }
 
 /// The whole array for `snapshot` and the cycles of `window` (which is restarted).
@@ -107,7 +93,7 @@ pub fn diagnostics(snapshot: &Snapshot<'_>, window: &mut CycleWindow, now: Insta
     statuses.push(library_status(snapshot));
     statuses.push(safety_status(snapshot));
     window.restart(now);
-    DiagnosticArray { header: Header { stamp: node::now_stamp(), frame_id: String::new() }, status: statuses }
+    patchwalk_ros::diagnostics::array(statuses)
 }
 
 fn bus_status(s: &Snapshot<'_>) -> DiagnosticStatus {

@@ -8,15 +8,13 @@
 //! latency is the one of the latest mapped frame at each pass: when two frames finish between two
 //! passes only the later one is sampled.
 
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
 use patchwalk_msgs::msg::MapperStatus;
-use patchwalk_msgs::std_msgs::msg::Header;
-use patchwalk_ros::node;
 
-pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
-pub const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
+use patchwalk_ros::diagnostics::kv;
+pub use patchwalk_ros::diagnostics::{DIAGNOSTICS_PERIOD, DIAGNOSTICS_TOPIC};
 pub const HARDWARE_ID: &str = "patch_mapper";
 /// The timing entry that holds the end-to-end latency (`MapperStatus.timing_names`).
 const LATENCY_NAME: &str = "depth_in_to_patches_out";
@@ -72,7 +70,7 @@ impl MapperWindow {
             map_status(status),
         ];
         self.start = Some((now, status.clone()));
-        DiagnosticArray { header: Header { stamp: node::now_stamp(), frame_id: String::new() }, status: statuses }
+        patchwalk_ros::diagnostics::array(statuses)
     }
 }
 
@@ -85,18 +83,8 @@ struct Rates {
     rejected: u64,
 }
 
-fn kv(key: &str, value: impl ToString) -> KeyValue {
-    KeyValue { key: key.to_string(), value: value.to_string() }
-}
-
 fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValue>) -> DiagnosticStatus {
-    DiagnosticStatus {
-        level,
-        name: format!("{HARDWARE_ID}: {name}"),
-        message: message.into(),
-        hardware_id: HARDWARE_ID.to_string(),
-        values,
-    }
+    patchwalk_ros::diagnostics::status(HARDWARE_ID, level, name, message, values)
 }
 
 /// The `q` quantile (0..1) of sorted values, nearest rank.
@@ -168,6 +156,7 @@ fn map_status(s: &MapperStatus) -> DiagnosticStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Duration;
 
     fn find<'a>(array: &'a DiagnosticArray, name: &str) -> &'a DiagnosticStatus {
         array.status.iter().find(|s| s.name == format!("{HARDWARE_ID}: {name}")).unwrap()

@@ -8,6 +8,8 @@ from std_srvs.srv import SetBool, Trigger
 from patchwalk_msgs.msg import ExecutorStatus, Patch, PatchArray
 from patchwalk_msgs.srv import ListMotions, PlayMotion, RecordKeyframe, SelectTarget
 
+import patchwalk_testing as pw
+
 
 def _status(ros):
     return ros.collect(ExecutorStatus, "/step_executor/status")
@@ -43,7 +45,9 @@ def test_arm_is_refused_without_a_heartbeat(ros, step_executor):
 def test_arm_then_stop_latches_estop(ros, step_executor):
     status = _status(ros)
     heartbeat = _heartbeat(ros)
-    assert ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True)).success
+    # The executor's reader may match the heartbeat writer after rclpy's side did: arm once it has one.
+    pw.wait_until(lambda: ros.call(SetBool, "/step_executor/arm", SetBool.Request(data=True)).success,
+                  "arm accepted (the executor has seen a heartbeat)", timeout=pw.DEFAULT_TIMEOUT_S, period=0.2)
     status.wait_for(lambda s: s.armed)
     response = ros.call(Trigger, "/step_executor/stop")
     assert response.success

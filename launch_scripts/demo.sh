@@ -194,7 +194,7 @@ cat <<EOF
     ros2 service call /step_executor/list_motions patchwalk_msgs/srv/ListMotions
   (ros2 CLI needs patchwalk_msgs: colcon build msgs/ in your workspace).
 - Depth input: publish sensor_msgs/Image (16UC1 mm or 32FC1 m) on /camera/depth/image_raw with
-  its CameraInfo on /camera/depth/camera_info; RViz: /patch_mapper/markers in frame "map".
+  its CameraInfo on /camera/depth/camera_info; RViz: /patch_mapper/markers in frame "odom".
 Ctrl-C stops everything.
 EOF
 

@@ -89,24 +89,36 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
         echo "$REQ_HASH" > "$VENV/.patchwalk-requirements"
     fi
 
-    # --- 3. patchwalk_msgs built with plain cmake into the venv ----------------------------------------
-    MSGS_HASH=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" msgs/CMakeLists.txt msgs/package.xml msgs/msg/* msgs/srv/* msgs/action/*)
-    if [ "$(cat "$VENV/.patchwalk-msgs" 2>/dev/null)" != "$MSGS_HASH" ] \
-        || ! "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv, patchwalk_msgs.action' 2>/dev/null; then
-        log "building msgs/ (patchwalk_msgs) into $VENV"
-        rm -rf "$BUILD_DIR/msgs"
+    # --- 3. interface packages built with plain cmake into the venv ------------------------------------
+    # build_interfaces NAME SRC_DIR IMPORT FILE...: (re)build SRC_DIR into the venv when FILE... or the
+    # requirements changed or `python -c IMPORT` fails; the hash of the inputs is kept in .patchwalk-NAME.
+    build_interfaces() {
+        local name="$1" src="$2" import="$3"
+        shift 3
+        local hash
+        hash=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" "$@")
+        if [ "$(cat "$VENV/.patchwalk-$name" 2>/dev/null)" = "$hash" ] && "$VENV/bin/python" -c "$import" 2>/dev/null; then
+            return 0
+        fi
+        log "building $src ($name) into $VENV"
+        rm -rf "$BUILD_DIR/$name"
         (
             export PATH="$VENV/bin:$PATH"
-            cmake -S "$REPO/msgs" -B "$BUILD_DIR/msgs" -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
+            cmake -S "$src" -B "$BUILD_DIR/$name" -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
                 -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
                 -DPython3_EXECUTABLE="$VENV/bin/python" &&
-                cmake --build "$BUILD_DIR/msgs" -j "$(nproc)" &&
-                cmake --install "$BUILD_DIR/msgs"
-        ) >"$LOG_DIR/msgs-build.log" 2>&1 || { tail -40 "$LOG_DIR/msgs-build.log"; die "msgs/ build failed (log: $LOG_DIR/msgs-build.log)"; }
-        "$VENV/bin/python" -c 'import patchwalk_msgs.msg, patchwalk_msgs.srv, patchwalk_msgs.action' \
-            || die "patchwalk_msgs built but does not import"
-        echo "$MSGS_HASH" > "$VENV/.patchwalk-msgs"
-    fi
+                cmake --build "$BUILD_DIR/$name" -j "$(nproc)" &&
+                cmake --install "$BUILD_DIR/$name"
+        ) >"$LOG_DIR/$name-build.log" 2>&1 || { tail -40 "$LOG_DIR/$name-build.log"; die "$name build failed (log: $LOG_DIR/$name-build.log)"; }
+        "$VENV/bin/python" -c "$import" || die "$name built but does not import"
+        echo "$hash" > "$VENV/.patchwalk-$name"
+    }
+    # patchwalk_msgs (msgs/), and tf2_msgs (TFMessage of /tf and /tf_static, not among the ROS 2 Jazzy
+    # wheels on PyPI; tests/interfaces/tf2_msgs holds its TFMessage.msg, same type name and fields).
+    build_interfaces msgs "$REPO/msgs" 'import patchwalk_msgs.msg, patchwalk_msgs.srv, patchwalk_msgs.action' \
+        msgs/CMakeLists.txt msgs/package.xml msgs/msg/* msgs/srv/* msgs/action/*
+    TF2_DIR="$REPO/tests/interfaces/tf2_msgs"
+    build_interfaces tf2-msgs "$TF2_DIR" 'import tf2_msgs.msg' "$TF2_DIR/CMakeLists.txt" "$TF2_DIR/package.xml" "$TF2_DIR"/msg/*
 
     # --- 4. colcon + colcon-ros-cargo + cargo-ament-build ------------------------------------------------
     # colcon-core, colcon-cmake, colcon-ros-cargo (and colcon-bash for install/setup.bash) are pinned in
@@ -122,24 +134,4 @@ if [ "${PATCHWALK_SKIP_PYTHON:-0}" != 1 ]; then
     # repository (or a workspace around it) from taking them for packages of the workspace.
     [ -e "$VENV/COLCON_IGNORE" ] || : > "$VENV/COLCON_IGNORE"
 
-    # --- 3b. tf2_msgs (TFMessage of /tf and /tf_static) for the rclpy tests ---------------------------
-    # tf2_msgs is not among the ROS 2 Jazzy wheels on PyPI; tests/interfaces/tf2_msgs holds its
-    # TFMessage.msg (the same type name and fields as upstream), built like msgs/ into the venv.
-    TF2_DIR="$REPO/tests/interfaces/tf2_msgs"
-    TF2_HASH=$(cd "$REPO" && hash_of "$VENV/.patchwalk-requirements" "$TF2_DIR/CMakeLists.txt" "$TF2_DIR/package.xml" "$TF2_DIR"/msg/*)
-    if [ "$(cat "$VENV/.patchwalk-tf2-msgs" 2>/dev/null)" != "$TF2_HASH" ] \
-        || ! "$VENV/bin/python" -c 'import tf2_msgs.msg' 2>/dev/null; then
-        log "building tests/interfaces/tf2_msgs into $VENV"
-        rm -rf "$BUILD_DIR/tf2_msgs"
-        (
-            export PATH="$VENV/bin:$PATH"
-            cmake -S "$TF2_DIR" -B "$BUILD_DIR/tf2_msgs" -DCMAKE_BUILD_TYPE=Release -DBUILD_TESTING=OFF \
-                -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
-                -DPython3_EXECUTABLE="$VENV/bin/python" &&
-                cmake --build "$BUILD_DIR/tf2_msgs" -j "$(nproc)" &&
-                cmake --install "$BUILD_DIR/tf2_msgs"
-        ) >"$LOG_DIR/tf2-msgs-build.log" 2>&1 || { tail -40 "$LOG_DIR/tf2-msgs-build.log"; die "tf2_msgs build failed (log: $LOG_DIR/tf2-msgs-build.log)"; }
-        "$VENV/bin/python" -c 'import tf2_msgs.msg' || die "tf2_msgs built but does not import"
-        echo "$TF2_HASH" > "$VENV/.patchwalk-tf2-msgs"
-    fi
 fi

@@ -783,10 +783,9 @@ mod tests {
         assert!(!response.success && response.message.contains("no patch map"));
     }
 
-    #[test]
-    fn patch_map_is_converted_and_kept_for_target_selection() {
-        let (mut executor, _dir) = without_bus();
-        let patch = patchwalk_spl::patch::Patch::new(
+    /// A 3 cm disc of plane 40 cm in front of the camera.
+    fn plane_patch() -> patchwalk_spl::patch::Patch {
+        patchwalk_spl::patch::Patch::new(
             patchwalk_spl::patch::SurfaceType::Plane,
             patchwalk_spl::patch::BoundaryType::Circle,
             vec![0.03],
@@ -794,7 +793,13 @@ mod tests {
             nalgebra::Vector3::zeros(),
             nalgebra::Vector3::new(0.0, 0.1, 0.4),
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    #[test]
+    fn patch_map_is_converted_and_kept_for_target_selection() {
+        let (mut executor, _dir) = without_bus();
+        let patch = plane_patch();
         let mut bad = patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default());
         bad.surface = 42;
         let map =
@@ -808,15 +813,7 @@ mod tests {
     #[test]
     fn non_finite_points_and_camera_poses_are_refused() {
         let (mut executor, _dir) = without_bus();
-        let patch = patchwalk_spl::patch::Patch::new(
-            patchwalk_spl::patch::SurfaceType::Plane,
-            patchwalk_spl::patch::BoundaryType::Circle,
-            vec![0.03],
-            nalgebra::Vector2::zeros(),
-            nalgebra::Vector3::zeros(),
-            nalgebra::Vector3::new(0.0, 0.1, 0.4),
-        )
-        .unwrap();
+        let patch = plane_patch();
         let map =
             PatchArray { patches: vec![patch_msg::msg_from_patch(1, &patch, Time::default(), Time::default())], ..Default::default() };
         executor.on_patches(map.clone());

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
@@ -109,6 +110,7 @@ def test_sim_time_at_half_speed_drives_the_stamps(ros, start_node):
     clocks = ros.collect(Clock, "/clock", qos_profile_sensor_data)
     arrays = ros.collect(PatchArray, "/patch_mapper/patches")
     statuses = ros.collect(MapperStatus, "/patch_mapper/status")
+    diagnostics = ros.collect(DiagnosticArray, "/diagnostics")
     start_node("terrain_sim", "--config", "config/terrain_sim.yaml", "--clock", "0.5")
     start_node("patch_mapper", "--config", SIM_MAPPER_CONFIG, "--param", "use_sim_time=true",
                "--param", "ros.status_period_s=0.2")
@@ -129,6 +131,11 @@ def test_sim_time_at_half_speed_drives_the_stamps(ros, start_node):
     now = clocks.latest()
     # The status is stamped from the node clock = the last /clock (100 Hz of sim time) it took.
     assert abs((status.stamp.sec + 1e-9 * status.stamp.nanosec) - (now.clock.sec + 1e-9 * now.clock.nanosec)) < 1.0
+    # So is /diagnostics (REP-107 arrays are stamped from the node clock too).
+    diagnostics.clear()
+    array = diagnostics.wait_for(lambda a: any(s.hardware_id == "patch_mapper" for s in a.status), timeout=30.0)
+    now = clocks.latest()
+    assert abs(stamp(array.header) - (now.clock.sec + 1e-9 * now.clock.nanosec)) < 1.5, (stamp(array.header), now.clock)
 
 
 def test_depth_image_without_camera_info_of_its_size_is_rejected(ros, patch_mapper):

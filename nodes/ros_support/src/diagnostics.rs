@@ -4,6 +4,7 @@
 
 use std::time::Duration;
 
+use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
 use patchwalk_msgs::std_msgs::msg::Header;
 
@@ -28,9 +29,9 @@ pub fn status(hardware_id: &str, level: u8, name: &str, message: impl Into<Strin
     }
 }
 
-/// The array of `statuses`, stamped now.
-pub fn array(statuses: Vec<DiagnosticStatus>) -> DiagnosticArray {
-    DiagnosticArray { header: Header { stamp: crate::node::now_stamp(), frame_id: String::new() }, status: statuses }
+/// The array of `statuses`, stamped `stamp` (the node clock's now: `/clock` under `use_sim_time`).
+pub fn array(stamp: Time, statuses: Vec<DiagnosticStatus>) -> DiagnosticArray {
+    DiagnosticArray { header: Header { stamp, frame_id: String::new() }, status: statuses }
 }
 
 #[cfg(test)]
@@ -43,6 +44,9 @@ mod tests {
         assert_eq!(s.name, "step_executor: servo bus");
         assert_eq!(s.hardware_id, "step_executor");
         assert_eq!(s.values[0].value, "5");
-        assert_eq!(array(vec![s]).status.len(), 1);
+        let stamp = Time { sec: 12, nanosec: 5 };
+        let a = array(stamp.clone(), vec![s]);
+        assert_eq!(a.status.len(), 1);
+        assert_eq!(a.header.stamp, stamp);
     }
 }

@@ -316,6 +316,16 @@ impl RosNode {
         node.create_publisher::<M>(&dds_topic, Some(qos)).map_err(|e| err(format!("{e:?}")))
     }
 
+    /// A publisher of `rcl_interfaces/ParameterEvent` on `/parameter_events` (rcl's topic and QoS).
+    pub fn parameter_events_publisher(&mut self) -> Result<Publisher<ros2_client::parameters::raw::ParameterEvent>, NodeError> {
+        let topic = self.context.get_parameter_events_topic();
+        self.node(crate::param_server::PARAMETER_EVENTS_TOPIC)?.create_publisher(&topic, None).map_err(|e| NodeError::Endpoint {
+            what: "publisher",
+            name: crate::param_server::PARAMETER_EVENTS_TOPIC.to_string(),
+            reason: format!("{e:?}"),
+        })
+    }
+
     /// Typed subscription on `topic`.
     pub fn subscription<M: RosMessage>(&mut self, topic: &str, qos: QosProfile) -> Result<Subscription<M>, NodeError> {
         let err = |e: String| NodeError::Endpoint { what: "subscription", name: topic.to_string(), reason: e };

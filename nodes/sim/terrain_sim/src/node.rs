@@ -113,7 +113,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
     let mut ros = RosNode::with_names("terrain_sim", names, network)?;
-    let _parameters = ParameterServer::start(&mut ros, declared, None)?;
+    let _parameters = ParameterServer::start(&mut ros, declared, None, patchwalk_ros::clock::NodeClock::wall())?;
     let image_pub = ros.publisher::<Image>(&ros.relative(IMAGE_TOPIC), node::sensor_data_qos())?;
     let info_pub = ros.publisher::<CameraInfo>(&ros.relative(CAMERA_INFO_TOPIC), node::sensor_data_qos())?;
     let imu_pub = ros.publisher::<Imu>(&ros.relative(IMU_TOPIC), node::sensor_data_qos())?;

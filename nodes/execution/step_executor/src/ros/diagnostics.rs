@@ -5,6 +5,7 @@
 
 use std::time::{Duration, Instant};
 
+use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
 use step_executor::config::ServoConfig;
 use step_executor::executor::Telemetry;
@@ -86,14 +87,14 @@ fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValu
 }
 
 /// The whole array for `snapshot` and the cycles of `window` (which is restarted).
-pub fn diagnostics(snapshot: &Snapshot<'_>, window: &mut CycleWindow, now: Instant) -> DiagnosticArray {
+pub fn diagnostics(snapshot: &Snapshot<'_>, window: &mut CycleWindow, now: Instant, stamp: Time) -> DiagnosticArray {
     let mut statuses = vec![bus_status(snapshot)];
     statuses.extend(servo_statuses(snapshot, window));
     statuses.push(cycle_status(snapshot, window, now));
     statuses.push(library_status(snapshot));
     statuses.push(safety_status(snapshot));
     window.restart(now);
-    patchwalk_ros::diagnostics::array(statuses)
+    patchwalk_ros::diagnostics::array(stamp, statuses)
 }
 
 fn bus_status(s: &Snapshot<'_>) -> DiagnosticStatus {
@@ -292,7 +293,7 @@ mod tests {
         let servos = servos();
         let mut window = CycleWindow::default();
         window.add(&[telemetry(vec![Some(0.1), None])]);
-        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now());
+        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now(), Time::default());
         let bus = find(&array, "servo bus");
         assert_eq!(bus.level, ERROR);
         assert!(bus.message.contains("servo 2") && bus.message.contains("overheating"), "{}", bus.message);
@@ -307,7 +308,7 @@ mod tests {
         let servos = servos();
         let mut window = CycleWindow::default();
         window.add(&[telemetry(vec![Some(0.1), None])]);
-        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now());
+        let array = diagnostics(&snapshot(&st, &servos), &mut window, Instant::now(), Time::default());
         assert_eq!(find(&array, "servo 2 (j2)").level, WARN);
         let safety = find(&array, "safety");
         assert_eq!(safety.level, WARN);
@@ -332,7 +333,7 @@ mod tests {
             ..Default::default()
         };
         let snap = Snapshot { health: Some(&health), ..snapshot(&st, &servos) };
-        let array = diagnostics(&snap, &mut window, Instant::now());
+        let array = diagnostics(&snap, &mut window, Instant::now(), Time::default());
         let one = find(&array, "servo 1 (j1)");
         assert_eq!(one.level, ERROR);
         assert!(one.message.contains("overheating") && one.message.contains("reboot_servos"), "{}", one.message);
@@ -346,7 +347,7 @@ mod tests {
         let cool =
             BusHealth { servos: vec![ServoHealth { id: 2, input_voltage_v: Some(8.1), ..Default::default() }], ..Default::default() };
         let snap = Snapshot { health: Some(&cool), ..snapshot(&st, &servos) };
-        let low = diagnostics(&snap, &mut window, Instant::now());
+        let low = diagnostics(&snap, &mut window, Instant::now(), Time::default());
         assert!(find(&low, "servo 2 (j2)").message.contains("8.1 V"));
     }
 
@@ -357,7 +358,7 @@ mod tests {
         st.library_size = 0;
         let servos = servos();
         let snap = Snapshot { has_bus: false, ..snapshot(&st, &servos) };
-        let array = diagnostics(&snap, &mut CycleWindow::default(), Instant::now());
+        let array = diagnostics(&snap, &mut CycleWindow::default(), Instant::now(), Time::default());
         assert_eq!(find(&array, "servo bus").level, ERROR);
         assert!(!array.status.iter().any(|s| s.name.contains("servo 1")));
         assert_eq!(find(&array, "motion library").level, WARN);

@@ -590,7 +590,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         wakeup.watch(&mut listener.subscription)?;
     }
     wakeup.watch(&mut reboot_servos_srv)?;
-    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()))?;
+    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()), clock.clone())?;
     let job_waker = wakeup.waker();
     let jobs = Jobs::spawn(move || {
         let _ = job_waker.wake();
@@ -703,7 +703,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 deadman_engaged: executor.deadman.engaged(),
                 action_goal_active: play_action.active_goal(),
             };
-            node::publish(&diagnostics_pub, DIAGNOSTICS_TOPIC, diagnostics::diagnostics(&snapshot, &mut cycles, now), &mut log);
+            node::publish(
+                &diagnostics_pub,
+                DIAGNOSTICS_TOPIC,
+                diagnostics::diagnostics(&snapshot, &mut cycles, now, clock.now()),
+                &mut log,
+            );
             next_diagnostics = now + DIAGNOSTICS_PERIOD;
         }
         let mut due = next_status.min(next_diagnostics).min(now + MAX_WAIT);

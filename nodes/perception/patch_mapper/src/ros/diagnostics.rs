@@ -10,6 +10,7 @@
 
 use std::time::Instant;
 
+use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, KeyValue};
 use patchwalk_msgs::msg::MapperStatus;
 
@@ -48,7 +49,7 @@ impl MapperWindow {
     }
 
     /// The array for the window ending at `now` (then a new window starts).
-    pub fn diagnostics(&mut self, status: &MapperStatus, now: Instant) -> DiagnosticArray {
+    pub fn diagnostics(&mut self, status: &MapperStatus, now: Instant, stamp: Time) -> DiagnosticArray {
         let (since, before) = self.start.take().unwrap_or_else(|| (now, status.clone()));
         let seconds = now.duration_since(since).as_secs_f64();
         let rate = |after: u64, before: u64| if seconds > 0.0 { after.saturating_sub(before) as f64 / seconds } else { 0.0 };
@@ -70,7 +71,7 @@ impl MapperWindow {
             map_status(status),
         ];
         self.start = Some((now, status.clone()));
-        patchwalk_ros::diagnostics::array(statuses)
+        patchwalk_ros::diagnostics::array(stamp, statuses)
     }
 }
 
@@ -178,7 +179,7 @@ mod tests {
         }
         s.frames_skipped = 2;
         s.last_error = "depth frame skipped: no CameraInfo yet".into();
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(1));
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(1), Time::default());
         assert_eq!(find(&array, "inputs").level, OK);
         let latency = find(&array, "latency");
         assert!(latency.message.contains("p50 15.0 ms") && latency.message.contains("p99 30.0 ms"), "{}", latency.message);
@@ -196,12 +197,12 @@ mod tests {
         window.sample(&s, t0);
         s.frames_received = 30;
         s.last_error = "ICP did not converge".into();
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(1));
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(1), Time::default());
         let tracking = find(&array, "tracking");
         assert_eq!(tracking.level, WARN);
         assert!(tracking.message.contains("ICP"), "{}", tracking.message);
         assert_eq!(find(&array, "inputs").level, WARN, "IMU and camera info missing");
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(2));
+        let array = window.diagnostics(&s, t0 + Duration::from_secs(2), Time::default());
         assert_eq!(find(&array, "inputs").level, ERROR);
     }
 

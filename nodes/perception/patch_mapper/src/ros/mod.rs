@@ -565,7 +565,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;
-    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()))?;
+    let parameters = ParameterServer::start(&mut ros, declared, Some(wakeup.waker()), clock.clone())?;
     wakeup.watch(&mut depth_sub)?;
     wakeup.watch(&mut info_sub)?;
     wakeup.watch(&mut imu_sub)?;
@@ -679,7 +679,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if let Ok(s) = status.lock() {
             diagnostics_window.sample(&s, now);
             if now >= next_diagnostics {
-                let array = diagnostics_window.diagnostics(&s, now);
+                let array = diagnostics_window.diagnostics(&s, now, clock.now());
                 node::publish(&diagnostics_pub, diagnostics::DIAGNOSTICS_TOPIC, array, &mut dds_log);
                 next_diagnostics = now + diagnostics::DIAGNOSTICS_PERIOD;
             }

@@ -195,6 +195,9 @@ enum DiscoveryTimerEvent {
   ParticipantCleanup,
   TopicCleanup,
   PublishParticipantMessage,
+  // One-shot: publish the SEDP data of every local user reader and writer again
+  // (scheduled after a new remote participant is discovered).
+  RepublishLocalEndpoints,
   #[cfg(feature = "security")]
   CachedSecureMessageResend,
 }
@@ -255,6 +258,8 @@ pub(crate) struct Discovery {
   // per-topic timers and the separate participant/topic cleanup and secure
   // resend timers), so discovery uses a single timer background thread.
   discovery_timer: SharedTimer<DiscoveryTimerEvent>,
+  // A RepublishLocalEndpoints event is scheduled and has not run yet.
+  republish_pending: bool,
 
   // If security is enabled, this field contains a SecureDiscovery struct, an appendix
   // which is used for Secure functionality
@@ -302,6 +307,7 @@ impl Discovery {
   const PARTICIPANT_CLEANUP_PERIOD: StdDuration = StdDuration::from_secs(2);
   const TOPIC_CLEANUP_PERIOD: StdDuration = StdDuration::from_secs(60); // timer for cleaning up inactive topics
   const SPDP_PUBLISH_PERIOD: StdDuration = StdDuration::from_secs(10);
+  const SEDP_REPUBLISH_DELAY: StdDuration = StdDuration::from_millis(1500);
   const CHECK_PARTICIPANT_MESSAGES: StdDuration = StdDuration::from_secs(1);
   #[cfg(feature = "security")]
   const CACHED_SECURE_DISCOVERY_MESSAGE_RESEND_PERIOD: StdDuration = StdDuration::from_secs(1);
@@ -677,6 +683,7 @@ impl Discovery {
       dcps_participant_message, // liveliness messages
 
       discovery_timer,
+      republish_pending: false,
 
       security_opt,
       #[cfg(feature = "security")]
@@ -888,6 +895,10 @@ impl Discovery {
                     DiscoveryTimerEvent::PublishParticipantMessage,
                   );
                 }
+                DiscoveryTimerEvent::RepublishLocalEndpoints => {
+                  self.republish_pending = false;
+                  self.sedp_republish_local_endpoints();
+                }
                 #[cfg(feature = "security")]
                 DiscoveryTimerEvent::CachedSecureMessageResend => {
                   self.on_secure_discovery_message_resend_triggered();
@@ -1083,6 +1094,19 @@ impl Discovery {
           StdDuration::from_millis(10),
           DiscoveryTimerEvent::SendParticipantInfo { reschedule: false },
         );
+        // A Fast DDS participant can acknowledge the SEDP samples we sent while it
+        // was still adding our participant and yet drop them ("Received message
+        // from UNKNOWN RTPSParticipant"): it then never learns those endpoints.
+        // Announcing them once more, after its discovery has settled, repairs that
+        // (the samples replace the earlier ones of the same endpoints). Several
+        // participants discovered close together share one re-announcement.
+        if !self.republish_pending {
+          self.republish_pending = true;
+          self.discovery_timer.borrow_mut().set_timeout(
+            Self::SEDP_REPUBLISH_DELAY,
+            DiscoveryTimerEvent::RepublishLocalEndpoints,
+          );
+        }
       }
 
       // This may be a rediscovery of a previously seen participant that
@@ -1874,6 +1898,25 @@ impl Discovery {
       self.send_discovery_notification(DiscoveryNotificationType::WriterUpdated {
         discovered_writer_data: writer.clone(),
       });
+    }
+  }
+
+  /// Publishes the SEDP data of every local user reader and writer again.
+  fn sedp_republish_local_endpoints(&self) {
+    let db = discovery_db_read(&self.discovery_db);
+    let readers: Vec<DiscoveredReaderData> = db.get_all_local_topic_readers().cloned().collect();
+    let writers: Vec<DiscoveredWriterData> = db.get_all_local_topic_writers().cloned().collect();
+    drop(db);
+    debug!(
+      "Re-announcing {} local readers and {} local writers",
+      readers.len(),
+      writers.len()
+    );
+    for reader in &readers {
+      self.sedp_publish_single_user_reader(reader);
+    }
+    for writer in &writers {
+      self.sedp_publish_single_user_writer(writer);
     }
   }
 

@@ -16,7 +16,7 @@
 
 use std::collections::HashMap;
 
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Rotation3, Vector3};
 use patchwalk_robot_model::kinematics::{JointLimits, RobotModel};
 
 use crate::error::RouteError;
@@ -128,39 +128,49 @@ impl LegModel {
     }
 
     /// Joint angles ([`LEG_JOINTS`] order) placing the sole at `sole_in_base`, level, yawed by
-    /// `foot_yaw` about base z; `None` when out of reach or outside a joint limit.
+    /// `foot_yaw` about base z; `None` when out of reach or outside a joint limit (checked joint by
+    /// joint as the solution is built, ankle first, so most unreachable targets stop early).
     pub fn ik(&self, sole_in_base: &Vector3<f64>, foot_yaw: f64) -> Option<[f64; 6]> {
-        let q = self.ik_unlimited(sole_in_base, foot_yaw)?;
-        let inside = q.iter().zip(&self.limits).all(|(q, l)| *q >= l.lower - LIMIT_SLACK && *q <= l.upper + LIMIT_SLACK);
-        inside.then_some(q)
+        self.solve(sole_in_base, foot_yaw, true)
     }
 
-    /// The closed-form solution without the joint-limit check.
-    fn ik_unlimited(&self, sole_in_base: &Vector3<f64>, foot_yaw: f64) -> Option<[f64; 6]> {
+    fn solve(&self, sole_in_base: &Vector3<f64>, foot_yaw: f64, limited: bool) -> Option<[f64; 6]> {
+        let inside = |joint: usize, q: f64| !limited || (q >= self.limits[joint].lower - LIMIT_SLACK && q <= self.limits[joint].upper + LIMIT_SLACK);
         let (a, b) = (self.thigh_m, self.shin_m);
-        let ankle = sole_in_base + Vector3::new(0.0, 0.0, self.ankle_to_sole_m);
         let (sy, cy) = foot_yaw.sin_cos();
-        let d = self.hip_in_base - ankle;
-        // u = Rz(ψ_f)ᵀ d
+        let d = self.hip_in_base - sole_in_base - Vector3::new(0.0, 0.0, self.ankle_to_sole_m);
+        // u = Rz(ψ_f)ᵀ (c − e)
         let u = Vector3::new(cy * d.x + sy * d.y, -sy * d.x + cy * d.y, d.z);
-        let l2 = u.norm_squared();
-        let cos_knee = (l2 - a * a - b * b) / (2.0 * a * b);
+        let cos_knee = (u.norm_squared() - a * a - b * b) / (2.0 * a * b);
         if !(-1.0..=1.0 + LIMIT_SLACK).contains(&cos_knee) {
             return None;
         }
         let knee = cos_knee.min(1.0).acos();
         let ankle_roll = u.y.atan2(u.z);
+        if !inside(3, knee) || !inside(5, ankle_roll) {
+            return None;
+        }
         let wz = (u.y * u.y + u.z * u.z).sqrt();
         let ankle_pitch = (-a * knee.sin()).atan2(a * knee.cos() + b) - u.x.atan2(wz);
-        let r_foot = Rotation3::from_axis_angle(&Vector3::z_axis(), foot_yaw);
-        let r_hip: Matrix3<f64> = (r_foot
-            * Rotation3::from_axis_angle(&Vector3::x_axis(), -ankle_roll)
-            * Rotation3::from_axis_angle(&Vector3::y_axis(), -(knee + ankle_pitch)))
-        .into_inner();
-        let hip_roll = r_hip[(2, 1)].clamp(-1.0, 1.0).asin();
-        let hip_pitch = (-r_hip[(2, 0)]).atan2(r_hip[(2, 2)]);
-        let hip_yaw = (-r_hip[(0, 1)]).atan2(r_hip[(1, 1)]);
-        Some([hip_yaw, hip_roll, hip_pitch, knee, ankle_pitch, ankle_roll])
+        if !inside(4, ankle_pitch) {
+            return None;
+        }
+        // R_hip = Rz(ψ_f) · Rx(−ankle roll) · Ry(−(knee + ankle pitch)); only its third row and
+        // second column are needed.
+        let (sr, cr) = (-ankle_roll).sin_cos();
+        let (sp, cp) = (-(knee + ankle_pitch)).sin_cos();
+        // Rx(φ)·Ry(θ) = [[cθ, 0, sθ], [sφ sθ, cφ, −sφ cθ], [−cφ sθ, sφ, cφ cθ]]
+        let (m20, m21, m22) = (-cr * sp, sr, cr * cp);
+        let (m01, m11) = (-sy * cr, cy * cr);
+        let hip_roll = m21.clamp(-1.0, 1.0).asin();
+        let hip_pitch = (-m20).atan2(m22);
+        let hip_yaw = (-m01).atan2(m11);
+        (inside(0, hip_yaw) && inside(1, hip_roll) && inside(2, hip_pitch)).then_some([hip_yaw, hip_roll, hip_pitch, knee, ankle_pitch, ankle_roll])
+    }
+
+    /// The closed-form solution without the joint-limit check.
+    fn ik_unlimited(&self, sole_in_base: &Vector3<f64>, foot_yaw: f64) -> Option<[f64; 6]> {
+        self.solve(sole_in_base, foot_yaw, false)
     }
 
     /// The URDF joint positions of an IK solution, by name (the other leg's joints at zero).

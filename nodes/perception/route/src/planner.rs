@@ -20,7 +20,7 @@ use crate::error::RouteError;
 use crate::grid::TerrainGrid;
 use crate::hold::{usable_holds, Hold};
 use crate::kmeans::kmeans;
-use crate::stance::{flex, Stance, WorkspaceSamples};
+use crate::stance::{flex, flex_above, Stance, WorkspaceSamples};
 use crate::thin::thin;
 
 /// Planner parameters (CNN IV's values where they carry over to a 0.47 m biped; see each field).
@@ -41,6 +41,9 @@ pub struct PlannerConfig {
     /// RoboSimian's 0.7 m limb workspace; the same ratio (3/7) of the RPBP's 0.235 m leg
     /// (thigh + shin + ankle-to-sole): 0.10 m, about one sole length.
     pub thinning_m: f64,
+    /// A foot also keeps its hold while the stance with it keeps at least this fraction of the
+    /// optimal stance's Flex (see [`crate::thin`]; above 1: CNN IV's distance rule only).
+    pub keep_flex_ratio: f64,
     /// The start and the goal snap to the nearest vertex with a stance within this distance (m).
     pub snap_m: f64,
     /// Neighbouring vertices farther apart than this are not connected (m): depth discontinuities.
@@ -56,6 +59,7 @@ impl Default for PlannerConfig {
             height_samples: 5,
             yaw_samples: 7,
             thinning_m: 0.10,
+            keep_flex_ratio: 0.5,
             snap_m: 0.15,
             max_edge_m: 0.10,
         }
@@ -69,7 +73,7 @@ impl PlannerConfig {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err(RouteError::Config(format!("{name} must be a positive number of metres, got {v}")))
+                Err(RouteError::Config(format!("{name} must be a positive number, got {v}")))
             }
         };
         if self.clusters == 0 {
@@ -82,6 +86,7 @@ impl PlannerConfig {
             return Err(RouteError::Config(format!("min_score must lie in [0, 1], got {}", self.min_score)));
         }
         positive("thinning_m", self.thinning_m)?;
+        positive("keep_flex_ratio", self.keep_flex_ratio)?;
         positive("snap_m", self.snap_m)?;
         positive("max_edge_m", self.max_edge_m)
     }
@@ -188,25 +193,31 @@ impl Planner {
     }
 
     /// σ*(v): the stance of largest Flex at `v` among ordered pairs of `holds` (None without any).
-    /// Returns the stance and how many were evaluated.
+    /// Returns the stance and how many were evaluated. Pairs are tried nearest-midpoint first, and a
+    /// pair's sampling stops once it cannot beat the best so far (same result, fewer IK solves).
     pub fn best_stance(&self, v: &Vector3<f64>, holds: &[Vector3<f64>]) -> (Option<Stance>, usize) {
         let reach = self.biped.horizontal_reach_m();
         let near: Vec<usize> = (0..holds.len()).filter(|&i| (holds[i] - v).xy().norm() <= reach).collect();
-        let mut best: Option<Stance> = None;
-        let mut evaluated = 0;
+        let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
         for &l in &near {
             for &r in &near {
-                if l == r || (holds[l] - holds[r]).norm() < self.biped.min_separation_m {
+                let gap = (holds[l] - holds[r]).norm();
+                if l == r || gap < self.biped.min_separation_m || gap > 2.0 * reach {
                     continue;
                 }
-                evaluated += 1;
-                let f = flex(&self.biped, &self.samples, v, &holds[l], &holds[r]);
-                if f > 0.0 && best.is_none_or(|b| f > b.flex) {
-                    best = Some(Stance { left: l, right: r, flex: f });
-                }
+                let middle = 0.5 * (holds[l] + holds[r]);
+                pairs.push(((middle - v).xy().norm(), l, r));
             }
         }
-        (best, evaluated)
+        pairs.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut best: Option<Stance> = None;
+        for &(_, l, r) in &pairs {
+            let to_beat = best.map_or(0.0, |b| b.flex);
+            if let Some(f) = flex_above(&self.biped, &self.samples, v, &holds[l], &holds[r], to_beat) {
+                best = Some(Stance { left: l, right: r, flex: f });
+            }
+        }
+        (best, pairs.len())
     }
 
     /// Flex of the stance (left, right) at `v`.
@@ -269,7 +280,7 @@ impl Planner {
         }
         let optimal: Vec<(usize, usize, f64)> =
             path.iter().map(|&i| stances[i].map_or((0, 0, 0.0), |s| (s.left, s.right, s.flex))).collect();
-        let steps = thin(&optimal, &positions, self.config.thinning_m, |k, l, r| self.flex_of(&point(path[k]), &positions[l], &positions[r]));
+        let steps = thin(&optimal, &positions, self.config.thinning_m, self.config.keep_flex_ratio, |k, l, r| self.flex_of(&point(path[k]), &positions[l], &positions[r]));
         let to_array = |v: Vector3<f64>| [v.x, v.y, v.z];
         let vertex = |i: usize| [i / grid.cols, i % grid.cols];
         let route_stances = steps

@@ -65,25 +65,46 @@ pub fn stance_heading(left: &Vector3<f64>, right: &Vector3<f64>) -> f64 {
 /// Flex(v, σ): the fraction of workspace samples in which both holds are reachable with the body at
 /// `v` (the terrain point under the body; its height bounds the hips from below).
 pub fn flex(biped: &BipedModel, samples: &WorkspaceSamples, v: &Vector3<f64>, left: &Vector3<f64>, right: &Vector3<f64>) -> f64 {
+    flex_above(biped, samples, v, left, right, 0.0).unwrap_or(0.0)
+}
+
+/// Flex(v, σ) when it exceeds `to_beat`, else `None`; stops sampling as soon as so many samples
+/// failed that `to_beat` cannot be exceeded (the search for σ*(v) only needs the best stance).
+pub fn flex_above(
+    biped: &BipedModel,
+    samples: &WorkspaceSamples,
+    v: &Vector3<f64>,
+    left: &Vector3<f64>,
+    right: &Vector3<f64>,
+    to_beat: f64,
+) -> Option<f64> {
     if samples.is_empty() || (left - right).norm() < biped.min_separation_m {
-        return 0.0;
+        return None;
     }
+    let total = samples.len();
+    // More failures than this and Flex ≤ to_beat.
+    let allowed_failures = total as f64 * (1.0 - to_beat);
     let heading = stance_heading(left, right);
     let reference = 0.5 * (left.z + right.z);
     let hip_below_base = -biped.left.hip_in_base.z.max(biped.right.hip_in_base.z);
-    let mut reachable = 0usize;
+    let mut failures = 0usize;
     for &h in &samples.heights_m {
         let base = Vector3::new(v.x, v.y, reference + h);
         if base.z - hip_below_base < v.z {
-            continue;
-        }
-        for &yaw in &samples.yaws_rad {
-            if biped.stance_reachable(&base, heading + yaw, heading, left, right) {
-                reachable += 1;
+            failures += samples.yaws_rad.len();
+        } else {
+            for &yaw in &samples.yaws_rad {
+                if !biped.stance_reachable(&base, heading + yaw, heading, left, right) {
+                    failures += 1;
+                }
             }
         }
+        if failures as f64 >= allowed_failures {
+            return None;
+        }
     }
-    reachable as f64 / samples.len() as f64
+    let f = (total - failures) as f64 / total as f64;
+    (f > to_beat).then_some(f)
 }
 
 #[cfg(test)]

@@ -46,18 +46,18 @@ impl Terrain {
         Self { x: (0.0, 1.2), y: (-0.4, 0.4), shape: Shape::Trench { x0: 0.45, x1: 0.85, depth_m: 0.3, bridge_y } }
     }
 
-    /// 1.6 m × 1.2 m of ground with `count` rocks (radius 4–10 cm, 2–8 cm high), seeded.
+    /// 1.2 m × 0.8 m of ground with `count` rocks (radius 4–10 cm, 2–8 cm high), seeded.
     pub fn rock_field(count: usize, seed: u64) -> Self {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let rocks = (0..count)
             .map(|_| Rock {
-                x: rng.random_range(0.1..1.5),
-                y: rng.random_range(-0.55..0.55),
+                x: rng.random_range(0.1..1.1),
+                y: rng.random_range(-0.35..0.35),
                 radius_m: rng.random_range(0.04..0.10),
                 height_m: rng.random_range(0.02..0.08),
             })
             .collect();
-        Self { x: (0.0, 1.6), y: (-0.6, 0.6), shape: Shape::Rocks(rocks) }
+        Self { x: (0.0, 1.2), y: (-0.4, 0.4), shape: Shape::Rocks(rocks) }
     }
 
     /// Terrain height at (x, y).

@@ -20,7 +20,7 @@ use crate::error::RouteError;
 use crate::grid::TerrainGrid;
 use crate::hold::{usable_holds, Hold};
 use crate::kmeans::kmeans;
-use crate::stance::{flex, flex_above, Stance, WorkspaceSamples};
+use crate::stance::{flex, flex_above, stance_heading, Stance, WorkspaceSamples};
 use crate::thin::thin;
 
 /// Planner parameters (CNN IV's values where they carry over to a 0.47 m biped; see each field).
@@ -48,6 +48,10 @@ pub struct PlannerConfig {
     pub snap_m: f64,
     /// Neighbouring vertices farther apart than this are not connected (m): depth discontinuities.
     pub max_edge_m: f64,
+    /// Stances whose heading (the way the feet face) turns more than this from the start → goal
+    /// bearing are not used (rad; π/2: a biped walks forwards or sideways, not backwards; above π:
+    /// any heading, as CNN IV's symmetric RoboSimian).
+    pub max_heading_deviation_rad: f64,
 }
 
 impl Default for PlannerConfig {
@@ -62,6 +66,7 @@ impl Default for PlannerConfig {
             keep_flex_ratio: 0.5,
             snap_m: 0.15,
             max_edge_m: 0.10,
+            max_heading_deviation_rad: std::f64::consts::FRAC_PI_2,
         }
     }
 }
@@ -88,7 +93,8 @@ impl PlannerConfig {
         positive("thinning_m", self.thinning_m)?;
         positive("keep_flex_ratio", self.keep_flex_ratio)?;
         positive("snap_m", self.snap_m)?;
-        positive("max_edge_m", self.max_edge_m)
+        positive("max_edge_m", self.max_edge_m)?;
+        positive("max_heading_deviation_rad", self.max_heading_deviation_rad)
     }
 }
 
@@ -195,7 +201,8 @@ impl Planner {
     /// σ*(v): the stance of largest Flex at `v` among ordered pairs of `holds` (None without any).
     /// Returns the stance and how many were evaluated. Pairs are tried nearest-midpoint first, and a
     /// pair's sampling stops once it cannot beat the best so far (same result, fewer IK solves).
-    pub fn best_stance(&self, v: &Vector3<f64>, holds: &[Vector3<f64>]) -> (Option<Stance>, usize) {
+    /// With `bearing` (rad), only stances heading within `max_heading_deviation_rad` of it count.
+    pub fn best_stance(&self, v: &Vector3<f64>, holds: &[Vector3<f64>], bearing: Option<f64>) -> (Option<Stance>, usize) {
         let reach = self.biped.horizontal_reach_m();
         let near: Vec<usize> = (0..holds.len()).filter(|&i| (holds[i] - v).xy().norm() <= reach).collect();
         let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
@@ -204,6 +211,12 @@ impl Planner {
                 let gap = (holds[l] - holds[r]).norm();
                 if l == r || gap < self.biped.min_separation_m || gap > 2.0 * reach {
                     continue;
+                }
+                if let Some(b) = bearing {
+                    let turn = angle_between(stance_heading(&holds[l], &holds[r]), b);
+                    if turn > self.config.max_heading_deviation_rad + 1e-9 {
+                        continue;
+                    }
                 }
                 let middle = 0.5 * (holds[l] + holds[r]);
                 pairs.push(((middle - v).xy().norm(), l, r));
@@ -242,11 +255,18 @@ impl Planner {
         let cluster_ms = ms(t0);
 
         let t1 = Instant::now();
+        // The general direction of travel: from the start (or the bottom centre of the grid) to the goal.
+        let from = match &start {
+            Some(s) => Some((s.x, s.y)),
+            None => bottom_centre(grid, |i| grid.points[i].is_some()).and_then(|i| grid.points[i]).map(|p| (p.x, p.y)),
+        };
+        let bearing = from.filter(|(x, y)| (goal.x - x).hypot(goal.y - y) > 1e-6).map(|(x, y)| (goal.y - y).atan2(goal.x - x));
+        let bearing = bearing.filter(|_| self.config.max_heading_deviation_rad < std::f64::consts::PI);
         let best: Vec<(Option<Stance>, usize)> = grid
             .points
             .par_iter()
             .map(|p| match p {
-                Some(v) => self.best_stance(v, &positions),
+                Some(v) => self.best_stance(v, &positions, bearing),
                 None => (None, 0),
             })
             .collect();
@@ -260,7 +280,7 @@ impl Planner {
         let goal_vertex = self.snap(grid, &stances, &goal, "goal")?;
         let start_vertex = match &start {
             Some(s) => self.snap(grid, &stances, s, "start")?,
-            None => bottom_centre(grid, &stances).ok_or(RouteError::NoStanceAnywhere { clusters: positions.len(), vertices: grid.valid() })?,
+            None => bottom_centre(grid, |i| stances[i].is_some()).ok_or(RouteError::NoStanceAnywhere { clusters: positions.len(), vertices: grid.valid() })?,
         };
 
         let t2 = Instant::now();
@@ -354,11 +374,18 @@ fn edge_cost(grid: &TerrainGrid, stances: &[Option<Stance>], max_edge_m: f64, u:
     (d <= max_edge_m).then_some(d * (1.0 - stance.flex))
 }
 
-/// CNN IV's start: the lowest image row with a stance, the vertex nearest the middle column.
-fn bottom_centre(grid: &TerrainGrid, stances: &[Option<Stance>]) -> Option<usize> {
+/// CNN IV's start: in the lowest image row with a vertex passing `usable` (e.g. with a stance), the
+/// one nearest the middle column.
+fn bottom_centre(grid: &TerrainGrid, usable: impl Fn(usize) -> bool) -> Option<usize> {
     (0..grid.rows).rev().find_map(|r| {
-        (0..grid.cols).filter(|&c| stances[r * grid.cols + c].is_some()).min_by_key(|&c| c.abs_diff(grid.cols / 2)).map(|c| r * grid.cols + c)
+        (0..grid.cols).filter(|&c| usable(r * grid.cols + c)).min_by_key(|&c| c.abs_diff(grid.cols / 2)).map(|c| r * grid.cols + c)
     })
+}
+
+/// The absolute difference of two angles, in [0, π].
+fn angle_between(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(std::f64::consts::TAU);
+    d.min(std::f64::consts::TAU - d)
 }
 
 fn ms(t: Instant) -> f64 {

@@ -68,7 +68,10 @@ impl BipedModel {
         let high = depth_below_base(&left, left.length_m()).min(depth_below_base(&right, right.length_m()));
         let yaw = (left.limits[0].lower.max(right.limits[0].lower), left.limits[0].upper.min(right.limits[0].upper));
         if !(low < high && yaw.0 <= yaw.1 && width > 0.0) {
-            return Err(RouteError::Robot(format!("empty workspace: heights {low:.3}..{high:.3} m, hip yaw {:.2}..{:.2} rad", yaw.0, yaw.1)));
+            return Err(RouteError::Robot(format!(
+                "empty workspace: heights {low:.3}..{high:.3} m, hip yaw {:.2}..{:.2} rad",
+                yaw.0, yaw.1
+            )));
         }
         Ok(Self { left, right, height_range_m: (low, high), yaw_range_rad: yaw, min_separation_m: width, sole_length_m: length })
     }

@@ -75,7 +75,7 @@ pub fn shortest_path(rows: usize, cols: usize, start: usize, goal: usize, edge: 
                 continue;
             }
             let Some(w) = edge(vertex, next) else { continue };
-            if !(w >= 0.0) {
+            if w.is_nan() || w < 0.0 {
                 continue;
             }
             let candidate = cost + w;

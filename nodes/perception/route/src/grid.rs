@@ -134,7 +134,8 @@ mod tests {
         }
         // Fixed frame z up; camera at z = 1 looking down (optical z = −fixed z, optical y = −fixed x).
         let rotation = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(0.0, -1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, -1.0));
-        let fixed_from_camera = Isometry3::from_parts(nalgebra::Translation3::new(0.0, 0.0, 1.0), nalgebra::UnitQuaternion::from_rotation_matrix(&rotation));
+        let fixed_from_camera =
+            Isometry3::from_parts(nalgebra::Translation3::new(0.0, 0.0, 1.0), nalgebra::UnitQuaternion::from_rotation_matrix(&rotation));
         let grid = TerrainGrid::from_depth(w, h, &depth, &k, &fixed_from_camera, 15, 20).unwrap();
         assert_eq!((grid.rows, grid.cols), (15, 20));
         assert_eq!(grid.at(0, 0), None);

@@ -191,7 +191,7 @@ mod tests {
 
     #[test]
     fn fewer_holds_than_k_and_duplicates() {
-        let holds = vec![Hold::new(Vector3::new(1.0, 2.0, 3.0), 0.6); 5];
+        let holds = [Hold::new(Vector3::new(1.0, 2.0, 3.0), 0.6); 5];
         let few = kmeans(&holds[..2], 30, 0).unwrap();
         assert_eq!(few.holds.len(), 2);
         // Ten identical points, k = 3: one non-empty cluster, no NaN.

@@ -74,8 +74,7 @@ impl LegModel {
     pub fn from_robot(model: &RobotModel, side: Side) -> Result<Self, RouteError> {
         let p = side.prefix();
         let robot = |e: patchwalk_robot_model::kinematics::KinematicsError| RouteError::Robot(e.to_string());
-        let zeros: HashMap<String, f64> =
-            patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
+        let zeros: HashMap<String, f64> = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
         let at = |link: &str| model.root_from_link(link, &zeros).map(|t| t.translation.vector).map_err(robot);
         let yaw_origin = at(&format!("{p}_hip_yaw_link"))?;
         let hip = at(&format!("{p}_hip_roll_link"))?;
@@ -135,7 +134,8 @@ impl LegModel {
     }
 
     fn solve(&self, sole_in_base: &Vector3<f64>, foot_yaw: f64, limited: bool) -> Option<[f64; 6]> {
-        let inside = |joint: usize, q: f64| !limited || (q >= self.limits[joint].lower - LIMIT_SLACK && q <= self.limits[joint].upper + LIMIT_SLACK);
+        let inside =
+            |joint: usize, q: f64| !limited || (q >= self.limits[joint].lower - LIMIT_SLACK && q <= self.limits[joint].upper + LIMIT_SLACK);
         let (a, b) = (self.thigh_m, self.shin_m);
         let (sy, cy) = foot_yaw.sin_cos();
         let d = self.hip_in_base - sole_in_base - Vector3::new(0.0, 0.0, self.ankle_to_sole_m);
@@ -165,7 +165,14 @@ impl LegModel {
         let hip_roll = m21.clamp(-1.0, 1.0).asin();
         let hip_pitch = (-m20).atan2(m22);
         let hip_yaw = (-m01).atan2(m11);
-        (inside(0, hip_yaw) && inside(1, hip_roll) && inside(2, hip_pitch)).then_some([hip_yaw, hip_roll, hip_pitch, knee, ankle_pitch, ankle_roll])
+        (inside(0, hip_yaw) && inside(1, hip_roll) && inside(2, hip_pitch)).then_some([
+            hip_yaw,
+            hip_roll,
+            hip_pitch,
+            knee,
+            ankle_pitch,
+            ankle_roll,
+        ])
     }
 
     /// The closed-form solution without the joint-limit check.
@@ -175,8 +182,7 @@ impl LegModel {
 
     /// The URDF joint positions of an IK solution, by name (the other leg's joints at zero).
     pub fn joint_positions(&self, q: &[f64; 6]) -> HashMap<String, f64> {
-        let mut positions: HashMap<String, f64> =
-            patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
+        let mut positions: HashMap<String, f64> = patchwalk_robot_model::DEFAULT_JOINTS.iter().map(|j| ((*j).to_string(), 0.0)).collect();
         for (joint, value) in LEG_JOINTS.iter().zip(q) {
             positions.insert(format!("{}_{joint}", self.side.prefix()), *value);
         }
@@ -198,9 +204,8 @@ impl LegModel {
             let q = self
                 .ik_unlimited(&target, yaw)
                 .ok_or_else(|| RouteError::Robot(format!("{} leg: no IK solution for a reachable check pose", self.side.prefix())))?;
-            let foot = model
-                .root_from_link(self.side.sole_link(), &self.joint_positions(&q))
-                .map_err(|e| RouteError::Robot(e.to_string()))?;
+            let foot =
+                model.root_from_link(self.side.sole_link(), &self.joint_positions(&q)).map_err(|e| RouteError::Robot(e.to_string()))?;
             let position_error = (foot.translation.vector - target).norm();
             let expected = Rotation3::from_axis_angle(&Vector3::z_axis(), yaw);
             let rotation_error = (foot.rotation.to_rotation_matrix().matrix() - expected.matrix()).norm();

@@ -280,7 +280,8 @@ impl Planner {
         let goal_vertex = self.snap(grid, &stances, &goal, "goal")?;
         let start_vertex = match &start {
             Some(s) => self.snap(grid, &stances, s, "start")?,
-            None => bottom_centre(grid, |i| stances[i].is_some()).ok_or(RouteError::NoStanceAnywhere { clusters: positions.len(), vertices: grid.valid() })?,
+            None => bottom_centre(grid, |i| stances[i].is_some())
+                .ok_or(RouteError::NoStanceAnywhere { clusters: positions.len(), vertices: grid.valid() })?,
         };
 
         let t2 = Instant::now();
@@ -300,7 +301,9 @@ impl Planner {
         }
         let optimal: Vec<(usize, usize, f64)> =
             path.iter().map(|&i| stances[i].map_or((0, 0, 0.0), |s| (s.left, s.right, s.flex))).collect();
-        let steps = thin(&optimal, &positions, self.config.thinning_m, self.config.keep_flex_ratio, |k, l, r| self.flex_of(&point(path[k]), &positions[l], &positions[r]));
+        let steps = thin(&optimal, &positions, self.config.thinning_m, self.config.keep_flex_ratio, |k, l, r| {
+            self.flex_of(&point(path[k]), &positions[l], &positions[r])
+        });
         let to_array = |v: Vector3<f64>| [v.x, v.y, v.z];
         let vertex = |i: usize| [i / grid.cols, i % grid.cols];
         let route_stances = steps

@@ -135,6 +135,9 @@ mod tests {
         // Closer than the sole width: no stance.
         assert_eq!(flex(&biped, &samples, &v, &Vector3::new(0.0, 0.02, 0.0), &Vector3::new(0.0, -0.02, 0.0)), 0.0);
         // A rock 0.3 m high under the body between the feet: the hips would be inside it.
-        assert_eq!(flex(&biped, &samples, &Vector3::new(0.0, 0.0, 0.3), &Vector3::new(0.0, 0.037, 0.0), &Vector3::new(0.0, -0.037, 0.0)), 0.0);
+        assert_eq!(
+            flex(&biped, &samples, &Vector3::new(0.0, 0.0, 0.3), &Vector3::new(0.0, 0.037, 0.0), &Vector3::new(0.0, -0.037, 0.0)),
+            0.0
+        );
     }
 }

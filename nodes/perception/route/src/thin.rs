@@ -114,7 +114,15 @@ mod tests {
     fn a_foot_stays_while_its_stance_keeps_enough_flex() {
         let h = holds();
         let optimal = [(0, 4, 0.5), (1, 5, 0.5), (2, 6, 0.5), (3, 7, 0.5)];
-        let flex = |i: usize, l: usize, r: usize| if i == 3 && (l, r) == (0, 4) { 0.0 } else if (l, r) == (0, 4) { 0.4 } else { 0.3 };
+        let flex = |i: usize, l: usize, r: usize| {
+            if i == 3 && (l, r) == (0, 4) {
+                0.0
+            } else if (l, r) == (0, 4) {
+                0.4
+            } else {
+                0.3
+            }
+        };
         let steps = thin(&optimal, &h, 0.01, 0.5, flex);
         let pairs: Vec<(usize, usize, usize)> = steps.iter().map(|s| (s.path_index, s.left, s.right)).collect();
         // At vertex 3 both old holds fail together; keeping one (0, 7) or (3, 4) keeps 0.3 ≥ 0.25:

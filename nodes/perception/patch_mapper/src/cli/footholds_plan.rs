@@ -118,9 +118,8 @@ pub fn run(args: PlanArgs) -> Result<()> {
         bail!("--max-slope-deg must be a positive angle, got {}", args.max_slope_deg);
     }
     let mut planner_config: PlannerConfig = match &args.planner {
-        Some(path) => {
-            patchwalk_ros::params::load_config(Some(path), &[]).with_context(|| format!("{}: invalid planner parameters", path.display()))?
-        }
+        Some(path) => patchwalk_ros::params::load_config(Some(path), &[])
+            .with_context(|| format!("{}: invalid planner parameters", path.display()))?,
         None => PlannerConfig::default(),
     };
     if let Some(k) = args.clusters {
@@ -142,6 +141,8 @@ pub fn run(args: PlanArgs) -> Result<()> {
     if !args.dtfp {
         mapper_config.saliency.fixation_radius_m = f64::INFINITY;
     }
+    // Offline: no per-frame time limit, so the holds do not depend on the host's load.
+    mapper_config.time_limit_ms = f64::INFINITY;
     let depth = dataset.load_depth(frame)?;
     let t_holds = Instant::now();
     let view = if args.fuse == 1 || args.holds.is_some() {
@@ -290,6 +291,7 @@ fn fused_view(args: &PlanArgs, frame: usize, dataset: &Dataset) -> Result<View> 
     if !args.dtfp {
         config.mapper.saliency.fixation_radius_m = f64::INFINITY;
     }
+    config.mapper.time_limit_ms = f64::INFINITY;
     let mut pipeline = Pipeline::new(config.pipeline.clone(), config.tracker.clone(), config.mapper.clone(), dataset.intrinsics)?;
     let first = (frame + 1).saturating_sub(args.fuse);
     let half_window = config.mapper.acquire.accel_half_window_s;
@@ -333,7 +335,13 @@ fn fused_view(args: &PlanArgs, frame: usize, dataset: &Dataset) -> Result<View> 
     Ok(View { heading_from_camera, gravity_in_camera: gravity, patch_holds, source })
 }
 
-fn frame_gravity(args: &PlanArgs, frame: usize, dataset: &Dataset, depth: &DepthImage, config: &MapperConfig) -> Result<Unit<Vector3<f64>>> {
+fn frame_gravity(
+    args: &PlanArgs,
+    frame: usize,
+    dataset: &Dataset,
+    depth: &DepthImage,
+    config: &MapperConfig,
+) -> Result<Unit<Vector3<f64>>> {
     if let Some(g) = args.gravity {
         return Ok(gravity_from_vector(g)?);
     }
@@ -362,12 +370,21 @@ const RIGHT: [u8; 3] = [230, 30, 30];
 
 /// The depth image (grey) with the input holds (small yellow squares), the clustered holds (orange
 /// outlines), the body path (blue) and the stances (left sole green, right sole red, joined).
-fn render(depth: &DepthImage, k: &Intrinsics, heading_from_camera: &Isometry3<f64>, holds: &[Hold], route: Option<&Route>, grid: &TerrainGrid) -> Rgb {
+fn render(
+    depth: &DepthImage,
+    k: &Intrinsics,
+    heading_from_camera: &Isometry3<f64>,
+    holds: &[Hold],
+    route: Option<&Route>,
+    grid: &TerrainGrid,
+) -> Rgb {
     let mut picture = Rgb::from_depth(depth);
     let pinhole = Pinhole { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
     let camera_from_heading = heading_from_camera.inverse();
-    let pixel = |p: &[f64; 3]| pinhole.project(&(camera_from_heading * Point3::new(p[0], p[1], p[2])).coords).map(|(u, v)| Vector2::new(u, v));
-    let square = |c: Vector2<f64>, r: f64| vec![c + Vector2::new(-r, -r), c + Vector2::new(r, -r), c + Vector2::new(r, r), c + Vector2::new(-r, r)];
+    let pixel =
+        |p: &[f64; 3]| pinhole.project(&(camera_from_heading * Point3::new(p[0], p[1], p[2])).coords).map(|(u, v)| Vector2::new(u, v));
+    let square =
+        |c: Vector2<f64>, r: f64| vec![c + Vector2::new(-r, -r), c + Vector2::new(r, -r), c + Vector2::new(r, r), c + Vector2::new(-r, r)];
     for hold in holds.iter().filter(|h| h.position.iter().all(|v| v.is_finite())) {
         if let Some(c) = pixel(&hold.position) {
             picture.fill_polygon(&square(c, 1.5), RAW_HOLD, 0.8);

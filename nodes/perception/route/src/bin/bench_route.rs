@@ -25,9 +25,17 @@ fn main() -> anyhow::Result<()> {
         ("rock field 10", Terrain::rock_field(10, 3), None, target(1.05, 0.0)),
         ("rock field 20", Terrain::rock_field(20, 8), None, target(1.05, 0.1)),
     ];
-    println!("coarse route planner (CNN IV), 60 x 80 grid, k = {}, {} x {} workspace samples, {} threads, {runs} runs",
-        planner.config.clusters, planner.config.height_samples, planner.config.yaw_samples, rayon::current_num_threads());
-    println!("{:<18} {:>6} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>7}", "scene", "holds", "stance v", "total ms", "max ms", "kmeans", "stances", "search", "length", "stances", "cpu ms");
+    println!(
+        "coarse route planner (CNN IV), 60 x 80 grid, k = {}, {} x {} workspace samples, {} threads, {runs} runs",
+        planner.config.clusters,
+        planner.config.height_samples,
+        planner.config.yaw_samples,
+        rayon::current_num_threads()
+    );
+    println!(
+        "{:<18} {:>6} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>7}",
+        "scene", "holds", "stance v", "total ms", "max ms", "kmeans", "stances", "search", "length", "stances", "cpu ms"
+    );
     for (name, terrain, start, goal) in scenes {
         let (grid, holds) = (terrain.grid(), terrain.holds(0.03, 1));
         let mut totals = Vec::new();
@@ -49,13 +57,21 @@ fn main() -> anyhow::Result<()> {
         match last {
             Some(Ok(route)) => println!(
                 "{name:<18} {:>6} {:>8} {median:>9.1} {max:>9.1} {:>9.1} {:>9.1} {:>9.2} {:>7.2}m {:>8} {cpu:>7}",
-                holds.len(), route.stats.vertices_with_stance, route.stats.cluster_ms, route.stats.stance_ms, route.stats.search_ms, route.length_m, route.stances.len()
+                holds.len(),
+                route.stats.vertices_with_stance,
+                route.stats.cluster_ms,
+                route.stats.stance_ms,
+                route.stats.search_ms,
+                route.length_m,
+                route.stances.len()
             ),
             Some(Err(e)) => println!("{name:<18} {:>6} {:>8} {median:>9.1} {max:>9.1}   cpu {cpu} ms ({e})", holds.len(), "-"),
             None => {}
         }
     }
-    println!("total/max ms: wall clock per plan; cpu ms: process CPU time per plan (all threads; the wall clock on a shared host is longer)");
+    println!(
+        "total/max ms: wall clock per plan; cpu ms: process CPU time per plan (all threads; the wall clock on a shared host is longer)"
+    );
     Ok(())
 }
 

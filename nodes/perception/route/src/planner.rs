@@ -394,3 +394,44 @@ fn angle_between(a: f64, b: f64) -> f64 {
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn angles_between_wrap_around() {
+        assert!((angle_between(0.1, -0.1) - 0.2).abs() < 1e-12);
+        assert!((angle_between(3.0, -3.0) - (std::f64::consts::TAU - 6.0)).abs() < 1e-12);
+        assert!((angle_between(0.0, std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        let biped = BipedModel::rpbp().unwrap();
+        for (config, key) in [
+            (PlannerConfig { clusters: 0, ..Default::default() }, "clusters"),
+            (PlannerConfig { yaw_samples: 0, ..Default::default() }, "yaw_samples"),
+            (PlannerConfig { min_score: 1.5, ..Default::default() }, "min_score"),
+            (PlannerConfig { snap_m: f64::NAN, ..Default::default() }, "snap_m"),
+            (PlannerConfig { max_heading_deviation_rad: 0.0, ..Default::default() }, "max_heading_deviation_rad"),
+        ] {
+            let err = Planner::new(biped.clone(), config).unwrap_err();
+            assert!(err.to_string().contains(key), "{err}");
+        }
+    }
+
+    /// A stance facing the travel direction is kept, the same holds swapped (facing backwards) are not.
+    #[test]
+    fn stances_face_the_direction_of_travel() {
+        let planner = Planner::rpbp().unwrap();
+        let holds = [Vector3::new(0.0, 0.037, 0.0), Vector3::new(0.0, -0.037, 0.0)];
+        let v = Vector3::zeros();
+        let (forward, _) = planner.best_stance(&v, &holds, Some(0.0));
+        assert_eq!(forward.map(|s| (s.left, s.right)), Some((0, 1)));
+        let (backward, _) = planner.best_stance(&v, &holds, Some(std::f64::consts::PI));
+        assert_eq!(backward.map(|s| (s.left, s.right)), Some((1, 0)));
+        // Without a bearing both orders are candidates; the best is one of them.
+        assert!(planner.best_stance(&v, &holds, None).0.is_some());
+    }
+}

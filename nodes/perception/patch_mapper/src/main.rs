@@ -1,5 +1,6 @@
 //! `patch_mapper` binary: the ROS 2 perception node (`patch_mapper run`, the default) and the offline
-//! tools users reach for first (`fit`, `map`, `track`, `calibrate-imu`, `replay`).
+//! tools users reach for first (`fit`, `map`, `track`, `calibrate-imu`, `replay`,
+//! `footholds`).
 
 mod cli;
 mod ros;
@@ -27,6 +28,8 @@ enum Command {
     CalibrateImu(cli::calibrate_imu::CalibrateImuArgs),
     /// Run the node's whole pipeline (fusion, tracking, birds-eye mapping) offline over a dataset.
     Replay(cli::replay::ReplayArgs),
+    /// Footholds: coarse route planning over them (CNN IV).
+    Footholds(cli::footholds::FootholdsArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -53,6 +56,7 @@ fn main() -> std::process::ExitCode {
         Some(Command::Track(args)) => cli::track::run(args),
         Some(Command::CalibrateImu(args)) => cli::calibrate_imu::run(args),
         Some(Command::Replay(args)) => cli::replay::run(args),
+        Some(Command::Footholds(args)) => cli::footholds::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

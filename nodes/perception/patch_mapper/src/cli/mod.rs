@@ -2,6 +2,8 @@
 pub mod bag_input;
 pub mod calibrate_imu;
 pub mod fit;
+pub mod footholds;
+pub mod footholds_plan;
 pub mod map;
 pub mod replay;
 pub mod track;

@@ -115,7 +115,9 @@ def test_stop_is_answered_during_a_training_fit(ros, step_executor):
             assert time.monotonic() < deadline, response.message
             time.sleep(0.1)
         fitting = _send(select, request)
-        time.sleep(0.002)
+        # Right behind the fit request, so it arrives while the fit runs even when a fit takes only
+        # ~10 ms (the loop hands fits to a worker at once).
+        time.sleep(0.0005)
         stopped = _send(stop, Trigger.Request())
         response, stop_latency, stop_at = _wait(stopped)
         fitted, fit_latency, fit_at = _wait(fitting)

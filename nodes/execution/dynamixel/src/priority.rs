@@ -42,6 +42,21 @@ pub fn raise_thread_priority() -> bool {
     }
 }
 
+/// Back to normal scheduling (`SCHED_OTHER`, nice 0) for the calling thread: for a worker started by
+/// a real-time thread (threads inherit the policy of the thread that creates them). Returns whether
+/// it was applied (lowering a priority is always permitted).
+#[allow(unsafe_code)]
+pub fn make_normal() -> bool {
+    let param = nix::libc::sched_param { sched_priority: 0 };
+    // SAFETY: as in `make_realtime`: a valid sched_param on the stack, pid 0 = the calling thread;
+    // then setpriority on the calling thread's id with plain integers.
+    unsafe {
+        let other = nix::libc::sched_setscheduler(0, nix::libc::SCHED_OTHER, &param) == 0;
+        let tid = nix::libc::gettid();
+        other && nix::libc::setpriority(nix::libc::PRIO_PROCESS, tid as nix::libc::id_t, 0) == 0
+    }
+}
+
 /// `SCHED_FIFO` at `priority` (clamped to 1..=99) for the calling thread, else nice -15.
 #[allow(unsafe_code)]
 pub fn make_realtime(priority: i32) -> Priority {

@@ -142,11 +142,15 @@ pub struct RosConfig {
     /// Automatic execution stays armed only while heartbeats arrive on /step_executor/heartbeat at
     /// most this far apart, s (the operator's deadman).
     pub heartbeat_timeout_s: f64,
+    /// SCHED_FIFO priority of the node's ROS loop and DDS threads (1..=99, below the bus thread's;
+    /// 0 = normal scheduling), so that an e-stop request is read and answered ahead of the host's
+    /// other work. Long jobs (training fits, library writes) run at normal priority.
+    pub realtime_priority: i32,
 }
 
 impl Default for RosConfig {
     fn default() -> Self {
-        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0, heartbeat_timeout_s: 0.5 }
+        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0, heartbeat_timeout_s: 0.5, realtime_priority: 20 }
     }
 }
 
@@ -246,6 +250,9 @@ impl StepExecutorConfig {
         }
         if !(0..=99).contains(&self.bus.realtime_priority) {
             return Err(ConfigError::Invalid(format!("bus.realtime_priority: {} is outside 0..=99", self.bus.realtime_priority)));
+        }
+        if !(0..=99).contains(&self.ros.realtime_priority) {
+            return Err(ConfigError::Invalid(format!("ros.realtime_priority: {} is outside 0..=99", self.ros.realtime_priority)));
         }
         self.bus.slow_bus.validate()?;
         self.matcher.validate()?;

@@ -47,6 +47,11 @@ impl Jobs {
         let (submit, jobs) = crossbeam_channel::unbounded::<Job>();
         let (done, finished) = crossbeam_channel::unbounded::<Finished>();
         let thread = std::thread::Builder::new().name("executor-jobs".into()).spawn(move || {
+            // Created by the (possibly real-time) ROS loop: fits and writes are long and must not
+            // preempt it or the bus thread.
+            if !patchwalk_dynamixel::priority::make_normal() {
+                tracing::warn!("executor jobs: could not return to normal scheduling");
+            }
             for job in jobs {
                 let result = match job {
                     Job::Fit { request_id, job, cloud } => {

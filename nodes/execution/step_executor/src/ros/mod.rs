@@ -541,6 +541,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
 
+    // The ROS loop answers the e-stop first on every wake-up; at SCHED_FIFO (inherited by the DDS
+    // threads created below) it also wakes ahead of the host's other work.
+    if params.realtime_priority > 0 {
+        let priority = patchwalk_dynamixel::priority::make_realtime(params.realtime_priority);
+        tracing::info!("ROS loop and DDS threads: {priority}");
+    }
     let mut ros = RosNode::with_names("step_executor", names, network)?;
     let mut patches_sub = ros.subscription::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;
     let mut cloud_sub = ros.subscription::<PointCloud2>(&ros.relative(CLOUD_TOPIC), node::reliable_qos())?;

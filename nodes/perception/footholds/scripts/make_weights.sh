@@ -8,16 +8,17 @@
 #   nodes/perception/footholds/scripts/make_weights.sh            # everything
 #   STAGE=eval nodes/perception/footholds/scripts/make_weights.sh # only the evaluation
 # Environment: CARGO_TARGET_DIR (binaries), WORK (scratch, default build/footholds), TRAIN_SEEDS,
-# TEST_SEEDS, FRAMES, EPOCHS.
+# TEST_SEEDS, FRAMES, EPOCHS, MAX_SAMPLES.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../../../.." && pwd)
 BIN=${CARGO_TARGET_DIR:-$ROOT/target}/release
 WORK=${WORK:-$ROOT/build/footholds}
 WEIGHTS=$ROOT/nodes/perception/footholds/weights
-TRAIN_SEEDS=${TRAIN_SEEDS:-$(seq 1 24)}
+TRAIN_SEEDS=${TRAIN_SEEDS:-$(seq 1 30)}
 TEST_SEEDS=${TEST_SEEDS:-$(seq 101 106)}
-FRAMES=${FRAMES:-20}
-EPOCHS=${EPOCHS:-6}
+FRAMES=${FRAMES:-15}
+EPOCHS=${EPOCHS:-2}
+MAX_SAMPLES=${MAX_SAMPLES:-2400}
 STAGE=${STAGE:-all}
 REAL=${REAL:-$ROOT/tests/data/tum_fr1_xyz}
 mkdir -p "$WORK/sim"
@@ -45,9 +46,9 @@ for s in $TEST_SEEDS; do record "$s"; test_dirs+=("$WORK/sim/seed_$s"); done
 
 if [[ $STAGE == all ]]; then
   "$BIN/patch_mapper" footholds label --out "$WORK/train.safetensors" --mirror --noisy-copies 1 "${train_dirs[@]}"
-  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" \
+  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --max-samples "$MAX_SAMPLES" \
     --out "$WEIGHTS/foot_d.safetensors" --svm-out "$WEIGHTS/svm.json"
-  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --no-angle \
+  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --max-samples "$MAX_SAMPLES" --no-angle \
     --out "$WEIGHTS/foot_d_noangle.safetensors"
 fi
 "$BIN/patch_mapper" footholds eval --test "${test_dirs[@]}" --real "$REAL" --out "$WORK/eval"

@@ -37,7 +37,8 @@ pub struct LabelConfig {
     pub centre_fraction: f64,
     /// Walkable: the patch normal within this angle of up (degrees).
     pub max_slope_deg: f64,
-    /// Foot-sized: the smaller boundary half-extent at least this (m); RPBP's foot radius is 0.05 m.
+    /// Foot-sized: the smaller boundary half-extent at least this (m): 0.9 of the RPBP's foot radius
+    /// (0.05 m), so the patch carries nearly the whole sole.
     pub min_half_extent_m: f64,
     /// A foothold is visible in a frame when the frame's depth at its pixel is within this of its depth (m).
     pub visibility_tolerance_m: f64,
@@ -47,7 +48,7 @@ pub struct LabelConfig {
 
 impl Default for LabelConfig {
     fn default() -> Self {
-        Self { centre_fraction: 0.8, max_slope_deg: 30.0, min_half_extent_m: 0.03, visibility_tolerance_m: 0.03, coverage_margin_m: 0.04 }
+        Self { centre_fraction: 0.8, max_slope_deg: 30.0, min_half_extent_m: 0.045, visibility_tolerance_m: 0.03, coverage_margin_m: 0.04 }
     }
 }
 
@@ -326,7 +327,7 @@ mod tests {
         assert!(is_foothold(&plane(up(0.0), 0.05), &config));
         assert!(is_foothold(&plane(up(25.0), 0.05), &config));
         assert!(!is_foothold(&plane(up(40.0), 0.05), &config));
-        assert!(!is_foothold(&plane(up(0.0), 0.02), &config));
+        assert!(!is_foothold(&plane(up(0.0), 0.03), &config));
     }
 
     #[test]

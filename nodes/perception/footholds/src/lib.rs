@@ -11,17 +11,20 @@
 //! - [`samples`], [`train`], [`model`]: labelled sets with augmentation, deterministic training,
 //!   weights as safetensors, whole-frame prediction.
 //! - [`svm`]: the hand-feature linear SVM of CNN III-E; [`eval`]: the errors of CNN Tables I–II;
-//!   [`render`]: pictures like CNN Fig. 6.
+//!   [`evaluation`]: the comparison table; [`render`]: pictures like CNN Fig. 6; [`sequence`]: a
+//!   dataset with its IMU mount, labelled.
 //!
 //! ROS-free; `patch_mapper footholds ...` is the command line. Predicting the footholds of a frame:
 //!
 //! ```no_run
 //! # fn main() -> Result<(), patchwalk_footholds::FootholdError> {
 //! use patchwalk_footholds::{model::FootholdModel, tilt::Tilt};
-//! let model = FootholdModel::load(std::path::Path::new(patchwalk_footholds::SHIPPED_WEIGHTS))?;
-//! # let (depth, intrinsics) = (todo!(), todo!());
+//! let model = FootholdModel::load(&patchwalk_footholds::shipped_weights_path(false))?;
+//! let dataset = patchwalk_fusion::dataset::Dataset::open(std::path::Path::new("tests/data/tum_fr1_xyz"))?;
+//! let depth = dataset.load_depth(0)?;
+//! // Gravity (down) in the camera frame, e.g. from the IMU: here the camera looks 49° down.
 //! let tilt = Tilt::from_gravity_in_camera(&nalgebra::Vector3::new(0.0, 0.66, 0.75))?;
-//! let frame = model.predict_frame(&depth, &intrinsics, tilt)?;
+//! let frame = model.predict_frame(&depth, &dataset.intrinsics, tilt)?;
 //! for (u, v, p) in frame.footholds(0.5) {
 //!     println!("foothold at pixel ({u:.0}, {v:.0}), p = {p:.2}");
 //! }
@@ -30,12 +33,14 @@
 
 pub mod error;
 pub mod eval;
+pub mod evaluation;
 pub mod labels;
 pub mod model;
 pub mod network;
 pub mod regions;
 pub mod render;
 pub mod samples;
+pub mod sequence;
 pub mod svm;
 pub mod tensors_io;
 pub mod tilt;

@@ -155,6 +155,22 @@ impl SampleSet {
         out
     }
 
+    /// At most `max` samples drawn without replacement (a seeded shuffle of the indices, kept in
+    /// their original order), e.g. to size the training set to the CPU budget.
+    pub fn subsample(&self, max: usize, seed: u64) -> SampleSet {
+        use rand::seq::SliceRandom;
+        use rand::SeedableRng;
+        let mut indices: Vec<usize> = (0..self.len()).collect();
+        indices.shuffle(&mut rand::rngs::StdRng::seed_from_u64(seed));
+        indices.truncate(max);
+        indices.sort_unstable();
+        let mut out = SampleSet::new(self.regions.clone());
+        for i in indices {
+            out.push(self.input(i), self.side[i], self.targets[i], self.meta[i].clone());
+        }
+        out
+    }
+
     /// Writes the set as safetensors (`inputs` [N, C, S, S], `side` [N, 3], `positive` [N], `coords` [N, 2]).
     pub fn save(&self, path: &Path) -> Result<(), FootholdError> {
         let n = self.len();
@@ -230,6 +246,10 @@ mod tests {
         assert_eq!(set.input(1)[0], set.input(0)[7]);
         assert_eq!(set.originals().len(), 2);
         assert_eq!(set.positives(), 3);
+        let sub = set.subsample(4, 7);
+        assert_eq!(sub.len(), 4);
+        assert_eq!(sub, set.subsample(4, 7));
+        assert_eq!(set.subsample(100, 7), set);
     }
 
     #[test]

@@ -4,20 +4,12 @@
 //! geometric baseline) with its time per frame. Labels come from each sequence's fused map (see
 //! `patchwalk_footholds::labels`). Also writes pictures like CNN Fig. 6 and the table as JSON.
 
-use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use patchwalk_footholds::eval::Scores;
-use patchwalk_footholds::labels::{labelling_mapper_config, pipeline, region_label, visible_footholds, is_foothold, Label, LabelConfig, LabelledFrame};
+use patchwalk_footholds::evaluation::{evaluate_group, format_table, Methods};
 use patchwalk_footholds::model::FootholdModel;
-use patchwalk_footholds::render::{Mark, Picture};
-use patchwalk_footholds::svm::{features, LinearSvm};
-use patchwalk_footholds::train::Prediction;
-use patchwalk_fusion::camera::DepthImage;
-use serde::Serialize;
-
-use super::common::{label_sequence, Sequence};
+use patchwalk_footholds::svm::LinearSvm;
 
 /// Arguments of `patch_mapper footholds eval`.
 #[derive(clap::Args, Debug)]
@@ -45,25 +37,6 @@ pub struct EvalArgs {
     pub out: PathBuf,
 }
 
-/// The methods of the table, in order.
-const METHODS: [&str; 4] = ["CNN (depth + tilt)", "CNN, no angle", "linear SVM (22 features)", "patch pipeline, single frame"];
-
-#[derive(Default, Serialize)]
-struct GroupResult {
-    group: String,
-    datasets: usize,
-    frames: usize,
-    regions: usize,
-    positives: usize,
-    scores: Vec<(String, Scores, f64, f64)>,
-}
-
-struct Methods {
-    cnn: FootholdModel,
-    no_angle: FootholdModel,
-    svm: LinearSvm,
-}
-
 pub fn run(args: EvalArgs) -> Result<()> {
     let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
     let no_angle_weights = args.no_angle_weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(true));
@@ -85,172 +58,10 @@ pub fn run(args: EvalArgs) -> Result<()> {
         let picture = args.out.join(if results.is_empty() { "fig6_sim.png" } else { "fig6_real.png" });
         results.push(evaluate_group(group, paths, &methods, args.frame_stride, &picture)?);
     }
-    print_table(&results);
+    print!("{}", format_table(&results));
     let path = args.out.join("eval.json");
     std::fs::write(&path, serde_json::to_string_pretty(&results)?).with_context(|| format!("writing {}", path.display()))?;
     println!("pictures (CNN Fig. 6: red dot true positive, yellow cross false positive, blue square missed) and eval.json in {}", args.out.display());
     Ok(())
 }
 
-fn evaluate_group(group: &str, paths: &[PathBuf], methods: &Methods, stride: usize, picture: &Path) -> Result<GroupResult> {
-    let regions = &methods.cnn.regions;
-    let label = LabelConfig::default();
-    let region_px = regions.out_px as f64;
-    let mut scores = [Scores::default(); 4];
-    let mut ms = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
-    let mut result = GroupResult { group: group.to_string(), datasets: paths.len(), ..GroupResult::default() };
-    let mut drawn = false;
-    for path in paths {
-        let sequence = Sequence::open(path)?;
-        let (_, labelled) = label_sequence(&sequence, stride, regions, &label)?;
-        for (index, frame) in &labelled {
-            let known: Vec<usize> = (0..frame.labels.len()).filter(|&i| frame.labels[i].is_known()).collect();
-            if known.is_empty() {
-                continue;
-            }
-            result.frames += 1;
-            result.regions += known.len();
-            result.positives += known.iter().filter(|&&i| matches!(frame.labels[i], Label::Positive { .. })).count();
-            let targets: Vec<Option<(f32, f32)>> = known
-                .iter()
-                .map(|&i| match frame.labels[i] {
-                    Label::Positive { x, y } => Some((x as f32, y as f32)),
-                    _ => None,
-                })
-                .collect();
-            let side = vec![frame.tilt.channels(); frame.regions.len()];
-            let depth = sequence.dataset.load_depth(*index)?;
-            // The networks: region proposal + inference of the whole frame, timed.
-            let mut nets = Vec::new();
-            for (m, model) in [&methods.cnn, &methods.no_angle].into_iter().enumerate() {
-                let started = Instant::now();
-                let predicted = model.predict_frame(&depth, &sequence.dataset.intrinsics, frame.tilt)?;
-                ms[m].push(started.elapsed().as_secs_f64() * 1e3);
-                if predicted.regions != frame.regions {
-                    anyhow::bail!("the model's region proposal differs from the labelled one");
-                }
-                let first: Vec<Prediction> = known.iter().map(|&i| predicted.predictions[i][0]).collect();
-                scores[m] = add(scores[m], Scores::of(&first, &targets, region_px));
-                nets.push(first);
-            }
-            // The SVM on the same regions.
-            let started = Instant::now();
-            let s = regions.out_px;
-            let len = regions.input_len();
-            let svm: Vec<Prediction> =
-                known.iter().map(|&i| methods.svm.predict_features(&features(&frame.inputs[i * len..i * len + s * s], s, side[i][2]))).collect();
-            ms[2].push(started.elapsed().as_secs_f64() * 1e3);
-            scores[2] = add(scores[2], Scores::of(&svm, &targets, region_px));
-            // The patch pipeline on this frame alone.
-            let (geometric, pipeline_ms) = single_frame_footholds(&sequence, *index, &depth, frame, &label)?;
-            ms[3].push(pipeline_ms);
-            let geometric: Vec<Prediction> = known.iter().map(|&i| geometric[i]).collect();
-            scores[3] = add(scores[3], Scores::of(&geometric, &targets, region_px));
-            if !drawn {
-                draw(&depth, frame, &known, &nets[0], &targets, picture)?;
-                drawn = true;
-            }
-        }
-    }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
-    result.scores = METHODS
-        .iter()
-        .zip(scores)
-        .zip(ms.iter_mut())
-        .map(|((name, s), m)| (name.to_string(), s, s.classification_error(), median(m)))
-        .collect();
-    Ok(result)
-}
-
-fn add(a: Scores, b: Scores) -> Scores {
-    let mut out = a;
-    out.merge(&b);
-    out
-}
-
-/// The patch pipeline on one frame alone (a fresh volume): each region's "prediction" is the
-/// nearest visible foothold in its central 80 % (p = 1) or none (p = 0). Returns them and the
-/// pipeline's time (ms).
-fn single_frame_footholds(
-    sequence: &Sequence,
-    index: usize,
-    depth: &DepthImage,
-    frame: &LabelledFrame,
-    label: &LabelConfig,
-) -> Result<(Vec<Prediction>, f64)> {
-    let mapper = labelling_mapper_config();
-    let half_window = mapper.acquire.accel_half_window_s;
-    let mut single = pipeline(sequence.dataset.intrinsics, mapper, &sequence.camera_from_imu)?;
-    let timestamp = sequence.dataset.frames[index].timestamp;
-    for sample in sequence.dataset.accelerometer.iter().filter(|s| (s.timestamp - timestamp).abs() <= half_window) {
-        let _ = single.push_imu(sample.timestamp, sample.acceleration_in_imu);
-    }
-    let output = single.process(depth, timestamp).with_context(|| format!("single-frame pipeline on frame {index} of {}", sequence.name))?;
-    let footholds: Vec<_> = single.map().patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
-    let pixels = visible_footholds(depth, &sequence.dataset.intrinsics, &output.map_from_camera, &footholds, label);
-    let predictions = frame
-        .regions
-        .iter()
-        .map(|r| match region_label(r, &pixels, label.centre_fraction) {
-            Label::Positive { x, y } => Prediction { p: 1.0, x: x as f32, y: y as f32 },
-            _ => Prediction { p: 0.0, x: 0.5, y: 0.5 },
-        })
-        .collect();
-    Ok((predictions, output.timings.total_ms))
-}
-
-/// CNN Fig. 6: the CNN's predictions on the frame's depth image.
-fn draw(depth: &DepthImage, frame: &LabelledFrame, known: &[usize], predictions: &[Prediction], targets: &[Option<(f32, f32)>], path: &Path) -> Result<()> {
-    let mut picture = Picture::of_depth(depth);
-    for ((&i, p), t) in known.iter().zip(predictions).zip(targets) {
-        let region = &frame.regions[i];
-        match (p.p >= 0.5, t) {
-            (true, Some(_)) => {
-                let (u, v) = region.to_image(f64::from(p.x), f64::from(p.y));
-                picture.mark(u, v, Mark::TruePositive);
-            }
-            (true, None) => {
-                let (u, v) = region.to_image(f64::from(p.x), f64::from(p.y));
-                picture.mark(u, v, Mark::FalsePositive);
-            }
-            (false, Some((x, y))) => {
-                let (u, v) = region.to_image(f64::from(*x), f64::from(*y));
-                picture.mark(u, v, Mark::FalseNegative);
-            }
-            (false, None) => {}
-        }
-    }
-    picture.save_png(path)?;
-    Ok(())
-}
-
-fn print_table(results: &[GroupResult]) {
-    println!();
-    println!("{:<32} {:>10} {:>10} {:>6} {:>6} {:>6} {:>10}", "method", "class err", "regr (px)", "TP", "FP", "FN", "ms/frame");
-    for group in results {
-        println!(
-            "-- {} ({} datasets, {} frames, {} regions, {:.1} % positive)",
-            group.group,
-            group.datasets,
-            group.frames,
-            group.regions,
-            100.0 * group.positives as f64 / group.regions.max(1) as f64
-        );
-        for (name, s, error, ms) in &group.scores {
-            println!(
-                "{:<32} {:>9.2}% {:>10.2} {:>6} {:>6} {:>6} {:>10.1}",
-                name,
-                100.0 * error,
-                s.regression_px(),
-                s.true_positives,
-                s.false_positives,
-                s.false_negatives,
-                ms
-            );
-        }
-    }
-    println!("(regression error in pixels of the 60 x 60 region over the true positives, as CNN Tables I-II; ms: CNN region proposal + inference, SVM features + decision, pipeline single-frame total)");
-}

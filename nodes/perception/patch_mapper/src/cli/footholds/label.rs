@@ -4,13 +4,13 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use patchwalk_footholds::labels::{Label, LabelConfig};
 use patchwalk_footholds::regions::RegionConfig;
 use patchwalk_footholds::samples::{Augment, SampleSet};
 use rand::SeedableRng;
 
-use super::common::{label_sequence, Sequence};
+use patchwalk_footholds::sequence::Sequence;
 
 /// Arguments of `patch_mapper footholds label`.
 #[derive(clap::Args, Debug)]
@@ -50,7 +50,7 @@ pub fn run(args: LabelArgs) -> Result<()> {
     let (mut frames, mut unknown, mut known) = (0usize, 0usize, 0usize);
     for path in &args.datasets {
         let sequence = Sequence::open(path)?;
-        let (fused, labelled) = label_sequence(&sequence, args.frame_stride, &regions, &label)?;
+        let (fused, labelled) = sequence.label(args.frame_stride, &regions, &label).with_context(|| format!("labelling {}", path.display()))?;
         let positives: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| matches!(l, Label::Positive { .. })).count()).sum();
         let seq_known: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| l.is_known()).count()).sum();
         let seq_all: usize = labelled.iter().map(|(_, f)| f.labels.len()).sum();

@@ -9,7 +9,6 @@
 //!
 //! The subcommands are one enum; a new one is one more variant and module.
 
-mod common;
 mod eval;
 mod label;
 mod train;

@@ -33,6 +33,12 @@ pub struct TrainArgs {
     /// Seed of the initial weights and of the batch order.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Train on at most this many samples (a seeded random subset of the sets), for the CPU budget.
+    #[arg(long)]
+    pub max_samples: Option<usize>,
+    /// Seed of that subset.
+    #[arg(long, default_value_t = 7)]
+    pub subsample_seed: u64,
     /// Also fit the linear SVM on the same samples and write it (JSON).
     #[arg(long)]
     pub svm_out: Option<PathBuf>,
@@ -47,7 +53,12 @@ pub fn run(args: TrainArgs) -> Result<()> {
             Some(set) => set.extend(loaded).with_context(|| format!("adding {}", path.display()))?,
         }
     }
-    let Some(set) = set else { anyhow::bail!("no sample set given") };
+    let Some(mut set) = set else { anyhow::bail!("no sample set given") };
+    if let Some(max) = args.max_samples {
+        let total = set.len();
+        set = set.subsample(max, args.subsample_seed);
+        println!("training on {} of {total} samples", set.len());
+    }
     println!("{} samples ({} positive, {:.1} %)", set.len(), set.positives(), 100.0 * set.positives() as f64 / set.len().max(1) as f64);
     if let Some(svm_out) = &args.svm_out {
         let started = Instant::now();

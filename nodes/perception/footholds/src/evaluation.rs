@@ -41,7 +41,13 @@ pub struct Methods {
 }
 
 /// Scores the four methods on the labelled frames of `paths`; draws the first frame's CNN predictions to `picture`.
-pub fn evaluate_group(group: &str, paths: &[PathBuf], methods: &Methods, stride: usize, picture: &Path) -> Result<GroupResult, FootholdError> {
+pub fn evaluate_group(
+    group: &str,
+    paths: &[PathBuf],
+    methods: &Methods,
+    stride: usize,
+    picture: &Path,
+) -> Result<GroupResult, FootholdError> {
     let regions = &methods.cnn.regions;
     let label = LabelConfig::default();
     let region_px = regions.out_px as f64;
@@ -86,8 +92,10 @@ pub fn evaluate_group(group: &str, paths: &[PathBuf], methods: &Methods, stride:
             let started = Instant::now();
             let s = regions.out_px;
             let len = regions.input_len();
-            let svm: Vec<Prediction> =
-                known.iter().map(|&i| methods.svm.predict_features(&features(&frame.inputs[i * len..i * len + s * s], s, side[i][2]))).collect();
+            let svm: Vec<Prediction> = known
+                .iter()
+                .map(|&i| methods.svm.predict_features(&features(&frame.inputs[i * len..i * len + s * s], s, side[i][2])))
+                .collect();
             ms[2].push(started.elapsed().as_secs_f64() * 1e3);
             scores[2] = add(scores[2], Scores::of(&svm, &targets, region_px));
             // The patch pipeline on this frame alone.
@@ -152,7 +160,14 @@ fn single_frame_footholds(
 }
 
 /// CNN Fig. 6: the CNN's predictions on the frame's depth image.
-fn draw(depth: &DepthImage, frame: &LabelledFrame, known: &[usize], predictions: &[Prediction], targets: &[Option<(f32, f32)>], path: &Path) -> Result<(), FootholdError> {
+fn draw(
+    depth: &DepthImage,
+    frame: &LabelledFrame,
+    known: &[usize],
+    predictions: &[Prediction],
+    targets: &[Option<(f32, f32)>],
+    path: &Path,
+) -> Result<(), FootholdError> {
     let mut picture = Picture::of_depth(depth);
     for ((&i, p), t) in known.iter().zip(predictions).zip(targets) {
         let region = &frame.regions[i];
@@ -180,9 +195,11 @@ fn draw(depth: &DepthImage, frame: &LabelledFrame, known: &[usize], predictions:
 pub fn format_table(results: &[GroupResult]) -> String {
     use std::fmt::Write;
     let mut out = String::new();
-    let _ = writeln!(out, "{:<32} {:>10} {:>10} {:>6} {:>6} {:>6} {:>10}", "method", "class err", "regr (px)", "TP", "FP", "FN", "ms/frame");
+    let _ =
+        writeln!(out, "{:<32} {:>10} {:>10} {:>6} {:>6} {:>6} {:>10}", "method", "class err", "regr (px)", "TP", "FP", "FN", "ms/frame");
     for group in results {
-        let _ = writeln!(out, 
+        let _ = writeln!(
+            out,
             "-- {} ({} datasets, {} frames, {} regions, {:.1} % positive)",
             group.group,
             group.datasets,
@@ -191,7 +208,8 @@ pub fn format_table(results: &[GroupResult]) -> String {
             100.0 * group.positives as f64 / group.regions.max(1) as f64
         );
         for (name, s, error, ms) in &group.scores {
-            let _ = writeln!(out, 
+            let _ = writeln!(
+                out,
                 "{:<32} {:>9.2}% {:>10.2} {:>6} {:>6} {:>6} {:>10.1}",
                 name,
                 100.0 * error,

@@ -59,7 +59,10 @@ pub enum Label {
     Unknown,
     Negative,
     /// A foothold at (x, y) ∈ [0, 1]² of the region.
-    Positive { x: f64, y: f64 },
+    Positive {
+        x: f64,
+        y: f64,
+    },
 }
 
 impl Label {
@@ -113,9 +116,7 @@ pub fn is_foothold(patch: &Patch, config: &LabelConfig) -> bool {
     let walkable = up >= config.max_slope_deg.to_radians().cos();
     let half_extent = match patch.boundary {
         BoundaryType::Circle => patch.boundary_params.first().copied(),
-        BoundaryType::Ellipse | BoundaryType::Rectangle => {
-            patch.boundary_params.iter().take(2).copied().reduce(f64::min)
-        }
+        BoundaryType::Ellipse | BoundaryType::Rectangle => patch.boundary_params.iter().take(2).copied().reduce(f64::min),
         // d_1..d_4: distances of the quadrilateral's corners; the shorter diagonal half.
         BoundaryType::Quadrilateral => {
             let d = &patch.boundary_params;
@@ -133,7 +134,8 @@ pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternio
         return Ok(None);
     }
     let text = std::fs::read_to_string(&path).map_err(crate::error::io_error(&path))?;
-    let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| FootholdError::Format { path: path.clone(), reason: e.to_string() })?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| FootholdError::Format { path: path.clone(), reason: e.to_string() })?;
     let Some(q) = value.get("camera_from_imu_xyzw").and_then(|q| q.as_array()) else {
         return Ok(None);
     };
@@ -146,7 +148,12 @@ pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternio
 
 /// A pipeline for `intrinsics` with the given mapper, IMU mount and the node's other defaults.
 pub fn pipeline(intrinsics: Intrinsics, mapper: MapperConfig, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
-    let mut pipeline = Pipeline::new(PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() }, TrackerConfig::default(), mapper, intrinsics)?;
+    let mut pipeline = Pipeline::new(
+        PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() },
+        TrackerConfig::default(),
+        mapper,
+        intrinsics,
+    )?;
     pipeline.set_camera_from_imu(&camera_from_imu.to_rotation_matrix());
     Ok(pipeline)
 }
@@ -177,7 +184,8 @@ pub fn fuse_sequence(
     let mut poses = Vec::new();
     let mut pipeline_ms = Vec::new();
     for &index in frames {
-        let timestamp = dataset.frames.get(index).map(|f| f.timestamp).ok_or_else(|| FootholdError::Config(format!("frame {index} out of range")))?;
+        let timestamp =
+            dataset.frames.get(index).map(|f| f.timestamp).ok_or_else(|| FootholdError::Config(format!("frame {index} out of range")))?;
         next_imu = feed_imu(&mut pipeline, dataset, next_imu, timestamp + half_window);
         let depth = dataset.load_depth(index)?;
         // Frames the pipeline refuses (no IMU near the stamp, too little depth) are not labelled.
@@ -336,7 +344,13 @@ mod tests {
         let depth = DepthImage::new(64, 48, vec![1.0; 64 * 48]).unwrap();
         let pose = Isometry3::identity();
         let config = LabelConfig::default();
-        let seen = visible_footholds(&depth, &k, &pose, &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5), Vector3::new(5.0, 0.0, 1.0)], &config);
+        let seen = visible_footholds(
+            &depth,
+            &k,
+            &pose,
+            &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5), Vector3::new(5.0, 0.0, 1.0)],
+            &config,
+        );
         assert_eq!(seen, vec![(32.0, 24.0)]);
     }
 }

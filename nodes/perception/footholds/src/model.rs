@@ -81,7 +81,8 @@ impl FootholdModel {
         let net: NetConfig = tensors_io::meta_json(path, &metadata, "network")?;
         let regions: RegionConfig = tensors_io::meta_json(path, &metadata, "regions")?;
         let notes = tensors_io::meta_json(path, &metadata, "notes").unwrap_or(serde_json::Value::Null);
-        let mut model = Self::new(net, regions, 0).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
+        let mut model =
+            Self::new(net, regions, 0).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
         model.net.load_tensors(&tensors).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
         model.notes = notes;
         Ok(model)

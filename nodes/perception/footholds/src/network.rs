@@ -83,7 +83,8 @@ impl NetConfig {
 
     /// Checks the configuration.
     pub fn validate(&self) -> Result<(), FootholdError> {
-        if self.in_channels == 0 || self.hidden == 0 || self.body_parts == 0 || self.kernels.contains(&0) || self.kernel_sizes.contains(&0) {
+        if self.in_channels == 0 || self.hidden == 0 || self.body_parts == 0 || self.kernels.contains(&0) || self.kernel_sizes.contains(&0)
+        {
             return Err(FootholdError::Config(format!("network sizes must be positive: {self:?}")));
         }
         self.feature_len().map(|_| ())
@@ -273,7 +274,16 @@ mod tests {
     use super::*;
 
     fn tiny() -> NetConfig {
-        NetConfig { in_channels: 1, input_px: 16, kernels: [2, 2, 3, 3], kernel_sizes: [3, 2, 2, 2], first_stride: 1, hidden: 5, side_channels: true, body_parts: 1 }
+        NetConfig {
+            in_channels: 1,
+            input_px: 16,
+            kernels: [2, 2, 3, 3],
+            kernel_sizes: [3, 2, 2, 2],
+            first_stride: 1,
+            hidden: 5,
+            side_channels: true,
+            body_parts: 1,
+        }
     }
 
     #[test]
@@ -339,7 +349,11 @@ mod tests {
                 let lm = loss_of(&net).to_scalar::<f64>().unwrap();
                 var.set(&Tensor::from_vec(values.clone(), var.dims(), &dev).unwrap()).unwrap();
                 let numeric = (lp - lm) / (2.0 * eps);
-                assert!((numeric - grad[i]).abs() <= 1e-5 * (1.0 + numeric.abs()), "{name}[{i}]: backprop {} vs numeric {numeric}", grad[i]);
+                assert!(
+                    (numeric - grad[i]).abs() <= 1e-5 * (1.0 + numeric.abs()),
+                    "{name}[{i}]: backprop {} vs numeric {numeric}",
+                    grad[i]
+                );
                 checked += 1;
             }
         }

@@ -234,10 +234,7 @@ pub fn check_image(depth: &DepthImage, intrinsics: &Intrinsics, config: &RegionC
     }
     let window = config.window_for_width(width);
     if width < window.max(config.cols + 1) || height < window.max(config.rows + 1) {
-        return Err(image_error(format!(
-            "too small for a {}x{} region grid with {window} px depth windows",
-            config.rows, config.cols
-        )));
+        return Err(image_error(format!("too small for a {}x{} region grid with {window} px depth windows", config.rows, config.cols)));
     }
     if depth.depth_m.iter().any(|d| d.is_infinite() || (d.is_finite() && *d <= 0.0)) {
         return Err(image_error("has infinite, zero or negative depth values (invalid pixels must be NaN)".into()));
@@ -361,8 +358,15 @@ mod tests {
 
     fn flat(width: usize, height: usize, d: f32) -> (DepthImage, Intrinsics) {
         let depth = DepthImage::new(width, height, vec![d; width * height]).unwrap();
-        let k = Intrinsics::new(width, height, 525.0 * width as f64 / 640.0, 525.0 * width as f64 / 640.0, width as f64 / 2.0, height as f64 / 2.0)
-            .unwrap();
+        let k = Intrinsics::new(
+            width,
+            height,
+            525.0 * width as f64 / 640.0,
+            525.0 * width as f64 / 640.0,
+            width as f64 / 2.0,
+            height as f64 / 2.0,
+        )
+        .unwrap();
         (depth, k)
     }
 

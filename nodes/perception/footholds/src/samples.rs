@@ -87,7 +87,14 @@ impl SampleSet {
     }
 
     /// Adds the known (positive or negative) regions of a frame, with augmented copies.
-    pub fn add_frame(&mut self, frame: &LabelledFrame, scene: &str, index: usize, augment: Augment, rng: &mut impl Rng) -> Result<(), FootholdError> {
+    pub fn add_frame(
+        &mut self,
+        frame: &LabelledFrame,
+        scene: &str,
+        index: usize,
+        augment: Augment,
+        rng: &mut impl Rng,
+    ) -> Result<(), FootholdError> {
         let len = self.regions.input_len();
         if frame.inputs.len() != frame.regions.len() * len {
             return Err(FootholdError::Shape(format!("{} input values for {} regions of {len}", frame.inputs.len(), frame.regions.len())));
@@ -121,7 +128,8 @@ impl SampleSet {
                 self.push(&mirrored, side, target.map(|(x, y)| (1.0 - x, y)), augmented.clone());
             }
             if augment.noise_sigma_m > 0.0 {
-                let normal = rand_distr::Normal::new(0.0, augment.noise_sigma_m * noise_scale).map_err(|e| FootholdError::Config(e.to_string()))?;
+                let normal =
+                    rand_distr::Normal::new(0.0, augment.noise_sigma_m * noise_scale).map_err(|e| FootholdError::Config(e.to_string()))?;
                 for _ in 0..augment.noisy_copies {
                     let mut noisy = input.to_vec();
                     for v in &mut noisy[..out * out] {

@@ -23,13 +23,18 @@ impl Sequence {
     pub fn open(path: &Path) -> Result<Self, FootholdError> {
         let dataset = Dataset::open(path)?;
         if dataset.accelerometer.is_empty() {
-            return Err(FootholdError::Config(format!("{}: no accelerometer data (accelerometer.txt): the camera tilt is unknown", path.display())));
+            return Err(FootholdError::Config(format!(
+                "{}: no accelerometer data (accelerometer.txt): the camera tilt is unknown",
+                path.display()
+            )));
         }
         let camera_from_imu = match dataset_camera_from_imu(&dataset)? {
             Some(q) => q,
             None => {
                 calibrate_dataset(&dataset, &CalibrationConfig::default())
-                    .map_err(|e| FootholdError::Config(format!("calibrating the IMU mount of {} from its dominant plane: {e}", path.display())))?
+                    .map_err(|e| {
+                        FootholdError::Config(format!("calibrating the IMU mount of {} from its dominant plane: {e}", path.display()))
+                    })?
                     .camera_from_imu
             }
         };
@@ -38,12 +43,20 @@ impl Sequence {
     }
 
     /// The fused sequence and every `stride`-th tracked frame labelled from it: (frame index, frame).
-    pub fn label(&self, stride: usize, regions: &RegionConfig, label: &LabelConfig) -> Result<(FusedSequence, Vec<(usize, LabelledFrame)>), FootholdError> {
+    pub fn label(
+        &self,
+        stride: usize,
+        regions: &RegionConfig,
+        label: &LabelConfig,
+    ) -> Result<(FusedSequence, Vec<(usize, LabelledFrame)>), FootholdError> {
         let fused = fuse_sequence(&self.dataset, &self.camera_from_imu, None, label)?;
         let mut frames = Vec::new();
         for pose in fused.frames.iter().step_by(stride.max(1)) {
             let depth = self.dataset.load_depth(pose.index)?;
-            frames.push((pose.index, label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.grid, regions, label)?));
+            frames.push((
+                pose.index,
+                label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.grid, regions, label)?,
+            ));
         }
         Ok((fused, frames))
     }

@@ -158,7 +158,10 @@ impl LinearSvm {
             };
             let solve = |b: DVector<f64>| -> Result<Vec<f64>, FootholdError> {
                 let rhs = a.transpose() * b;
-                ata.clone().cholesky().map(|c| c.solve(&rhs).iter().copied().collect()).ok_or_else(|| FootholdError::Config("ridge system not positive definite".into()))
+                ata.clone()
+                    .cholesky()
+                    .map(|c| c.solve(&rhs).iter().copied().collect())
+                    .ok_or_else(|| FootholdError::Config("ridge system not positive definite".into()))
             };
             (solve(target(|t| t.0))?, solve(target(|t| t.1))?)
         };
@@ -213,7 +216,8 @@ mod tests {
         // Max/min relative to the centre over the 10 px window: 0.25..0.34 around 0.295.
         assert!((f[1] - 0.045).abs() < 1e-5 && (f[2] + 0.045).abs() < 1e-5, "{} {}", f[1], f[2]);
         assert_eq!(f[21], 0.5);
-        let bump: Vec<f32> = (0..side * side).map(|i| -(((i % side) as f32 - 30.0).powi(2) + ((i / side) as f32 - 30.0).powi(2)) * 1e-4).collect();
+        let bump: Vec<f32> =
+            (0..side * side).map(|i| -(((i % side) as f32 - 30.0).powi(2) + ((i / side) as f32 - 30.0).powi(2)) * 1e-4).collect();
         let f = features(&bump, side, 0.5);
         assert!(f[5] < 0.0 && f[6] < 0.0, "a cap curves down: {f:?}");
     }
@@ -228,7 +232,16 @@ mod tests {
             set.inputs.extend((0..3600).map(|k| slope * (k % 60) as f32));
             set.side.push([0.7, 0.7, 0.5]);
             set.targets.push(positive.then_some((0.3 + 0.01 * (i % 5) as f32, 0.5)));
-            set.meta.push(SampleMeta { scene: "s".into(), frame: i, u: 0.0, v: 0.0, size_px: 60, depth_m: 0.5, tilt_deg: 45.0, augmented: false });
+            set.meta.push(SampleMeta {
+                scene: "s".into(),
+                frame: i,
+                u: 0.0,
+                v: 0.0,
+                size_px: 60,
+                depth_m: 0.5,
+                tilt_deg: 45.0,
+                augmented: false,
+            });
         }
         let svm = LinearSvm::fit(&set, &SvmConfig::default()).unwrap();
         let predictions = svm.predict(&set);

@@ -29,7 +29,8 @@ pub fn load(path: &Path) -> Result<(HashMap<String, Tensor>, HashMap<String, Str
 
 /// A metadata entry parsed as JSON.
 pub fn meta_json<T: serde::de::DeserializeOwned>(path: &Path, metadata: &HashMap<String, String>, key: &str) -> Result<T, FootholdError> {
-    let text = metadata.get(key).ok_or_else(|| FootholdError::Format { path: path.to_path_buf(), reason: format!("metadata '{key}' missing") })?;
+    let text =
+        metadata.get(key).ok_or_else(|| FootholdError::Format { path: path.to_path_buf(), reason: format!("metadata '{key}' missing") })?;
     serde_json::from_str(text).map_err(|e| FootholdError::Format { path: path.to_path_buf(), reason: format!("metadata '{key}': {e}") })
 }
 

@@ -83,7 +83,12 @@ pub fn mean_loss(net: &FootholdNet, set: &SampleSet, config: &TrainConfig) -> Re
 
 /// Trains `net` on `set`; calls `progress(epoch, mean training loss of the epoch)` after each epoch
 /// and returns those losses.
-pub fn train(net: &FootholdNet, set: &SampleSet, config: &TrainConfig, mut progress: impl FnMut(usize, f64)) -> Result<Vec<f64>, FootholdError> {
+pub fn train(
+    net: &FootholdNet,
+    set: &SampleSet,
+    config: &TrainConfig,
+    mut progress: impl FnMut(usize, f64),
+) -> Result<Vec<f64>, FootholdError> {
     if set.is_empty() {
         return Err(FootholdError::Empty("no training samples".into()));
     }
@@ -173,13 +178,31 @@ mod tests {
             }
             set.side.push([0.7, 0.7, 0.5]);
             set.targets.push(positive.then_some((bx / 16.0, by / 16.0)));
-            set.meta.push(SampleMeta { scene: "s".into(), frame: i, u: 0.0, v: 0.0, size_px: 16, depth_m: 0.5, tilt_deg: 45.0, augmented: false });
+            set.meta.push(SampleMeta {
+                scene: "s".into(),
+                frame: i,
+                u: 0.0,
+                v: 0.0,
+                size_px: 16,
+                depth_m: 0.5,
+                tilt_deg: 45.0,
+                augmented: false,
+            });
         }
         set
     }
 
     fn tiny() -> NetConfig {
-        NetConfig { in_channels: 1, input_px: 16, kernels: [4, 4, 6, 6], kernel_sizes: [3, 3, 2, 2], first_stride: 1, hidden: 16, side_channels: true, body_parts: 1 }
+        NetConfig {
+            in_channels: 1,
+            input_px: 16,
+            kernels: [4, 4, 6, 6],
+            kernel_sizes: [3, 3, 2, 2],
+            first_stride: 1,
+            hidden: 16,
+            side_channels: true,
+            body_parts: 1,
+        }
     }
 
     #[test]

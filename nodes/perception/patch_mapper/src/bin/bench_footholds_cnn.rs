@@ -53,7 +53,8 @@ fn main() -> Result<()> {
     let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
     let model = FootholdModel::load(&weights).with_context(|| format!("loading {}", weights.display()))?;
     let svm_path = args.svm.clone().unwrap_or_else(patchwalk_footholds::shipped_svm_path);
-    let svm: LinearSvm = serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)?;
+    let svm: LinearSvm =
+        serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)?;
     let tilt = Tilt::from_degrees(args.tilt_deg)?;
     let runs = args.runs.max(1);
     println!(

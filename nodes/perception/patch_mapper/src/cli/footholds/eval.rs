@@ -46,8 +46,9 @@ pub fn run(args: EvalArgs) -> Result<()> {
     if no_angle.regions != cnn.regions {
         anyhow::bail!("{} and {} were trained on different region configurations", weights.display(), no_angle_weights.display());
     }
-    let svm: LinearSvm = serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)
-        .with_context(|| format!("parsing {}", svm_path.display()))?;
+    let svm: LinearSvm =
+        serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)
+            .with_context(|| format!("parsing {}", svm_path.display()))?;
     let methods = Methods { cnn, no_angle, svm };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let mut results = Vec::new();
@@ -61,7 +62,9 @@ pub fn run(args: EvalArgs) -> Result<()> {
     print!("{}", format_table(&results));
     let path = args.out.join("eval.json");
     std::fs::write(&path, serde_json::to_string_pretty(&results)?).with_context(|| format!("writing {}", path.display()))?;
-    println!("pictures (CNN Fig. 6: red dot true positive, yellow cross false positive, blue square missed) and eval.json in {}", args.out.display());
+    println!(
+        "pictures (CNN Fig. 6: red dot true positive, yellow cross false positive, blue square missed) and eval.json in {}",
+        args.out.display()
+    );
     Ok(())
 }
-

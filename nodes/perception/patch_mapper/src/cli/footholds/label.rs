@@ -50,7 +50,8 @@ pub fn run(args: LabelArgs) -> Result<()> {
     let (mut frames, mut unknown, mut known) = (0usize, 0usize, 0usize);
     for path in &args.datasets {
         let sequence = Sequence::open(path)?;
-        let (fused, labelled) = sequence.label(args.frame_stride, &regions, &label).with_context(|| format!("labelling {}", path.display()))?;
+        let (fused, labelled) =
+            sequence.label(args.frame_stride, &regions, &label).with_context(|| format!("labelling {}", path.display()))?;
         let positives: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| matches!(l, Label::Positive { .. })).count()).sum();
         let seq_known: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| l.is_known()).count()).sum();
         let seq_all: usize = labelled.iter().map(|(_, f)| f.labels.len()).sum();

@@ -66,9 +66,20 @@ pub fn run(args: TrainArgs) -> Result<()> {
         std::fs::write(svm_out, serde_json::to_string_pretty(&svm)?).with_context(|| format!("writing {}", svm_out.display()))?;
         println!("linear SVM fitted in {:.1} s -> {}", started.elapsed().as_secs_f64(), svm_out.display());
     }
-    let net = NetConfig { in_channels: set.regions.channels(), input_px: set.regions.out_px, side_channels: !args.no_angle, ..NetConfig::default() };
+    let net = NetConfig {
+        in_channels: set.regions.channels(),
+        input_px: set.regions.out_px,
+        side_channels: !args.no_angle,
+        ..NetConfig::default()
+    };
     let mut model = FootholdModel::new(net, set.regions.clone(), args.seed)?;
-    let config = TrainConfig { epochs: args.epochs, batch: args.batch, learning_rate: args.learning_rate, seed: args.seed, ..TrainConfig::default() };
+    let config = TrainConfig {
+        epochs: args.epochs,
+        batch: args.batch,
+        learning_rate: args.learning_rate,
+        seed: args.seed,
+        ..TrainConfig::default()
+    };
     let started = Instant::now();
     let losses = train(&model.net, &set, &config, |epoch, loss| {
         let s = started.elapsed().as_secs_f64();

@@ -17,8 +17,11 @@ pub fn save(path: &Path, tensors: &[(String, Tensor)], metadata: HashMap<String,
         .map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })
 }
 
+/// Named tensors and string metadata of one file.
+pub type TensorsAndMetadata = (HashMap<String, Tensor>, HashMap<String, String>);
+
 /// Reads a safetensors file: its tensors (on the CPU) and its metadata.
-pub fn load(path: &Path) -> Result<(HashMap<String, Tensor>, HashMap<String, String>), FootholdError> {
+pub fn load(path: &Path) -> Result<TensorsAndMetadata, FootholdError> {
     let bytes = std::fs::read(path).map_err(io_error(path))?;
     let bad = |reason: String| FootholdError::Weights { path: path.to_path_buf(), reason };
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;

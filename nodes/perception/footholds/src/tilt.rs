@@ -51,7 +51,7 @@ mod tests {
     fn tilt_from_gravity() {
         // Looking 49° down: gravity has the component sin 49° along the optical axis.
         let t = 49f64.to_radians();
-        let tilt = Tilt::from_gravity_in_camera(&Vector3::new(0.0, t.cos(), t.sin()) * 9.81).unwrap();
+        let tilt = Tilt::from_gravity_in_camera(&(Vector3::new(0.0, t.cos(), t.sin()) * 9.81)).unwrap();
         assert!((tilt.degrees - 49.0).abs() < 1e-9);
         let [c, s, r] = tilt.channels();
         assert!((c - t.cos() as f32).abs() < 1e-6 && (s - t.sin() as f32).abs() < 1e-6 && (r - 49.0 / 90.0).abs() < 1e-6);

@@ -28,7 +28,7 @@ enum Command {
     CalibrateImu(cli::calibrate_imu::CalibrateImuArgs),
     /// Run the node's whole pipeline (fusion, tracking, birds-eye mapping) offline over a dataset.
     Replay(cli::replay::ReplayArgs),
-    /// Footholds: coarse route planning over them (CNN IV).
+    /// Footholds: learned prediction from one depth image and the tilt (label, train, eval) and coarse route planning over them (plan).
     Footholds(cli::footholds::FootholdsArgs),
 }
 

@@ -1,0 +1,226 @@
+//! The comparison of CNN III-D/E on datasets held apart from training: classification and
+//! regression error of the CNN, the CNN without tilt ("No angle"), the linear SVM on hand features,
+//! and the patch pipeline itself on each single frame (the geometric baseline), with the time per
+//! frame of each; and the picture like CNN Fig. 6. Labels come from each sequence's fused map
+//! ([`crate::labels`]).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use patchwalk_fusion::camera::DepthImage;
+use serde::Serialize;
+
+use crate::error::FootholdError;
+use crate::eval::Scores;
+use crate::labels::{is_foothold, labelling_mapper_config, pipeline, region_label, visible_footholds, Label, LabelConfig, LabelledFrame};
+use crate::model::FootholdModel;
+use crate::render::{Mark, Picture};
+use crate::sequence::Sequence;
+use crate::svm::{features, LinearSvm};
+use crate::train::Prediction;
+
+/// The methods of the table, in order.
+pub const METHODS: [&str; 4] = ["CNN (depth + tilt)", "CNN, no angle", "linear SVM (22 features)", "patch pipeline, single frame"];
+
+/// One group's table rows: (method, scores, classification error, median ms per frame).
+#[derive(Default, Serialize)]
+pub struct GroupResult {
+    pub group: String,
+    pub datasets: usize,
+    pub frames: usize,
+    pub regions: usize,
+    pub positives: usize,
+    pub scores: Vec<(String, Scores, f64, f64)>,
+}
+
+/// The compared predictors.
+pub struct Methods {
+    pub cnn: FootholdModel,
+    pub no_angle: FootholdModel,
+    pub svm: LinearSvm,
+}
+
+/// Scores the four methods on the labelled frames of `paths`; draws the first frame's CNN predictions to `picture`.
+pub fn evaluate_group(
+    group: &str,
+    paths: &[PathBuf],
+    methods: &Methods,
+    stride: usize,
+    picture: &Path,
+) -> Result<GroupResult, FootholdError> {
+    let regions = &methods.cnn.regions;
+    let label = LabelConfig::default();
+    let region_px = regions.out_px as f64;
+    let mut scores = [Scores::default(); 4];
+    let mut ms = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+    let mut result = GroupResult { group: group.to_string(), datasets: paths.len(), ..GroupResult::default() };
+    let mut drawn = false;
+    for path in paths {
+        let sequence = Sequence::open(path)?;
+        let (_, labelled) = sequence.label(stride, regions, &label)?;
+        for (index, frame) in &labelled {
+            let known: Vec<usize> = (0..frame.labels.len()).filter(|&i| frame.labels[i].is_known()).collect();
+            if known.is_empty() {
+                continue;
+            }
+            result.frames += 1;
+            result.regions += known.len();
+            result.positives += known.iter().filter(|&&i| matches!(frame.labels[i], Label::Positive { .. })).count();
+            let targets: Vec<Option<(f32, f32)>> = known
+                .iter()
+                .map(|&i| match frame.labels[i] {
+                    Label::Positive { x, y } => Some((x as f32, y as f32)),
+                    _ => None,
+                })
+                .collect();
+            let side = vec![frame.tilt.channels(); frame.regions.len()];
+            let depth = sequence.dataset.load_depth(*index)?;
+            // The networks: region proposal + inference of the whole frame, timed.
+            let mut nets = Vec::new();
+            for (m, model) in [&methods.cnn, &methods.no_angle].into_iter().enumerate() {
+                let started = Instant::now();
+                let predicted = model.predict_frame(&depth, &sequence.dataset.intrinsics, frame.tilt)?;
+                ms[m].push(started.elapsed().as_secs_f64() * 1e3);
+                if predicted.regions != frame.regions {
+                    return Err(FootholdError::Config("the model's region proposal differs from the labelled one".into()));
+                }
+                let first: Vec<Prediction> = known.iter().map(|&i| predicted.predictions[i][0]).collect();
+                scores[m] = add(scores[m], Scores::of(&first, &targets, region_px));
+                nets.push(first);
+            }
+            // The SVM on the same regions.
+            let started = Instant::now();
+            let s = regions.out_px;
+            let len = regions.input_len();
+            let svm: Vec<Prediction> = known
+                .iter()
+                .map(|&i| methods.svm.predict_features(&features(&frame.inputs[i * len..i * len + s * s], s, side[i][2])))
+                .collect();
+            ms[2].push(started.elapsed().as_secs_f64() * 1e3);
+            scores[2] = add(scores[2], Scores::of(&svm, &targets, region_px));
+            // The patch pipeline on this frame alone.
+            let (geometric, pipeline_ms) = single_frame_footholds(&sequence, *index, &depth, frame, &label)?;
+            ms[3].push(pipeline_ms);
+            let geometric: Vec<Prediction> = known.iter().map(|&i| geometric[i]).collect();
+            scores[3] = add(scores[3], Scores::of(&geometric, &targets, region_px));
+            if !drawn {
+                draw(&depth, frame, &known, &nets[0], &targets, picture)?;
+                drawn = true;
+            }
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    result.scores = METHODS
+        .iter()
+        .zip(scores)
+        .zip(ms.iter_mut())
+        .map(|((name, s), m)| (name.to_string(), s, s.classification_error(), median(m)))
+        .collect();
+    Ok(result)
+}
+
+fn add(a: Scores, b: Scores) -> Scores {
+    let mut out = a;
+    out.merge(&b);
+    out
+}
+
+/// The patch pipeline on one frame alone (a fresh volume): each region's "prediction" is the
+/// nearest visible foothold in its central 80 % (p = 1) or none (p = 0). Returns them and the
+/// pipeline's time (ms).
+fn single_frame_footholds(
+    sequence: &Sequence,
+    index: usize,
+    depth: &DepthImage,
+    frame: &LabelledFrame,
+    label: &LabelConfig,
+) -> Result<(Vec<Prediction>, f64), FootholdError> {
+    let mapper = labelling_mapper_config();
+    let half_window = mapper.acquire.accel_half_window_s;
+    let mut single = pipeline(sequence.dataset.intrinsics, mapper, &sequence.camera_from_imu)?;
+    let timestamp = sequence.dataset.frames[index].timestamp;
+    for sample in sequence.dataset.accelerometer.iter().filter(|s| (s.timestamp - timestamp).abs() <= half_window) {
+        let _ = single.push_imu(sample.timestamp, sample.acceleration_in_imu);
+    }
+    let output = single.process(depth, timestamp)?;
+    let footholds: Vec<_> = single.map().patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
+    let pixels = visible_footholds(depth, &sequence.dataset.intrinsics, &output.map_from_camera, &footholds, label);
+    let predictions = frame
+        .regions
+        .iter()
+        .map(|r| match region_label(r, &pixels, label.centre_fraction) {
+            Label::Positive { x, y } => Prediction { p: 1.0, x: x as f32, y: y as f32 },
+            _ => Prediction { p: 0.0, x: 0.5, y: 0.5 },
+        })
+        .collect();
+    Ok((predictions, output.timings.total_ms))
+}
+
+/// CNN Fig. 6: the CNN's predictions on the frame's depth image.
+fn draw(
+    depth: &DepthImage,
+    frame: &LabelledFrame,
+    known: &[usize],
+    predictions: &[Prediction],
+    targets: &[Option<(f32, f32)>],
+    path: &Path,
+) -> Result<(), FootholdError> {
+    let mut picture = Picture::of_depth(depth);
+    for ((&i, p), t) in known.iter().zip(predictions).zip(targets) {
+        let region = &frame.regions[i];
+        match (p.p >= 0.5, t) {
+            (true, Some(_)) => {
+                let (u, v) = region.to_image(f64::from(p.x), f64::from(p.y));
+                picture.mark(u, v, Mark::TruePositive);
+            }
+            (true, None) => {
+                let (u, v) = region.to_image(f64::from(p.x), f64::from(p.y));
+                picture.mark(u, v, Mark::FalsePositive);
+            }
+            (false, Some((x, y))) => {
+                let (u, v) = region.to_image(f64::from(*x), f64::from(*y));
+                picture.mark(u, v, Mark::FalseNegative);
+            }
+            (false, None) => {}
+        }
+    }
+    picture.save_png(path)?;
+    Ok(())
+}
+
+/// The table of CNN Tables I-II for the groups.
+pub fn format_table(results: &[GroupResult]) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ =
+        writeln!(out, "{:<32} {:>10} {:>10} {:>6} {:>6} {:>6} {:>10}", "method", "class err", "regr (px)", "TP", "FP", "FN", "ms/frame");
+    for group in results {
+        let _ = writeln!(
+            out,
+            "-- {} ({} datasets, {} frames, {} regions, {:.1} % positive)",
+            group.group,
+            group.datasets,
+            group.frames,
+            group.regions,
+            100.0 * group.positives as f64 / group.regions.max(1) as f64
+        );
+        for (name, s, error, ms) in &group.scores {
+            let _ = writeln!(
+                out,
+                "{:<32} {:>9.2}% {:>10.2} {:>6} {:>6} {:>6} {:>10.1}",
+                name,
+                100.0 * error,
+                s.regression_px(),
+                s.true_positives,
+                s.false_positives,
+                s.false_negatives,
+                ms
+            );
+        }
+    }
+    let _ = writeln!(out, "(regression error in pixels of the 60 x 60 region over the true positives, as CNN Tables I-II; ms: CNN region proposal + inference, SVM features + decision, pipeline single-frame total)");
+    out
+}

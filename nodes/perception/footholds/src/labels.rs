@@ -1,0 +1,356 @@
+//! Labels without a human (in place of CNN III-C's painted footholds): the patch pipeline, fused
+//! over a whole sequence at full quality, says where the footholds are.
+//!
+//! 1. [`fuse_sequence`] runs [`patchwalk_mapping::pipeline::Pipeline`] (TSDF fusion + ICP, birds-eye
+//!    raycast, hiking saliency, seeds, SPL fit, validation) over every frame, with the seeds spread
+//!    over the whole volume instead of the node's small fixation ball and a generous time limit
+//!    ([`labelling_mapper_config`]). The footholds are the final map's patches that are valid (the
+//!    validator kept them), foot-sized (the boundary's smaller half-extent at least
+//!    [`LabelConfig::min_half_extent_m`]) and walkable (normal within [`LabelConfig::max_slope_deg`] of
+//!    up, in the gravity-aligned map frame).
+//! 2. [`label_frame`] projects them into each single frame. A foothold counts in a frame when it is
+//!    visible there (the frame's depth at its pixel agrees with its depth within
+//!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
+//!    lies in its central 80 % (CNN III-C ignores holds at the border), with (x, y) the centre of the
+//!    foothold nearest the region centre in region coordinates; negative when none does; unknown
+//!    (left out of training and scoring) when the region's centre point lies outside the area the map
+//!    covered (the final volume's footprint) or outside the volume's height range.
+
+use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_fusion::dataset::Dataset;
+use patchwalk_fusion::tracking::TrackerConfig;
+use patchwalk_mapping::mapper::MapperConfig;
+use patchwalk_mapping::patch_map::VolumeGrid;
+use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfig};
+use patchwalk_spl::patch::{BoundaryType, Patch};
+
+use crate::error::FootholdError;
+use crate::regions::{propose, Region, RegionConfig};
+use crate::tilt::Tilt;
+
+/// What makes a patch a foothold and a region positive.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LabelConfig {
+    /// Central fraction of a region a foothold centre must lie in (CNN III-C: 80 %).
+    pub centre_fraction: f64,
+    /// Walkable: the patch normal within this angle of up (degrees).
+    pub max_slope_deg: f64,
+    /// Foot-sized: the smaller boundary half-extent at least this (m): 0.9 of the RPBP's foot radius
+    /// (0.05 m), so the patch carries nearly the whole sole.
+    pub min_half_extent_m: f64,
+    /// A foothold is visible in a frame when the frame's depth at its pixel is within this of its depth (m).
+    pub visibility_tolerance_m: f64,
+    /// Regions whose centre point is closer than this to the covered area's edge are unknown (m).
+    pub coverage_margin_m: f64,
+}
+
+impl Default for LabelConfig {
+    fn default() -> Self {
+        Self { centre_fraction: 0.8, max_slope_deg: 30.0, min_half_extent_m: 0.045, visibility_tolerance_m: 0.03, coverage_margin_m: 0.04 }
+    }
+}
+
+/// The label of one region.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Label {
+    /// Outside the mapped area: neither trained on nor scored.
+    Unknown,
+    Negative,
+    /// A foothold at (x, y) ∈ [0, 1]² of the region.
+    Positive {
+        x: f64,
+        y: f64,
+    },
+}
+
+impl Label {
+    pub fn is_known(&self) -> bool {
+        !matches!(self, Label::Unknown)
+    }
+}
+
+/// The mapper of the labelling run: the node's configuration (the RPBP foot, the birds-eye input)
+/// with seeds over the whole volume (no fixation ball, 4 cm cells, up to 1,024 seeds per frame) and
+/// a time limit that does not cut the fit short.
+pub fn labelling_mapper_config() -> MapperConfig {
+    let mut config = default_mapper_config();
+    config.saliency.fixation_radius_m = f64::INFINITY;
+    config.seeds.cells_per_side = 32;
+    config.seeds.per_cell = 1;
+    config.seeds.max_seeds = 1024;
+    config.time_limit_ms = 5000.0;
+    config.coverage_fraction = 1.0;
+    config
+}
+
+/// Where the camera was and which way was down in one frame of a fused sequence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FramePose {
+    /// Index into the dataset's frames.
+    pub index: usize,
+    pub timestamp: f64,
+    pub map_from_camera: Isometry3<f64>,
+    pub tilt: Tilt,
+}
+
+/// A fused sequence: the footholds of its final map and each frame's pose.
+#[derive(Debug, Clone)]
+pub struct FusedSequence {
+    /// Foothold centres in the map frame (gravity aligned, z up).
+    pub footholds_in_map: Vec<Vector3<f64>>,
+    /// All patches of the final map (valid ones), for counts.
+    pub map_patches: usize,
+    pub frames: Vec<FramePose>,
+    /// The final volume's grid: the covered area.
+    pub grid: VolumeGrid,
+    /// Wall time of the pipeline per frame (ms).
+    pub pipeline_ms: Vec<f64>,
+}
+
+/// Whether a map patch is a foothold: foot-sized and walkable (it is in the map, so it is valid).
+pub fn is_foothold(patch: &Patch, config: &LabelConfig) -> bool {
+    let normal = patch.normal();
+    let up = normal.z.abs() / normal.norm().max(1e-12);
+    let walkable = up >= config.max_slope_deg.to_radians().cos();
+    let half_extent = match patch.boundary {
+        BoundaryType::Circle => patch.boundary_params.first().copied(),
+        BoundaryType::Ellipse | BoundaryType::Rectangle => patch.boundary_params.iter().take(2).copied().reduce(f64::min),
+        // d_1..d_4: distances of the quadrilateral's corners; the shorter diagonal half.
+        BoundaryType::Quadrilateral => {
+            let d = &patch.boundary_params;
+            (d.len() >= 4).then(|| ((d[0] + d[2]) / 2.0).min((d[1] + d[3]) / 2.0))
+        }
+    };
+    walkable && half_extent.is_some_and(|h| h >= config.min_half_extent_m)
+}
+
+/// The IMU mount of a dataset written by `terrain_sim record` (`intrinsics.json`'s
+/// `camera_from_imu_xyzw`), if it has one.
+pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternion<f64>>, FootholdError> {
+    let path = dataset.root.join("intrinsics.json");
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&path).map_err(crate::error::io_error(&path))?;
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| FootholdError::Format { path: path.clone(), reason: e.to_string() })?;
+    let Some(q) = value.get("camera_from_imu_xyzw").and_then(|q| q.as_array()) else {
+        return Ok(None);
+    };
+    let q: Vec<f64> = q.iter().filter_map(serde_json::Value::as_f64).collect();
+    match q.as_slice() {
+        [x, y, z, w] => Ok(Some(UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(*w, *x, *y, *z)))),
+        _ => Err(FootholdError::Format { path, reason: "camera_from_imu_xyzw must be four numbers".into() }),
+    }
+}
+
+/// A pipeline for `intrinsics` with the given mapper, IMU mount and the node's other defaults.
+pub fn pipeline(intrinsics: Intrinsics, mapper: MapperConfig, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
+    let mut pipeline = Pipeline::new(
+        PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() },
+        TrackerConfig::default(),
+        mapper,
+        intrinsics,
+    )?;
+    pipeline.set_camera_from_imu(&camera_from_imu.to_rotation_matrix());
+    Ok(pipeline)
+}
+
+/// Feeds the IMU samples up to `until` (s) into the pipeline, from `next` on; returns the new `next`.
+fn feed_imu(pipeline: &mut Pipeline, dataset: &Dataset, mut next: usize, until: f64) -> usize {
+    while let Some(sample) = dataset.accelerometer.get(next).filter(|s| s.timestamp <= until) {
+        // Out-of-order or non-finite samples are skipped, as the node does.
+        let _ = pipeline.push_imu(sample.timestamp, sample.acceleration_in_imu);
+        next += 1;
+    }
+    next
+}
+
+/// Runs the pipeline over the frames `frames` of `dataset` (all when `None`) and returns its footholds.
+pub fn fuse_sequence(
+    dataset: &Dataset,
+    camera_from_imu: &UnitQuaternion<f64>,
+    frames: Option<&[usize]>,
+    label: &LabelConfig,
+) -> Result<FusedSequence, FootholdError> {
+    let mapper = labelling_mapper_config();
+    let half_window = mapper.acquire.accel_half_window_s;
+    let mut pipeline = pipeline(dataset.intrinsics, mapper, camera_from_imu)?;
+    let all: Vec<usize> = (0..dataset.frames.len()).collect();
+    let frames = frames.unwrap_or(&all);
+    let mut next_imu = 0;
+    let mut poses = Vec::new();
+    let mut pipeline_ms = Vec::new();
+    for &index in frames {
+        let timestamp =
+            dataset.frames.get(index).map(|f| f.timestamp).ok_or_else(|| FootholdError::Config(format!("frame {index} out of range")))?;
+        next_imu = feed_imu(&mut pipeline, dataset, next_imu, timestamp + half_window);
+        let depth = dataset.load_depth(index)?;
+        // Frames the pipeline refuses (no IMU near the stamp, too little depth) are not labelled.
+        let Ok(output) = pipeline.process(&depth, timestamp) else {
+            continue;
+        };
+        pipeline_ms.push(output.timings.total_ms);
+        let Some(gravity) = output.gravity_in_camera else {
+            continue;
+        };
+        let tilt = Tilt::from_gravity_in_camera(&gravity.into_inner())?;
+        if matches!(output.tracking, patchwalk_fusion::tracking::TrackingStatus::Lost(_)) {
+            // The map was reset: the poses before do not share its frame.
+            poses.clear();
+        }
+        poses.push(FramePose { index, timestamp, map_from_camera: output.map_from_camera, tilt });
+    }
+    let map = pipeline.map();
+    let footholds_in_map = map.patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
+    Ok(FusedSequence { footholds_in_map, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms })
+}
+
+/// The regions of one frame with their labels and inputs.
+#[derive(Debug, Clone)]
+pub struct LabelledFrame {
+    pub tilt: Tilt,
+    pub regions: Vec<Region>,
+    /// `config.input_len()` values per region.
+    pub inputs: Vec<f32>,
+    pub labels: Vec<Label>,
+}
+
+/// Depth of the image near a pixel: the median of the valid values of its 5 × 5 neighbourhood.
+fn depth_near(depth: &DepthImage, u: f64, v: f64) -> Option<f64> {
+    let (u, v) = (u.round() as i64, v.round() as i64);
+    let mut values: Vec<f32> = Vec::with_capacity(25);
+    for dv in -2..=2 {
+        for du in -2..=2 {
+            let (x, y) = (u + du, v + dv);
+            if x >= 0 && y >= 0 {
+                if let Some(d) = depth.get(x as usize, y as usize) {
+                    values.push(d);
+                }
+            }
+        }
+    }
+    values.sort_by(f32::total_cmp);
+    values.get(values.len() / 2).map(|d| f64::from(*d))
+}
+
+/// Footholds of the map visible in a frame, as image pixels (u, v).
+pub fn visible_footholds(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    map_from_camera: &Isometry3<f64>,
+    footholds_in_map: &[Vector3<f64>],
+    config: &LabelConfig,
+) -> Vec<(f64, f64)> {
+    let camera_from_map = map_from_camera.inverse();
+    footholds_in_map
+        .iter()
+        .filter_map(|c| {
+            let p = camera_from_map * Point3::from(*c);
+            let (u, v) = intrinsics.project(&p.coords)?;
+            if u < 0.0 || v < 0.0 || u >= intrinsics.width as f64 || v >= intrinsics.height as f64 {
+                return None;
+            }
+            let measured = depth_near(depth, u, v)?;
+            ((measured - p.z).abs() <= config.visibility_tolerance_m).then_some((u, v))
+        })
+        .collect()
+}
+
+/// The label of a region from the foothold pixels of its frame: the nearest to the region centre
+/// among those in the central fraction.
+pub fn region_label(region: &Region, footholds_px: &[(f64, f64)], centre_fraction: f64) -> Label {
+    footholds_px
+        .iter()
+        .map(|&(u, v)| region.to_region(u, v))
+        .filter(|&(x, y)| Region::in_centre(x, y, centre_fraction))
+        .min_by(|a, b| ((a.0 - 0.5).powi(2) + (a.1 - 0.5).powi(2)).total_cmp(&((b.0 - 0.5).powi(2) + (b.1 - 0.5).powi(2))))
+        .map_or(Label::Negative, |(x, y)| Label::Positive { x, y })
+}
+
+/// Whether the region's centre point (back-projected at its depth) lies in the covered area.
+fn covered(region: &Region, intrinsics: &Intrinsics, map_from_camera: &Isometry3<f64>, grid: &VolumeGrid, margin: f64) -> bool {
+    let p = intrinsics.back_project(region.u, region.v, region.depth_m);
+    let in_volume = grid.volume_from_map * (map_from_camera * Point3::from(p));
+    let e = grid.edge_m;
+    [in_volume.x, in_volume.y, in_volume.z].iter().all(|c| *c >= margin && *c <= e - margin)
+}
+
+/// Proposes and labels the regions of one frame.
+#[allow(clippy::too_many_arguments)]
+pub fn label_frame(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    pose: &FramePose,
+    footholds_in_map: &[Vector3<f64>],
+    grid: &VolumeGrid,
+    regions_config: &RegionConfig,
+    config: &LabelConfig,
+) -> Result<LabelledFrame, FootholdError> {
+    let mut inputs = Vec::new();
+    let regions = propose(depth, intrinsics, regions_config, &mut inputs)?;
+    let footholds_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
+    let labels = regions
+        .iter()
+        .map(|r| {
+            if covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
+                region_label(r, &footholds_px, config.centre_fraction)
+            } else {
+                Label::Unknown
+            }
+        })
+        .collect();
+    Ok(LabelledFrame { tilt: pose.tilt, regions, inputs, labels })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector2;
+    use patchwalk_spl::patch::SurfaceType;
+
+    fn region() -> Region {
+        Region { row: 0, col: 0, u: 100.0, v: 100.0, depth_m: 0.5, size_px: 100 }
+    }
+
+    #[test]
+    fn nearest_central_foothold_labels_the_region() {
+        let r = region();
+        // Region spans [50, 150)²; central 80 %: [60, 140].
+        assert_eq!(region_label(&r, &[], 0.8), Label::Negative);
+        assert_eq!(region_label(&r, &[(55.0, 100.0)], 0.8), Label::Negative);
+        assert_eq!(region_label(&r, &[(55.0, 100.0), (120.0, 90.0), (105.0, 100.0)], 0.8), Label::Positive { x: 0.55, y: 0.5 });
+    }
+
+    #[test]
+    fn footholds_are_walkable_and_foot_sized() {
+        let config = LabelConfig::default();
+        // Rotation vector about y by the slope: the normal tilts away from up by that angle.
+        let plane = |rotation: Vector3<f64>, r: f64| {
+            Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![r], Vector2::zeros(), rotation, Vector3::zeros()).unwrap()
+        };
+        let up = |deg: f64| Vector3::new(0.0, deg.to_radians(), 0.0);
+        assert!(is_foothold(&plane(up(0.0), 0.05), &config));
+        assert!(is_foothold(&plane(up(25.0), 0.05), &config));
+        assert!(!is_foothold(&plane(up(40.0), 0.05), &config));
+        assert!(!is_foothold(&plane(up(0.0), 0.03), &config));
+    }
+
+    #[test]
+    fn visibility_uses_the_frames_depth() {
+        let k = Intrinsics::new(64, 48, 50.0, 50.0, 32.0, 24.0).unwrap();
+        let depth = DepthImage::new(64, 48, vec![1.0; 64 * 48]).unwrap();
+        let pose = Isometry3::identity();
+        let config = LabelConfig::default();
+        let seen = visible_footholds(
+            &depth,
+            &k,
+            &pose,
+            &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5), Vector3::new(5.0, 0.0, 1.0)],
+            &config,
+        );
+        assert_eq!(seen, vec![(32.0, 24.0)]);
+    }
+}

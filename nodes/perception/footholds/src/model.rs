@@ -1,0 +1,132 @@
+//! A trained foothold model: the network with the region proposal it was trained on, saved as one
+//! safetensors file (the tensors plus JSON metadata: network and region configuration, how it was
+//! trained), and the whole-frame prediction.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::DType;
+use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+
+use crate::error::FootholdError;
+use crate::network::{FootholdNet, NetConfig};
+use crate::regions::{propose, Region, RegionConfig};
+use crate::tensors_io;
+use crate::tilt::Tilt;
+use crate::train::{predict, Prediction};
+
+/// The network, its region proposal, and free-form training notes.
+pub struct FootholdModel {
+    pub net: FootholdNet,
+    pub regions: RegionConfig,
+    /// Training provenance (set sizes, seeds, epochs, losses), stored with the weights.
+    pub notes: serde_json::Value,
+}
+
+/// The regions of a frame and their predictions.
+#[derive(Debug, Clone)]
+pub struct FramePrediction {
+    pub regions: Vec<Region>,
+    /// Per region, per body part.
+    pub predictions: Vec<Vec<Prediction>>,
+    /// Wall time of the region proposal and of the network (ms).
+    pub regions_ms: f64,
+    pub network_ms: f64,
+}
+
+impl FramePrediction {
+    /// Predicted footholds of body part 0 with p ≥ `threshold`: (image u, v, p).
+    pub fn footholds(&self, threshold: f32) -> Vec<(f64, f64, f32)> {
+        self.regions
+            .iter()
+            .zip(&self.predictions)
+            .filter_map(|(r, p)| p.first().filter(|p| p.p >= threshold).map(|p| (r, p)))
+            .map(|(r, p)| {
+                let (u, v) = r.to_image(f64::from(p.x), f64::from(p.y));
+                (u, v, p.p)
+            })
+            .collect()
+    }
+}
+
+impl FootholdModel {
+    /// A fresh model (seeded weights).
+    pub fn new(net: NetConfig, regions: RegionConfig, seed: u64) -> Result<Self, FootholdError> {
+        regions.validate()?;
+        if regions.channels() != net.in_channels || regions.out_px != net.input_px {
+            return Err(FootholdError::Config(format!(
+                "the regions give {} channels of {} px, the network takes {} of {}",
+                regions.channels(),
+                regions.out_px,
+                net.in_channels,
+                net.input_px
+            )));
+        }
+        Ok(Self { net: FootholdNet::new(net, seed, DType::F32)?, regions, notes: serde_json::Value::Null })
+    }
+
+    /// Writes the weights and configuration.
+    pub fn save(&self, path: &Path) -> Result<(), FootholdError> {
+        let metadata = HashMap::from([
+            ("network".to_string(), tensors_io::to_json(&self.net.config)?),
+            ("regions".to_string(), tensors_io::to_json(&self.regions)?),
+            ("notes".to_string(), tensors_io::to_json(&self.notes)?),
+        ]);
+        tensors_io::save(path, &self.net.named_tensors(), metadata)
+    }
+
+    /// Reads a model written by [`FootholdModel::save`].
+    pub fn load(path: &Path) -> Result<Self, FootholdError> {
+        let (tensors, metadata) = tensors_io::load(path)?;
+        let net: NetConfig = tensors_io::meta_json(path, &metadata, "network")?;
+        let regions: RegionConfig = tensors_io::meta_json(path, &metadata, "regions")?;
+        let notes = tensors_io::meta_json(path, &metadata, "notes").unwrap_or(serde_json::Value::Null);
+        let mut model =
+            Self::new(net, regions, 0).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
+        model.net.load_tensors(&tensors).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
+        model.notes = notes;
+        Ok(model)
+    }
+
+    /// Predictions for region inputs of this model's region configuration.
+    pub fn predict_inputs(&self, inputs: &[f32], side: &[[f32; 3]]) -> Result<Vec<Vec<Prediction>>, FootholdError> {
+        predict(&self.net, inputs, side, 128)
+    }
+
+    /// Regions and predictions of one depth frame at camera tilt `tilt`.
+    pub fn predict_frame(&self, depth: &DepthImage, intrinsics: &Intrinsics, tilt: Tilt) -> Result<FramePrediction, FootholdError> {
+        let start = std::time::Instant::now();
+        let mut inputs = Vec::new();
+        let regions = propose(depth, intrinsics, &self.regions, &mut inputs)?;
+        let regions_ms = start.elapsed().as_secs_f64() * 1e3;
+        let side = vec![tilt.channels(); regions.len()];
+        let start = std::time::Instant::now();
+        let predictions = self.predict_inputs(&inputs, &side)?;
+        let network_ms = start.elapsed().as_secs_f64() * 1e3;
+        Ok(FramePrediction { regions, predictions, regions_ms, network_ms })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn save_load_gives_the_same_predictions() {
+        let model = FootholdModel::new(NetConfig::default(), RegionConfig::default(), 3).unwrap();
+        let k = Intrinsics::new(640, 480, 525.0, 525.0, 319.5, 239.5).unwrap();
+        let depth: Vec<f32> = (0..640 * 480).map(|i| 0.6 + 0.0002 * ((i % 640) as f32) + 0.01 * ((i / 640 % 37) as f32 / 37.0)).collect();
+        let depth = DepthImage::new(640, 480, depth).unwrap();
+        let tilt = Tilt::from_degrees(45.0).unwrap();
+        let before = model.predict_frame(&depth, &k, tilt).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.safetensors");
+        model.save(&path).unwrap();
+        let loaded = FootholdModel::load(&path).unwrap();
+        let after = loaded.predict_frame(&depth, &k, tilt).unwrap();
+        assert_eq!(before.predictions, after.predictions);
+        assert_eq!(before.regions.len(), 266);
+        let err = FootholdModel::new(NetConfig::default(), RegionConfig { normals: true, ..RegionConfig::default() }, 1).err().unwrap();
+        assert!(err.to_string().contains("3 channels"), "{err}");
+    }
+}

@@ -1,0 +1,103 @@
+//! Foothold prediction speed per 640 × 480 frame: region proposal (266 regions, CNN III-A) plus the
+//! network's inference (CNN III-B), side by side with the linear SVM baseline (the same regions, its
+//! 22 hand features and decision). Prints the median and the 90th percentile over the runs.
+//!
+//! `cargo run --release -p patch_mapper --bin bench_footholds_cnn -- [--dataset DIR] [--frame 0]
+//! [--runs 30] [--weights FILE] [--svm FILE]` (defaults: the recorded TUM fr1_xyz excerpt and the
+//! shipped weights; `RAYON_NUM_THREADS` limits the threads).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use patchwalk_footholds::model::FootholdModel;
+use patchwalk_footholds::regions::propose;
+use patchwalk_footholds::svm::{features, LinearSvm};
+use patchwalk_footholds::tilt::Tilt;
+use patchwalk_fusion::dataset::Dataset;
+
+#[derive(Parser)]
+#[command(about = "Foothold CNN vs SVM speed per depth frame")]
+struct Args {
+    /// Dataset with depth frames (TUM layout); default: the recorded tum_fr1_xyz excerpt.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    frame: usize,
+    #[arg(long, default_value_t = 30)]
+    runs: usize,
+    /// Network weights; default: the shipped ones.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// SVM (JSON); default: the shipped one.
+    #[arg(long)]
+    svm: Option<PathBuf>,
+    /// Camera tilt (degrees) for the side channels.
+    #[arg(long, default_value_t = 45.0)]
+    tilt_deg: f64,
+}
+
+fn percentiles(mut v: Vec<f64>) -> (f64, f64) {
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v.get(((v.len().saturating_sub(1)) as f64 * q).round() as usize).copied().unwrap_or(f64::NAN);
+    (at(0.5), at(0.9))
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let dataset_dir = args.dataset.clone().unwrap_or_else(|| patchwalk_fusion::dataset::test_data_dir().join("tum_fr1_xyz"));
+    let dataset = Dataset::open(&dataset_dir).with_context(|| format!("opening {}", dataset_dir.display()))?;
+    let depth = dataset.load_depth(args.frame)?;
+    let k = dataset.intrinsics;
+    let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
+    let model = FootholdModel::load(&weights).with_context(|| format!("loading {}", weights.display()))?;
+    let svm_path = args.svm.clone().unwrap_or_else(patchwalk_footholds::shipped_svm_path);
+    let svm: LinearSvm =
+        serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)?;
+    let tilt = Tilt::from_degrees(args.tilt_deg)?;
+    let runs = args.runs.max(1);
+    println!(
+        "frame {} of {} ({}x{}), {} threads, network {} multiply-adds per region",
+        args.frame,
+        dataset_dir.display(),
+        depth.width,
+        depth.height,
+        rayon::current_num_threads(),
+        model.net.config.multiply_adds()
+    );
+    // Warm-up (allocations, thread pool).
+    let warm = model.predict_frame(&depth, &k, tilt)?;
+    let (mut cnn_total, mut cnn_regions, mut cnn_net) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..runs {
+        let started = Instant::now();
+        let frame = model.predict_frame(&depth, &k, tilt)?;
+        cnn_total.push(started.elapsed().as_secs_f64() * 1e3);
+        cnn_regions.push(frame.regions_ms);
+        cnn_net.push(frame.network_ms);
+    }
+    let mut svm_total = Vec::new();
+    let s = model.regions.out_px;
+    let len = model.regions.input_len();
+    let mut positives = 0;
+    for _ in 0..runs {
+        let started = Instant::now();
+        let mut inputs = Vec::new();
+        let regions = propose(&depth, &k, &model.regions, &mut inputs)?;
+        positives = (0..regions.len())
+            .filter(|&i| svm.predict_features(&features(&inputs[i * len..i * len + s * s], s, tilt.channels()[2])).p >= 0.5)
+            .count();
+        svm_total.push(started.elapsed().as_secs_f64() * 1e3);
+    }
+    let (t50, t90) = percentiles(cnn_total);
+    let (r50, _) = percentiles(cnn_regions);
+    let (n50, _) = percentiles(cnn_net);
+    let (s50, s90) = percentiles(svm_total);
+    println!("{} regions; CNN predicts {} footholds, the SVM {positives}", warm.regions.len(), warm.footholds(0.5).len());
+    println!("{:<34} {:>10} {:>10}", "per frame", "median ms", "p90 ms");
+    println!("{:<34} {:>10.1} {:>10.1}", "CNN: regions + network", t50, t90);
+    println!("{:<34} {:>10.1} {:>10}", "  of which region proposal", r50, "");
+    println!("{:<34} {:>10.1} {:>10}", "  of which network", n50, "");
+    println!("{:<34} {:>10.1} {:>10.1}", "SVM: regions + features + decision", s50, s90);
+    Ok(())
+}

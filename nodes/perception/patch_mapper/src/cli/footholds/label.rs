@@ -1,0 +1,84 @@
+//! `patch_mapper footholds label`: labelled region samples from datasets (see
+//! `patchwalk_footholds::labels` for how a region becomes positive).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use patchwalk_footholds::labels::{Label, LabelConfig};
+use patchwalk_footholds::regions::RegionConfig;
+use patchwalk_footholds::samples::{Augment, SampleSet};
+use rand::SeedableRng;
+
+use patchwalk_footholds::sequence::Sequence;
+
+/// Arguments of `patch_mapper footholds label`.
+#[derive(clap::Args, Debug)]
+pub struct LabelArgs {
+    /// Datasets (TUM layout with accelerometer.txt, e.g. from `terrain_sim record`).
+    #[arg(required = true)]
+    pub datasets: Vec<PathBuf>,
+    /// Output sample set (safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Label every n-th tracked frame of each sequence (all frames are fused).
+    #[arg(long, default_value_t = 5)]
+    pub frame_stride: usize,
+    /// Add a horizontally mirrored copy of every region.
+    #[arg(long)]
+    pub mirror: bool,
+    /// Add this many copies with Gaussian depth noise of `--noise-sigma-m`.
+    #[arg(long, default_value_t = 0)]
+    pub noisy_copies: usize,
+    #[arg(long, default_value_t = 0.002)]
+    pub noise_sigma_m: f64,
+    /// Add the surface-normal channels (nx, ny) to the depth channel.
+    #[arg(long)]
+    pub normals: bool,
+    /// Seed of the augmentation noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+pub fn run(args: LabelArgs) -> Result<()> {
+    let started = Instant::now();
+    let regions = RegionConfig { normals: args.normals, ..RegionConfig::default() };
+    let label = LabelConfig::default();
+    let augment = Augment { mirror: args.mirror, noise_sigma_m: args.noise_sigma_m, noisy_copies: args.noisy_copies };
+    let mut set = SampleSet::new(regions.clone());
+    let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
+    let (mut frames, mut unknown, mut known) = (0usize, 0usize, 0usize);
+    for path in &args.datasets {
+        let sequence = Sequence::open(path)?;
+        let (fused, labelled) =
+            sequence.label(args.frame_stride, &regions, &label).with_context(|| format!("labelling {}", path.display()))?;
+        let positives: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| matches!(l, Label::Positive { .. })).count()).sum();
+        let seq_known: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| l.is_known()).count()).sum();
+        let seq_all: usize = labelled.iter().map(|(_, f)| f.labels.len()).sum();
+        println!(
+            "{}: {} frames fused, {} map patches, {} footholds; {} frames labelled: {seq_known} regions known ({positives} positive), {} unknown",
+            sequence.name,
+            fused.frames.len(),
+            fused.map_patches,
+            fused.footholds_in_map.len(),
+            labelled.len(),
+            seq_all - seq_known
+        );
+        for (index, frame) in &labelled {
+            set.add_frame(frame, &sequence.name, *index, augment, &mut rng)?;
+        }
+        frames += labelled.len();
+        known += seq_known;
+        unknown += seq_all - seq_known;
+    }
+    set.save(&args.out)?;
+    println!(
+        "{} samples ({} positive) from {frames} frames of {} datasets ({known} regions known, {unknown} unknown) -> {} in {:.1} s",
+        set.len(),
+        set.positives(),
+        args.datasets.len(),
+        args.out.display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

@@ -1,3 +1,4 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)] // an integration test
 //! Bring-your-own terrains end to end: analytic terrains written as heightmaps, the two real
 //! elevation-map terrains (`tests/data/heightmaps`), rendered along a camera path; the rendered
 //! depth back-projected through the ground-truth poses must lie on the ground-truth surface (to

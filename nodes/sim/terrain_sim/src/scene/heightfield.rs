@@ -87,7 +87,7 @@ impl Heightfield {
         if columns < 2 || rows < 2 {
             return Err(HeightfieldError::TooSmall { columns, rows });
         }
-        let expected = columns.checked_mul(rows).unwrap_or(usize::MAX);
+        let expected = columns.saturating_mul(rows);
         if heights_m.len() != expected {
             return Err(HeightfieldError::WrongLength { columns, rows, expected, got: heights_m.len() });
         }
@@ -208,7 +208,7 @@ impl Heightfield {
             t0 = t0.max(ta.min(tb));
             t1 = t1.min(ta.max(tb));
         }
-        if !(t0 <= t1) {
+        if t0.is_nan() || t1.is_nan() || t0 > t1 {
             return None;
         }
         // DDA from the entry point.

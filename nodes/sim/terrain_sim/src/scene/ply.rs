@@ -121,7 +121,7 @@ pub fn parse_ply(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
                         }
                         Property::List { count, item } => {
                             let n = read(*count, &mut at, &what)?;
-                            if !(n >= 0.0 && n <= 1e9) {
+                            if !(0.0..=1e9).contains(&n) {
                                 return Err(CloudError::Unsupported(format!("list length {n} in {what}")));
                             }
                             for _ in 0..n as usize {

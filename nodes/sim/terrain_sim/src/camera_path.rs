@@ -1,5 +1,6 @@
-//! Camera path over a terrain, as a small biped walking across it would see it: the camera at
-//! `camera_height_m` above the ground under it, pitched `pitch_deg` down, heading along the path,
+//! Camera path over a terrain, as a small biped walking across it would see it: the walker's
+//! `base_link` moves along the path carrying the camera at the robot's mount position
+//! (`motion.camera_in_base_m`), the camera at `camera_height_m` above the ground under the walker, pitched `pitch_deg` down, heading along the path,
 //! advancing `step_per_frame_m` per camera frame (default 5 mm: 0.15 m/s at 30 Hz, a small
 //! biped's walking speed).
 //!
@@ -78,6 +79,8 @@ pub struct CameraPath {
     speed_mps: f64,
     /// Height used where the terrain has no surface under the walker.
     fallback_ground_m: f64,
+    /// Camera position on the walker's `base_link` (the robot's mount, `motion.camera_in_base_m`).
+    camera_in_base_m: [f64; 3],
 }
 
 /// Length of the straight walk's polyline (m): longer than any recording.
@@ -85,8 +88,8 @@ const WALK_LENGTH_M: f64 = 1.0e4;
 
 impl CameraPath {
     /// Resolves `config` over `scene` (default start from the terrain's extent) for a camera at
-    /// `camera_rate_hz`.
-    pub fn new(config: &CameraPathConfig, scene: &Scene, camera_rate_hz: f64) -> Result<Self, CameraPathError> {
+    /// `camera_rate_hz` mounted at `camera_in_base_m` on the walker's `base_link`.
+    pub fn new(config: &CameraPathConfig, scene: &Scene, camera_rate_hz: f64, camera_in_base_m: [f64; 3]) -> Result<Self, CameraPathError> {
         let invalid = |m: String| Err(CameraPathError::Invalid(m));
         if !(config.step_per_frame_m.is_finite() && config.step_per_frame_m >= 0.0) {
             return invalid(format!("step_per_frame_m = {} must be ≥ 0", config.step_per_frame_m));
@@ -99,6 +102,9 @@ impl CameraPath {
         }
         if !(config.ground_smoothing_m >= 0.0 && config.turn_smoothing_m >= 0.0 && config.heading_deg.is_finite()) {
             return invalid("ground_smoothing_m and turn_smoothing_m must be ≥ 0, heading_deg finite".into());
+        }
+        if !camera_in_base_m.iter().all(|c| c.is_finite()) {
+            return invalid(format!("camera mount {camera_in_base_m:?} must be finite"));
         }
         if !(camera_rate_hz.is_finite() && camera_rate_hz > 0.0) {
             return invalid(format!("camera rate {camera_rate_hz} Hz must be positive"));
@@ -126,7 +132,14 @@ impl CameraPath {
             lengths.push(last + (pair[1] - pair[0]).norm());
         }
         let fallback_ground_m = scene.terrain.as_ref().map_or(0.0, |t| t.z_range_m()[0]);
-        Ok(Self { config: config.clone(), points, lengths, speed_mps: config.step_per_frame_m * camera_rate_hz, fallback_ground_m })
+        Ok(Self {
+            config: config.clone(),
+            points,
+            lengths,
+            speed_mps: config.step_per_frame_m * camera_rate_hz,
+            fallback_ground_m,
+            camera_in_base_m,
+        })
     }
 
     /// Walking speed (m/s).
@@ -190,18 +203,20 @@ impl CameraPath {
         }
     }
 
-    /// `world_from_walker` at time `t`: on the ground under the walker plus the camera height, x
-    /// along the heading, z up (the camera's `base`, to which sway and the pitched camera attach).
+    /// `world_from_walker` at time `t`: the walker's `base_link`, x along the heading, z up, high
+    /// enough above the (smoothed) ground under it that the camera mounted on it is at
+    /// `camera_height_m` (sway and the pitched camera attach to it).
     pub fn world_from_walker(&self, scene: &Scene, t: f64) -> Isometry3<f64> {
         let (p, heading) = self.walker_at(self.speed_mps * t.max(0.0));
-        let z = self.ground_height(scene, &p) + self.config.camera_height_m;
+        let z = self.ground_height(scene, &p) + self.config.camera_height_m - self.camera_in_base_m[2];
         Isometry3::from_parts(Translation3::new(p.x, p.y, z), UnitQuaternion::from_euler_angles(0.0, 0.0, heading))
     }
 
-    /// `walker_from_camera` (optical): pitched down by `pitch_deg`.
+    /// `walker_from_camera` (optical): the mount position, pitched down by `pitch_deg`.
     pub fn walker_from_camera(&self) -> Isometry3<f64> {
         let pitch = self.config.pitch_deg.to_radians().clamp(-FRAC_PI_2, FRAC_PI_2);
-        Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_euler_angles(0.0, pitch, 0.0) * link_from_optical())
+        let [x, y, z] = self.camera_in_base_m;
+        Isometry3::from_parts(Translation3::new(x, y, z), UnitQuaternion::from_euler_angles(0.0, pitch, 0.0) * link_from_optical())
     }
 }
 
@@ -215,16 +230,18 @@ mod tests {
     fn walk_keeps_height_above_the_ground_and_pitch() {
         let scene = Scene::from_terrain(tilted_plane());
         let config = CameraPathConfig { ground_smoothing_m: 0.0, pitch_deg: 40.0, ..CameraPathConfig::default() };
-        let path = CameraPath::new(&config, &scene, 30.0).unwrap();
+        let path = CameraPath::new(&config, &scene, 30.0, [0.04, 0.0, 0.17]).unwrap();
         assert!((path.speed_mps() - 0.15).abs() < 1e-12);
         let camera = path.walker_from_camera();
         for frame in [0, 10, 60] {
             let t = frame as f64 / 30.0;
             let pose = path.world_from_walker(&scene, t) * camera;
             let p = pose.translation.vector;
-            // Default start: 0.5 m inside the −x edge (x = −0.5), middle of y; 5 mm per frame.
-            assert!((p.x - (0.0 + 0.005 * frame as f64)).abs() < 1e-9 && p.y.abs() < 1e-9, "{p:?}");
-            assert!((p.z - scene.height_at(p.x, p.y).unwrap() - 0.45).abs() < 1e-6);
+            // Default start: 0.5 m inside the −x edge (x = −0.5), middle of y; 5 mm per frame; the
+            // camera 4 cm ahead of base_link.
+            assert!((p.x - (0.04 + 0.005 * frame as f64)).abs() < 1e-9 && p.y.abs() < 1e-9, "{p:?}");
+            // 0.45 m above the ground under the walker (4 cm behind the camera on this slope).
+            assert!((p.z - scene.height_at(p.x - 0.04, p.y).unwrap() - 0.45).abs() < 1e-6);
             let axis = pose.rotation * Vector3::z();
             assert!(((-axis.z).asin() - 40f64.to_radians()).abs() < 1e-9 && axis.x > 0.0);
         }
@@ -234,7 +251,7 @@ mod tests {
     fn waypoints_turn_smoothly_and_stop_at_the_end() {
         let scene = Scene::from_terrain(tilted_plane());
         let config = CameraPathConfig { waypoints_m: vec![[-0.4, 0.0], [0.0, 0.0], [0.0, 0.2]], ..CameraPathConfig::default() };
-        let path = CameraPath::new(&config, &scene, 30.0).unwrap();
+        let path = CameraPath::new(&config, &scene, 30.0, [0.04, 0.0, 0.17]).unwrap();
         assert!((path.length_m() - 0.6).abs() < 1e-12);
         let mut previous: Option<Isometry3<f64>> = None;
         for i in 0..200 {
@@ -251,8 +268,8 @@ mod tests {
         assert!((end.translation.vector.xy() - Vector2::new(0.0, 0.2)).norm() < 1e-9);
         assert!((end.rotation.euler_angles().2 - FRAC_PI_2).abs() < 1e-9);
         let bad = CameraPathConfig { waypoints_m: vec![[f64::NAN, 0.0]], ..CameraPathConfig::default() };
-        assert!(CameraPath::new(&bad, &scene, 30.0).is_err());
+        assert!(CameraPath::new(&bad, &scene, 30.0, [0.0; 3]).is_err());
         let bad = CameraPathConfig { camera_height_m: 0.0, ..CameraPathConfig::default() };
-        assert!(CameraPath::new(&bad, &scene, 30.0).unwrap_err().to_string().contains("camera_height_m"));
+        assert!(CameraPath::new(&bad, &scene, 30.0, [0.0; 3]).unwrap_err().to_string().contains("camera_height_m"));
     }
 }

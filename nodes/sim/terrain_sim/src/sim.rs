@@ -54,16 +54,18 @@ impl Simulator {
         let scene = Scene::new(&config.scene, config.seed)?;
         let world_from_station = if scene.rocks.is_empty() { Isometry3::identity() } else { scene.station(config.start_rock)? };
         let path = if scene.terrain.is_some() || config.path.enabled {
-            Some(CameraPath::new(&config.path, &scene, config.camera.rate_hz)?)
+            Some(CameraPath::new(&config.path, &scene, config.camera.rate_hz, config.motion.camera_in_base_m)?)
         } else {
             None
         };
+        // On a path `base_link` is the walker's (the camera pitched as the path says).
+        let base_from_camera = path.as_ref().map_or_else(|| base_from_camera_lookdown(&config.motion), CameraPath::walker_from_camera);
         Ok(Self {
             path,
             camera: DepthCamera::new(config.camera)?,
             imu: Imu::new(config.imu)?,
             motion: HeadMotion::new(config.motion, config.seed),
-            base_from_camera: base_from_camera_lookdown(&config.motion),
+            base_from_camera,
             world_from_station,
             scene,
             config,
@@ -79,7 +81,7 @@ impl Simulator {
     /// Camera pose at time `t` (s): on the path if there is one, else standing at the station.
     pub fn world_from_camera(&self, t: f64) -> Isometry3<f64> {
         match &self.path {
-            Some(path) => path.world_from_walker(&self.scene, t) * self.motion.sway(t) * path.walker_from_camera(),
+            Some(path) => path.world_from_walker(&self.scene, t) * self.motion.sway(t) * self.base_from_camera,
             None => self.motion.world_from_camera(&self.world_from_station, &self.base_from_camera, t),
         }
     }

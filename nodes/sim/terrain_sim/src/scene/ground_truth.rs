@@ -27,8 +27,8 @@ pub enum GroundTruthError {
     Descriptor { path: PathBuf, reason: String },
     #[error("{path}: {expected} bytes expected ({columns} × {rows} float32), the file has {got}")]
     Size { path: PathBuf, expected: u64, got: u64, columns: usize, rows: usize },
-    #[error("{path}: {source}")]
-    Heightfield { path: PathBuf, source: HeightfieldError },
+    #[error("{path}: {reason}")]
+    Heightfield { path: PathBuf, reason: HeightfieldError },
 }
 
 /// The descriptor (`terrain.json`).
@@ -130,7 +130,7 @@ pub fn read_ground_truth_with_descriptor(path: &Path) -> Result<(Heightfield, Gr
     }
     let heights = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
     let field = Heightfield::new(meta.columns, meta.rows, meta.resolution_m, meta.origin_m, heights)
-        .map_err(|source| GroundTruthError::Heightfield { path: heights_path, source })?;
+        .map_err(|reason| GroundTruthError::Heightfield { path: heights_path, reason })?;
     Ok((field, meta))
 }
 

@@ -60,10 +60,10 @@ impl Default for TerrainConfig {
 pub enum TerrainError {
     #[error("terrain {path}: {reason}")]
     Io { path: PathBuf, reason: String },
-    #[error("terrain {path}: {source}")]
-    Heightmap { path: PathBuf, source: HeightmapError },
-    #[error("terrain {path}: {source}")]
-    Cloud { path: PathBuf, source: CloudError },
+    #[error("terrain {path}: {reason}")]
+    Heightmap { path: PathBuf, reason: HeightmapError },
+    #[error("terrain {path}: {reason}")]
+    Cloud { path: PathBuf, reason: CloudError },
     #[error("terrain {path}: unknown file type (expected .png, .pcd or .ply)")]
     UnknownKind { path: PathBuf },
 }
@@ -140,11 +140,11 @@ impl TerrainConfig {
         let cloud = |points: Result<Vec<[f64; 3]>, CloudError>, path: &Path| {
             points
                 .and_then(|points| grid_points(&points, self.cloud_resolution_m, self.cloud_cell_height, self.cloud_fill_passes))
-                .map_err(|source| TerrainError::Cloud { path: path.to_path_buf(), source })
+                .map_err(|reason| TerrainError::Cloud { path: path.to_path_buf(), reason })
         };
         match kind {
             TerrainKind::Heightmap => {
-                decode_heightmap(bytes, &self.heightmap_scale()).map_err(|source| TerrainError::Heightmap { path, source })
+                decode_heightmap(bytes, &self.heightmap_scale()).map_err(|reason| TerrainError::Heightmap { path, reason })
             }
             TerrainKind::Pcd => cloud(parse_pcd(bytes, self.drop_non_finite), &path),
             TerrainKind::Ply => cloud(parse_ply(bytes, self.drop_non_finite), &path),

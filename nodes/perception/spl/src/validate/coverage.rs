@@ -24,8 +24,49 @@ pub fn coverage_bad_cells(patch: &Patch, points: &[Vector3<f64>], config: &Valid
     coverage_bad_cells_local(patch, query.shape(), &local, config)
 }
 
+/// One cell of the coverage grid as J eq 16 judges it (for diagnostics: [`coverage_cells`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CoverageCell {
+    /// Lower corner of the cell in the patch's xy-plane (m) and its pitch w.
+    pub x0: f64,
+    pub y0: f64,
+    pub pitch: f64,
+    /// `A_i / w²`: the fraction of the cell inside the projected boundary.
+    pub inside_fraction: f64,
+    /// Points projected into the cell inside (`I_c`) and outside (`O_c`) the boundary.
+    pub inside: u32,
+    pub outside: u32,
+    /// `N_e` of J eq 17 (expected points in a full cell).
+    pub expected: f64,
+    /// Bad by J eq 16's first clause (too few points inside) or its second (too many outside).
+    pub too_few_inside: bool,
+    pub too_many_outside: bool,
+}
+
+/// Every cell of the coverage grid of [`coverage_bad_cells`], for diagnostics (empty when the test
+/// cannot be evaluated: no points, a degenerate boundary).
+pub fn coverage_cells(patch: &Patch, points: &[Vector3<f64>], config: &ValidateConfig) -> Vec<CoverageCell> {
+    let query = PatchQuery::new(patch);
+    let local: Vec<Vector3<f64>> = points.iter().map(|q| query.to_local(q)).collect();
+    let mut cells = Vec::new();
+    coverage_scan_local(patch, query.shape(), &local, config, &mut |cell| cells.push(*cell));
+    cells
+}
+
 /// [`coverage_bad_cells`] of points already in the patch frame.
 pub(super) fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local: &[Vector3<f64>], config: &ValidateConfig) -> (usize, f64) {
+    coverage_scan_local(patch, shape, local, config, &mut |_| {})
+}
+
+/// The coverage grid of points in the patch frame: `(bad cells, T_p)`, each cell handed to `visit`.
+#[inline(always)]
+fn coverage_scan_local(
+    patch: &Patch,
+    shape: &PatchShape,
+    local: &[Vector3<f64>],
+    config: &ValidateConfig,
+    visit: &mut impl FnMut(&CoverageCell),
+) -> (usize, f64) {
     let area = patch.boundary_area();
     let wc = coverage_cell_size(area, local.len(), config);
     let n_p = area / (wc * wc);
@@ -112,9 +153,22 @@ pub(super) fn coverage_bad_cells_local(patch: &Patch, shape: &PatchShape, local:
             let [ic, oc] = counts.get(cj * nx + ci).copied().unwrap_or([0, 0]);
             let (ic, oc) = (ic as f64, oc as f64);
             // J eq 16, with the counting tolerance.
-            if ic < frac * t_i - k * (frac * n_e).sqrt() || oc > (1.0 - frac) * t_o + k * ((1.0 - frac) * n_e).sqrt() {
+            let too_few_inside = ic < frac * t_i - k * (frac * n_e).sqrt();
+            let too_many_outside = oc > (1.0 - frac) * t_o + k * ((1.0 - frac) * n_e).sqrt();
+            if too_few_inside || too_many_outside {
                 bad += 1;
             }
+            visit(&CoverageCell {
+                x0,
+                y0,
+                pitch: wc,
+                inside_fraction: frac,
+                inside: ic as u32,
+                outside: oc as u32,
+                expected: n_e,
+                too_few_inside,
+                too_many_outside,
+            });
         }
     }
     (bad, allowed)

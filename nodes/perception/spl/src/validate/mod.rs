@@ -13,7 +13,7 @@ pub mod edge;
 pub mod residual;
 pub mod tilt;
 
-pub use coverage::{coverage_bad_cells, coverage_cell_size};
+pub use coverage::{coverage_bad_cells, coverage_cell_size, coverage_cells, CoverageCell};
 pub use curvature::principal_curvature_range;
 pub use edge::{disc_offset, FootColumn};
 pub use residual::residual;

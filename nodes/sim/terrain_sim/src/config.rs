@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::CameraConfig;
+use crate::camera_path::CameraPathConfig;
 use crate::imu::ImuConfig;
 use crate::motion::MotionConfig;
 use crate::scene::SceneConfig;
@@ -48,6 +49,8 @@ pub struct SimConfig {
     pub camera: CameraConfig,
     pub imu: ImuConfig,
     pub motion: MotionConfig,
+    /// Camera path over a terrain (see `camera_path`).
+    pub path: CameraPathConfig,
     pub node: NodeConfig,
 }
 
@@ -60,6 +63,7 @@ impl Default for SimConfig {
             camera: CameraConfig::default(),
             imu: ImuConfig::default(),
             motion: MotionConfig::default(),
+            path: CameraPathConfig::default(),
             node: NodeConfig::default(),
         }
     }

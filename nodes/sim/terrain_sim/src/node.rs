@@ -78,6 +78,10 @@ struct RobotPose {
 
 impl RobotPose {
     fn world_from_camera(&self, sim: &Simulator, t: f64) -> Isometry3<f64> {
+        if sim.path.is_some() {
+            // Walking a camera path (a terrain scene): the path is the pose.
+            return sim.world_from_camera(t);
+        }
         let world_from_base = match &self.stance {
             Some(tracker) => tracker.world_from_base() * sim.motion.sway(t),
             None => sim.motion.world_from_base(&self.world_from_station, t),

@@ -1,13 +1,16 @@
 //! Writes the simulated stream as a TUM RGB-D-style dataset that `patchwalk_fusion::dataset` reads:
 //! `depth/<t>.png` (16-bit, 1/5000 m), `depth.txt`, `accelerometer.txt` (IMU frame, m/s²),
 //! `groundtruth.txt` (`world_from_camera`, world z up), `intrinsics.json` (with `depth_scale` and
-//! the `camera_from_imu` mounting), and `scene.json` (rocks with their ground-truth footholds).
+//! the `camera_from_imu` mounting), and `scene.json` (rocks with their ground-truth footholds). A
+//! terrain scene also gets its ground truth: `terrain.json` + `terrain_heights.f32`
+//! (`scene::ground_truth`), the exact surface the depth was rendered from.
 
 use std::path::{Path, PathBuf};
 
 use patchwalk_fusion::dataset::{save_depth_png, write_tum_poses, DatasetError, StampedPose};
 use serde_json::json;
 
+use crate::scene::ground_truth::{write_ground_truth, GroundTruthError};
 use crate::sim::Simulator;
 
 /// TUM depth PNG units per metre.
@@ -21,6 +24,8 @@ pub enum RecordError {
     Dataset(#[from] DatasetError),
     #[error("nothing to record: frames must be ≥ 1")]
     NoFrames,
+    #[error(transparent)]
+    GroundTruth(#[from] GroundTruthError),
 }
 
 /// What was written.
@@ -78,10 +83,24 @@ pub fn record(sim: &Simulator, out_dir: &Path, frames: usize, mut progress: impl
     });
     write(out_dir.join("intrinsics.json"), &pretty(&intrinsics))?;
     write(out_dir.join("scene.json"), &pretty(&scene_json(sim)))?;
+    write_terrain_ground_truth(sim, out_dir)?;
     Ok(RecordSummary { frames, imu_samples, duration_s })
 }
 
-/// Rocks, their ground-truth footholds and stations, and the robot's `base_from_camera`.
+/// Writes a terrain scene's ground truth (`terrain.json`, `terrain_heights.f32`) into `dir`;
+/// nothing for the rock scene (its ground truth is analytic, in `scene.json`). Returns whether it wrote.
+pub fn write_terrain_ground_truth(sim: &Simulator, dir: &Path) -> Result<bool, GroundTruthError> {
+    match &sim.scene.terrain {
+        Some(terrain) => {
+            write_ground_truth(terrain, dir, &sim.config.scene.terrain.describe())?;
+            Ok(true)
+        }
+        None => Ok(false),
+    }
+}
+
+/// Rocks, their ground-truth footholds and stations, and the robot's `base_from_camera`; for a
+/// terrain scene the terrain's grid and the camera path instead of rocks.
 pub fn scene_json(sim: &Simulator) -> serde_json::Value {
     let vector = |v: &nalgebra::Vector3<f64>| json!([v.x, v.y, v.z]);
     let pose = |p: &nalgebra::Isometry3<f64>| {
@@ -118,8 +137,24 @@ pub fn scene_json(sim: &Simulator) -> serde_json::Value {
             })
         })
         .collect();
+    let terrain = sim.scene.terrain.as_ref().map(|t| {
+        json!({
+            "source": sim.config.scene.terrain.describe(),
+            "ground_truth": crate::scene::ground_truth::DESCRIPTOR_FILE,
+            "columns": t.columns(), "rows": t.rows(), "resolution_m": t.resolution_m(), "origin_m": t.origin_m(),
+            "extent_m": t.extent_m(), "z_range_m": t.z_range_m(),
+        })
+    });
+    let path = sim.path.as_ref().map(|p| {
+        json!({
+            "config": p.config, "speed_mps": p.speed_mps(),
+            "walker_from_camera": pose(&p.walker_from_camera()),
+        })
+    });
     json!({
         "seed": sim.config.seed,
+        "terrain": terrain,
+        "camera_path": path,
         "world_from_station": pose(&sim.world_from_station),
         "base_from_camera": pose(&sim.base_from_camera),
         "rocks": rocks,

@@ -1,11 +1,12 @@
-//! The simulator: scene + head motion + depth camera + IMU on one clock, for the node, the
-//! recorder and the bench. Frame `i` of the camera is at `i / camera.rate_hz` seconds, IMU sample
+//! The simulator: scene + head motion (standing at a rock, or walking a camera path over a
+//! terrain) + depth camera + IMU on one clock, for the node, the recorder and the bench. Frame `i` of the camera is at `i / camera.rate_hz` seconds, IMU sample
 //! `j` at `j / imu.rate_hz`; noise seeds derive from the config seed and the sample index.
 
 use nalgebra::Isometry3;
 use patchwalk_fusion::camera::DepthImage;
 
 use crate::camera::{mix, DepthCamera, DepthCameraError, RenderCache};
+use crate::camera_path::{CameraPath, CameraPathError};
 use crate::config::SimConfig;
 use crate::imu::{Imu, ImuError, ImuSample};
 use crate::motion::{base_from_camera_lookdown, HeadMotion};
@@ -19,6 +20,8 @@ pub enum SimError {
     Camera(#[from] DepthCameraError),
     #[error(transparent)]
     Imu(#[from] ImuError),
+    #[error(transparent)]
+    Path(#[from] CameraPathError),
 }
 
 /// One rendered depth frame with its ground truth.
@@ -41,13 +44,22 @@ pub struct Simulator {
     pub world_from_station: Isometry3<f64>,
     /// Camera mount on the robot (`base_from_camera`, optical).
     pub base_from_camera: Isometry3<f64>,
+    /// The camera path, followed instead of the station pose: always in a terrain scene, in the rock
+    /// scene when `path.enabled`.
+    pub path: Option<CameraPath>,
 }
 
 impl Simulator {
     pub fn new(config: SimConfig) -> Result<Self, SimError> {
         let scene = Scene::new(&config.scene, config.seed)?;
-        let world_from_station = scene.station(config.start_rock)?;
+        let world_from_station = if scene.rocks.is_empty() { Isometry3::identity() } else { scene.station(config.start_rock)? };
+        let path = if scene.terrain.is_some() || config.path.enabled {
+            Some(CameraPath::new(&config.path, &scene, config.camera.rate_hz)?)
+        } else {
+            None
+        };
         Ok(Self {
+            path,
             camera: DepthCamera::new(config.camera)?,
             imu: Imu::new(config.imu)?,
             motion: HeadMotion::new(config.motion, config.seed),
@@ -64,9 +76,12 @@ impl Simulator {
         Ok(())
     }
 
-    /// Camera pose at time `t` (s).
+    /// Camera pose at time `t` (s): on the path if there is one, else standing at the station.
     pub fn world_from_camera(&self, t: f64) -> Isometry3<f64> {
-        self.motion.world_from_camera(&self.world_from_station, &self.base_from_camera, t)
+        match &self.path {
+            Some(path) => path.world_from_walker(&self.scene, t) * self.motion.sway(t) * path.walker_from_camera(),
+            None => self.motion.world_from_camera(&self.world_from_station, &self.base_from_camera, t),
+        }
     }
 
     /// Depth frame `index` on the camera clock.

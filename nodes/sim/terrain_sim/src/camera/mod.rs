@@ -10,7 +10,9 @@
 //! covariance model perception uses (`CameraConfig::stereo_error_params` gives matching parameters).
 //!
 //! Rendering is parallel over rows (rayon); per frame each rock's bounding box is projected into the
-//! camera and the projector images so that per pixel only the rocks that can be hit are tested.
+//! camera and the projector images so that per pixel only the rocks that can be hit are tested. A
+//! terrain scene casts every ray against the terrain's heightfield (exact bilinear surface), with the
+//! same grazing-angle, depth-edge and projector-shadow rules (a terrain shadows itself).
 //!
 //! [`config`] holds the camera's parameters, `noise` the random draws of the error model and
 //! `edges` the depth discontinuities where data go missing.
@@ -242,6 +244,16 @@ impl DepthCamera {
                 let shadowed = blockers
                     .any(|(i, _)| scene.rocks.get(*i).is_some_and(|rock| rock.intersect_world(&to_projector).is_some_and(|h| h.t < 1.0)));
                 if shadowed {
+                    return f32::NAN;
+                }
+            }
+        }
+        if self.config.missing.projector_shadow {
+            if let Some(terrain) = &scene.terrain {
+                // A terrain occludes itself (risers, walls): the projector must see the point too.
+                let point_in_world = ray.at(z) + hit.normal * 1e-5;
+                let to_projector = Ray { origin: point_in_world, direction: setup.projector_in_world - point_in_world };
+                if terrain.intersect(&to_projector).is_some_and(|h| h.t < 1.0) {
                     return f32::NAN;
                 }
             }

@@ -11,17 +11,34 @@
 //! plane z = 0. Each rock has a local frame `rock` (z up, origin on the table under its centre);
 //! each robot station is a `base_link` pose on the table in front of one rock, facing it (+x).
 //!
-//! Here: the table, the scene layout and the ray cast over the whole scene; one rock (its shapes,
-//! intersection and foothold) is in the `rock` module.
+//! Instead of the table and rocks, a scene can be a terrain read from a file (a heightmap image or
+//! a point cloud, see `terrain`), held as a [`Heightfield`] with exact ground truth.
+//!
+//! Here: the table, the scene layout, the ray cast over the whole scene and its ground truth
+//! ([`Scene::height_at`], [`Scene::normal_at`], [`Scene::ray_hit`]); one rock (its shapes,
+//! intersection and foothold) is in the `rock` module, a terrain's surface in `heightfield`, its
+//! files next to a dataset in `ground_truth`.
 
+pub mod ground_truth;
+pub mod heightfield;
+pub mod heightmap_png;
+pub mod lzf;
+pub mod pcd;
+pub mod ply;
+pub mod point_cloud;
 mod rock;
+pub mod terrain;
+
+use std::sync::Arc;
 
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
+pub use heightfield::{Heightfield, HeightfieldError};
 use rock::T_MIN;
 pub use rock::{Foothold, Hit, Ray, Rock, RockShape, ShapeError};
+pub use terrain::{TerrainConfig, TerrainError};
 
 /// Errors building a scene from its configuration.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -32,6 +49,8 @@ pub enum SceneError {
     Invalid(String),
     #[error("no rock with index {index} (the scene has {count})")]
     NoSuchRock { index: usize, count: usize },
+    #[error(transparent)]
+    Terrain(#[from] TerrainError),
 }
 
 /// The table and the floor around it.
@@ -72,6 +91,8 @@ pub struct SceneConfig {
     /// Training rocks (by index) to duplicate as untrained rocks with identical geometry, the case
     /// where J 6.3 still executes the motion.
     pub twins_of_training: Vec<usize>,
+    /// A terrain file instead of the table and rocks (`terrain.path` empty = table and rocks).
+    pub terrain: TerrainConfig,
 }
 
 impl Default for SceneConfig {
@@ -84,6 +105,7 @@ impl Default for SceneConfig {
             training_rocks: None,
             untrained_rocks: 4,
             twins_of_training: Vec::new(),
+            terrain: TerrainConfig::default(),
         }
     }
 }
@@ -109,13 +131,15 @@ pub fn default_training_rocks() -> Vec<RockShape> {
     ]
 }
 
-/// The whole scene: table, floor and rocks.
+/// The whole scene: table, floor and rocks, or a terrain.
 #[derive(Debug, Clone)]
 pub struct Scene {
     pub table: TableConfig,
     /// Table top y extent `[min, max]`.
     pub table_y_m: [f64; 2],
     pub rocks: Vec<Rock>,
+    /// A terrain from a file: when set it replaces the table and the floor (and the scene has no rocks).
+    pub terrain: Option<Arc<Heightfield>>,
 }
 
 /// What a world ray hit.
@@ -124,12 +148,19 @@ pub enum Surface {
     Table,
     Floor,
     Rock(usize),
+    Terrain,
 }
 
+/// Height above which [`Scene::height_at`] starts its downward ray in a rock scene (m).
+const PROBE_HEIGHT_M: f64 = 100.0;
+
 impl Scene {
-    /// Builds the scene: training rocks (yaw 0, except the lying cylinder turned across the robot's
+    /// Builds the scene: the terrain file if one is configured, else training rocks (yaw 0, except the lying cylinder turned across the robot's
     /// path) then `untrained_rocks` random ones and the twins, each at its own station.
     pub fn new(config: &SceneConfig, seed: u64) -> Result<Self, SceneError> {
+        if config.terrain.is_set() {
+            return Ok(Self::from_terrain(config.terrain.load()?));
+        }
         if !(config.station_spacing_m > 0.0 && config.standoff_m > 0.0 && config.table.length_x_m > config.rock_x_m) {
             return Err(SceneError::Invalid("need station_spacing_m > 0, standoff_m > 0 and rock_x_m inside the table".into()));
         }
@@ -156,7 +187,39 @@ impl Scene {
             rocks.push(Rock::new(&name, shape, trained, config.rock_x_m, y, yaw, config.standoff_m)?);
         }
         let y_max = rocks.len() as f64 * config.station_spacing_m;
-        Ok(Self { table: config.table, table_y_m: [-config.table.margin_y_m, y_max + config.table.margin_y_m], rocks })
+        Ok(Self { table: config.table, table_y_m: [-config.table.margin_y_m, y_max + config.table.margin_y_m], rocks, terrain: None })
+    }
+
+    /// A scene that is only `terrain` (no table, floor or rocks).
+    pub fn from_terrain(terrain: Heightfield) -> Self {
+        Self { table: TableConfig::default(), table_y_m: [0.0, 0.0], rocks: Vec::new(), terrain: Some(Arc::new(terrain)) }
+    }
+
+    /// Ground truth: height (m, world z) of the topmost surface above `(x, y)`; `None` where there
+    /// is none (outside a terrain, in its holes). Exact: the terrain's bilinear surface, or in a
+    /// rock scene the analytic solids cut by a vertical ray.
+    pub fn height_at(&self, x: f64, y: f64) -> Option<f64> {
+        match &self.terrain {
+            Some(terrain) => terrain.height_at(x, y),
+            None => self.ray_hit(&Self::probe(x, y)).map(|hit| PROBE_HEIGHT_M - hit.t),
+        }
+    }
+
+    /// Ground truth: upward unit normal of the topmost surface at `(x, y)`.
+    pub fn normal_at(&self, x: f64, y: f64) -> Option<Vector3<f64>> {
+        match &self.terrain {
+            Some(terrain) => terrain.normal_at(x, y),
+            None => self.ray_hit(&Self::probe(x, y)).map(|hit| hit.normal),
+        }
+    }
+
+    /// Ground truth: nearest hit (ray parameter, outward normal) of a world ray with anything in the scene.
+    pub fn ray_hit(&self, ray: &Ray) -> Option<Hit> {
+        self.intersect(ray, |_| true).map(|(hit, _)| hit)
+    }
+
+    fn probe(x: f64, y: f64) -> Ray {
+        Ray { origin: Vector3::new(x, y, PROBE_HEIGHT_M), direction: -Vector3::z() }
     }
 
     /// `world_from_base` of the station in front of rock `index`.
@@ -185,9 +248,13 @@ impl Scene {
         best
     }
 
-    /// Hit with the table top (z = 0 inside its extent) or else the floor (z = −height).
+    /// Hit with the terrain if there is one, else with the table top (z = 0 inside its extent) or
+    /// else the floor (z = −height).
     #[inline]
     pub fn intersect_ground(&self, ray: &Ray) -> Option<(Hit, Surface)> {
+        if let Some(terrain) = &self.terrain {
+            return terrain.intersect(ray).map(|hit| (hit, Surface::Terrain));
+        }
         if ray.direction.z >= 0.0 {
             return None;
         }

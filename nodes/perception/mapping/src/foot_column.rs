@@ -87,7 +87,7 @@ mod tests {
     /// A camera 0.5 m above a floor with a 12 cm step at x = 0.02 (camera frame: looking straight down).
     fn step_cloud(intrinsics: &Intrinsics) -> OrganizedCloud {
         let mut depth = Vec::with_capacity(intrinsics.width * intrinsics.height);
-        for v in 0..intrinsics.height {
+        for _ in 0..intrinsics.height {
             for u in 0..intrinsics.width {
                 let x = (u as f64 - intrinsics.cx) / intrinsics.fx;
                 // Ray (x, y, 1): upper floor at z = 0.5, lower (x > 0.02) at z = 0.62.

@@ -79,7 +79,8 @@ fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flag = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
     let frames: usize = flag("--frames").map(|s| s.parse()).transpose().context("--frames N")?.unwrap_or(12);
-    let seeds: Vec<u64> = flag("--seeds").unwrap_or_else(|| "11,12".into()).split(',').map(|s| s.parse()).collect::<Result<_, _>>().context("--seeds a,b")?;
+    let seeds: Vec<u64> =
+        flag("--seeds").unwrap_or_else(|| "11,12".into()).split(',').map(|s| s.parse()).collect::<Result<_, _>>().context("--seeds a,b")?;
     let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/heightmaps");
     // (name, file, height range at 1 cm/px: the README's 0.04 m/px course scaled by 1/4)
     let scenes = [("terrain.png", data.join("terrain.png"), 0.25), ("real_stairs_125cm.png", data.join("real_stairs_125cm.png"), 0.3125)];

@@ -80,7 +80,7 @@ fn main() -> Result<()> {
                     "inside, sparse"
                 } else {
                     let u = nalgebra::Vector2::new(cell.x0 + 0.5 * cell.pitch, cell.y0 + 0.5 * cell.pitch);
-                    let centre = patch.explicit_world(&u).unwrap_or_else(|| patch.center);
+                    let centre = patch.explicit_world(&u).unwrap_or(patch.center);
                     match intrinsics.pixel_of(&centre) {
                         None => {
                             cut = true;

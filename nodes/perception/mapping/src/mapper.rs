@@ -16,6 +16,7 @@ use rand::{rngs::StdRng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
+use crate::foot_column::{foot_column, DEFAULT_MAX_PIXELS};
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
@@ -27,7 +28,7 @@ use patchwalk_spl::fit::FitConfig;
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::sensor::ErrorModel;
 use patchwalk_spl::transform::transform_patch;
-use patchwalk_spl::validate::{validate_patch, ValidateConfig, Validation};
+use patchwalk_spl::validate::{validate_foothold, Foothold, ValidateConfig, Validation};
 
 /// Configuration of the whole mapper; every default is J's value (see each stage's struct).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -120,6 +121,10 @@ pub enum Verdict {
     Coverage,
     /// Step 16: curvature out of [κmin, κmax].
     Curvature,
+    /// The normal tilts from gravity's up by more than `validate.tilt_max_deg`.
+    Tilt,
+    /// The terrain inside the foot disc lies off the surface (an edge or fold under the foot).
+    Edge,
     /// Fewer neighbourhood points than `neighbourhood.min_points`.
     TooFewPoints,
     /// The fit failed (message of the patch core's error).
@@ -129,22 +134,25 @@ pub enum Verdict {
 }
 
 impl Verdict {
-    /// Short name for reports and JSON (`valid`, `residual`, `coverage`, `curvature`,
-    /// `too_few_points`, `fit_failed`, `skipped`).
+    /// Short name for reports and JSON (`valid`, `residual`, `coverage`, `curvature`, `tilt`,
+    /// `edge`, `too_few_points`, `fit_failed`, `skipped`).
     pub fn name(&self) -> &'static str {
         match self {
             Verdict::Valid { .. } => "valid",
             Verdict::Residual => "residual",
             Verdict::Coverage => "coverage",
             Verdict::Curvature => "curvature",
+            Verdict::Tilt => "tilt",
+            Verdict::Edge => "edge",
             Verdict::TooFewPoints => "too_few_points",
             Verdict::FitFailed(_) => "fit_failed",
             Verdict::Skipped => "skipped",
         }
     }
 
-    /// The verdict of a validated patch: the first failed test in J's order (steps 14–16), or
-    /// valid (with the placeholder id `u64::MAX` until the patch map assigns one).
+    /// The verdict of a validated patch: the first failed test in J's order (steps 14–16), then
+    /// the foothold tests (tilt, edge), or valid (with the placeholder id `u64::MAX` until the patch
+    /// map assigns one).
     pub fn from_validation(validation: &Validation) -> Self {
         if !validation.residual.passed {
             Verdict::Residual
@@ -152,6 +160,10 @@ impl Verdict {
             Verdict::Coverage
         } else if !validation.curvature_ok() {
             Verdict::Curvature
+        } else if !validation.tilt_ok() {
+            Verdict::Tilt
+        } else if !validation.edge_ok() {
+            Verdict::Edge
         } else {
             Verdict::Valid { id: u64::MAX }
         }
@@ -229,12 +241,14 @@ impl FrameResult {
                 Verdict::Residual => s.residual += 1,
                 Verdict::Coverage => s.coverage += 1,
                 Verdict::Curvature => s.curvature += 1,
+                Verdict::Tilt => s.tilt += 1,
+                Verdict::Edge => s.edge += 1,
                 Verdict::TooFewPoints | Verdict::FitFailed(_) => s.failed += 1,
                 Verdict::Skipped => s.skipped += 1,
             }
         }
         s.seeds = self.outcomes.len();
-        s.fitted = s.valid + s.residual + s.coverage + s.curvature;
+        s.fitted = s.valid + s.residual + s.coverage + s.curvature + s.tilt + s.edge;
         s
     }
 }
@@ -249,6 +263,10 @@ pub struct FrameSummary {
     pub residual: usize,
     pub coverage: usize,
     pub curvature: usize,
+    /// Normal too far from up (`validate.tilt_max_deg`).
+    pub tilt: usize,
+    /// An edge or fold under the foot disc (`validate.edge_max_offset_m`).
+    pub edge: usize,
     /// Fit errors and too-small neighbourhoods.
     pub failed: usize,
     pub skipped: usize,
@@ -267,6 +285,8 @@ impl FrameSummary {
         self.residual += other.residual;
         self.coverage += other.coverage;
         self.curvature += other.curvature;
+        self.tilt += other.tilt;
+        self.edge += other.edge;
         self.failed += other.failed;
         self.skipped += other.skipped;
         self.residual_sum_m += other.residual_sum_m;
@@ -361,7 +381,7 @@ impl Mapper {
         let deadline =
             std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0).ok().and_then(|limit| start.checked_add(limit));
         let (mut outcomes, stop, [neighbourhood_cpu_ms, fit_validate_cpu_ms, validate_cpu_ms]) =
-            fit_seeds(&seeds, &cloud, input.intrinsics, config, target_patches, deadline, self.frames);
+            fit_seeds(&seeds, &cloud, input.intrinsics, &(-gravity_in_camera.into_inner()), config, target_patches, deadline, self.frames);
         let t_fit = Instant::now();
         // Into the map, in seed order.
         let map_from_camera = self.map.grid().volume_from_map.inverse() * input.volume_from_camera;
@@ -423,16 +443,19 @@ pub fn check_config(config: &MapperConfig) -> Result<(), MapperError> {
         return bad("time_limit_ms and coverage_fraction must be numbers");
     }
     config.acquire.camera_from_imu()?;
+    config.validate.check().map_err(MapperError::Config)?;
     Ok(())
 }
 
 /// Stages iv–v over the seeds in parallel. Workers pull seeds in order (nearest cells first), so a
 /// time limit drops the farthest seeds. Returns outcomes in seed order, the stop reason and the
 /// CPU times of stage iv and v.
+#[allow(clippy::too_many_arguments)]
 fn fit_seeds(
     seeds: &[Seed],
     cloud: &OrganizedCloud,
     intrinsics: &Intrinsics,
+    up_in_camera: &Vector3<f64>,
     config: &MapperConfig,
     target_patches: usize,
     deadline: Option<Instant>,
@@ -449,6 +472,7 @@ fn fit_seeds(
         .flat_map_iter(|_| {
             let mut local = Vec::new();
             let mut scratch = Vec::new();
+            let mut column = Vec::new();
             let mut cpu = [0.0f64; 3];
             loop {
                 let index = next.fetch_add(1, Ordering::Relaxed);
@@ -461,7 +485,8 @@ fn fit_seeds(
                     covered.store(true, Ordering::Relaxed);
                     break;
                 }
-                let outcome = process_seed(seed, cloud, intrinsics, config, frame, index, &mut scratch, &mut cpu);
+                let scratch = SeedScratch { indices: &mut scratch, column: &mut column };
+                let outcome = process_seed(seed, cloud, intrinsics, up_in_camera, config, frame, index, scratch, &mut cpu);
                 if matches!(outcome.verdict, Verdict::Valid { .. }) {
                     valid.fetch_add(1, Ordering::Relaxed);
                 }
@@ -505,18 +530,27 @@ fn fit_seeds(
     (outcomes, stop, cpu)
 }
 
-/// Steps 11–16 for one seed.
+/// Buffers a worker reuses across its seeds.
+struct SeedScratch<'a> {
+    indices: &'a mut Vec<u32>,
+    column: &'a mut Vec<Vector3<f64>>,
+}
+
+/// Steps 11–16 for one seed, and the foothold tests (tilt against `up_in_camera`, the edge test on
+/// the foot disc's column of the whole cloud).
 #[allow(clippy::too_many_arguments)]
 fn process_seed(
     seed: &Seed,
     cloud: &OrganizedCloud,
     intrinsics: &Intrinsics,
+    up_in_camera: &Vector3<f64>,
     config: &MapperConfig,
     frame: u64,
     index: usize,
-    scratch: &mut Vec<u32>,
+    scratch: SeedScratch,
     cpu_ms: &mut [f64; 3],
 ) -> SeedOutcome {
+    let SeedScratch { indices: scratch, column } = scratch;
     let t0 = Instant::now();
     // Step 11.
     ball_neighbourhood(cloud, intrinsics, &seed.point_in_camera, config.foot_radius_m, scratch);
@@ -537,7 +571,11 @@ fn process_seed(
         Ok(patch) => {
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
-            let validation = validate_patch(&patch, &validation_points, &config.validate);
+            if config.validate.edge_max_offset_m < f64::INFINITY {
+                foot_column(cloud, intrinsics, &patch, up_in_camera, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, column);
+            }
+            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()) };
+            let validation = validate_foothold(&patch, &validation_points, &foothold, &config.validate);
             outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);
             outcome.validation = Some(validation);
@@ -590,7 +628,7 @@ mod tests {
                 Vector3::z(),
             )
             .unwrap();
-            validate_patch(&patch, &points, &ValidateConfig::default()).coverage.passed
+            patchwalk_spl::validate::validate_patch(&patch, &points, &ValidateConfig::default()).coverage.passed
         };
         assert!(coverage_passes(0.05) && coverage_passes(0.051));
         assert!(!coverage_passes(0.045) && !coverage_passes(0.055));

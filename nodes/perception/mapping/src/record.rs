@@ -18,10 +18,11 @@ pub struct PatchRecord {
     /// The patch (the SPL's JSON form of [`Patch`]).
     #[serde(flatten)]
     pub patch: Patch,
-    /// Whether the patch passed the residual, coverage and curvature tests.
+    /// Whether the patch passed every validation test (J 3.3's residual, coverage and curvature,
+    /// the foothold tests tilt and edge).
     pub valid: bool,
     /// The verdict name ([`Verdict::name`]): `valid`, `residual`, `coverage`, `curvature` (the
-    /// first failed test in J's order) or `fit_failed`.
+    /// first failed test in J's order), `tilt`, `edge` or `fit_failed`.
     pub verdict: String,
     /// One line per failed test (or the fit error); empty for a valid patch.
     pub failures: Vec<String>,

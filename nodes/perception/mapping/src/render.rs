@@ -33,6 +33,10 @@ pub const VALID: [u8; 3] = [230, 20, 20];
 pub const CURVATURE: [u8; 3] = [240, 220, 0];
 pub const RESIDUAL: [u8; 3] = [150, 40, 190];
 pub const COVERAGE: [u8; 3] = [30, 200, 60];
+/// Failed the tilt test (beyond J Fig. 6): orange.
+pub const TILT: [u8; 3] = [255, 140, 0];
+/// Failed the edge test (beyond J Fig. 6): cyan.
+pub const EDGE: [u8; 3] = [0, 200, 230];
 
 impl Rgb {
     /// Depth as grey levels (near = bright), invalid black.
@@ -127,6 +131,8 @@ pub fn verdict_colour(verdict: &Verdict) -> Option<[u8; 3]> {
         Verdict::Curvature => Some(CURVATURE),
         Verdict::Residual => Some(RESIDUAL),
         Verdict::Coverage => Some(COVERAGE),
+        Verdict::Tilt => Some(TILT),
+        Verdict::Edge => Some(EDGE),
         Verdict::TooFewPoints | Verdict::FitFailed(_) | Verdict::Skipped => None,
     }
 }

@@ -8,7 +8,8 @@
 //! - [`sensor`]: range-sensor error models (J eq 2, Murray–Little) giving each point its covariance.
 //! - [`fit`]: the WLM fit of IROS IV with boundary, classification and Σ; [`fit::neighbourhood`]:
 //!   one neighbourhood as J 3.2.1 step 13 fits it.
-//! - [`validate`]: J 3.3's residual, coverage and curvature tests.
+//! - [`validate`]: J 3.3's residual, coverage and curvature tests, and the foothold tests tilt
+//!   (against gravity) and edge (the terrain in the foot disc's column).
 //! - [`transform`]: a patch moved by a rigid transform with its covariance.
 //! - [`points_io`]: point files (`x y z` text, PCD ASCII/binary).
 //!

@@ -203,7 +203,7 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
         let Some(patch) = &outcome.patch_in_camera else { continue };
         let id = match &outcome.verdict {
             Verdict::Valid { id } => Some(*id),
-            Verdict::Residual | Verdict::Coverage | Verdict::Curvature => None,
+            Verdict::Residual | Verdict::Coverage | Verdict::Curvature | Verdict::Tilt | Verdict::Edge => None,
             _ => continue,
         };
         let line = PatchLine {
@@ -225,8 +225,22 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
 fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, StageTimings, Unit<Vector3<f64>>)]) {
     println!("patch mapping of {} ({} frames, gravity from {source})", args.input.display(), rows.len());
     println!(
-        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>6} {:>8} {:>9} {:>7} {:>7} {:>8}",
-        "frame", "seeds", "total", "valid", "drop:res", "drop:cov", "drop:curv", "failed", "avg res", "area", "pre ms", "sal ms", "fit ms"
+        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>8} {:>9} {:>7} {:>7} {:>8}",
+        "frame",
+        "seeds",
+        "total",
+        "valid",
+        "drop:res",
+        "drop:cov",
+        "drop:curv",
+        "drop:tilt",
+        "drop:edge",
+        "failed",
+        "avg res",
+        "area",
+        "pre ms",
+        "sal ms",
+        "fit ms"
     );
     let mut total = FrameSummary::default();
     let mut times = StageTimings::default();
@@ -237,7 +251,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
         times.fit_stage_ms += t.fit_stage_ms;
         if rows.len() <= 40 {
             println!(
-                "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
+                "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
                 index,
                 s.seeds,
                 s.fitted,
@@ -245,6 +259,8 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
                 s.residual,
                 s.coverage,
                 s.curvature,
+                s.tilt,
+                s.edge,
                 s.failed,
                 s.mean_residual_m() * 1e3,
                 s.area_m2,
@@ -256,7 +272,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
     }
     let n = rows.len().max(1) as f64;
     println!(
-        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
+        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
         "total",
         total.seeds,
         total.fitted,
@@ -264,6 +280,8 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
         total.residual,
         total.coverage,
         total.curvature,
+        total.tilt,
+        total.edge,
         total.failed,
         total.mean_residual_m() * 1e3,
         total.area_m2,
@@ -273,11 +291,13 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
     );
     if total.fitted > 0 {
         println!(
-            "valid {:.0} %; dropped by residual {:.0} %, coverage {:.0} %, curvature {:.0} % (times: per-frame means)",
+            "valid {:.0} %; dropped by residual {:.0} %, coverage {:.0} %, curvature {:.0} %, tilt {:.0} %, edge {:.0} % (times: per-frame means)",
             100.0 * total.valid as f64 / total.fitted as f64,
             100.0 * total.residual as f64 / total.fitted as f64,
             100.0 * total.coverage as f64 / total.fitted as f64,
-            100.0 * total.curvature as f64 / total.fitted as f64
+            100.0 * total.curvature as f64 / total.fitted as f64,
+            100.0 * total.tilt as f64 / total.fitted as f64,
+            100.0 * total.edge as f64 / total.fitted as f64
         );
     }
 }

@@ -408,8 +408,17 @@ impl<'a> Replay<'a> {
         let median = total_ms.get(total_ms.len() / 2).copied().unwrap_or(f64::NAN);
         let (count, skipped, summary) = (self.count, self.skipped, &self.summary);
         println!(
-            "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} | failed {} skipped {}",
-            summary.seeds, summary.fitted, summary.valid, summary.residual, summary.coverage, summary.curvature, summary.failed, summary.skipped
+            "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} tilt {} edge {} | failed {} skipped {}",
+            summary.seeds,
+            summary.fitted,
+            summary.valid,
+            summary.residual,
+            summary.coverage,
+            summary.curvature,
+            summary.tilt,
+            summary.edge,
+            summary.failed,
+            summary.skipped
         );
         let (ate, ate_frames) = self.ate();
         let frames_per_s = count as f64 / elapsed_s.max(1e-9);

@@ -1,0 +1,151 @@
+//! Bench: foothold validation against ground truth. Real terrains (the heightmaps of
+//! `tests/data/heightmaps/`, at 1 cm per pixel with heights scaled alike, so stairs and blocks are
+//! foot-sized) rendered with the simulated Carmine's noise and missing data from a small biped's head
+//! (0.45 m above the ground, pitched 45° down) walking paths over them; every frame goes through the
+//! single-frame mapper (J's defaults as `patch_mapper map --no-dtfp` runs them, gravity from the
+//! camera pose) and every fitted patch is checked against the terrain's exact surface.
+//!
+//! Printed per scene, for J 3.3's tests alone and with the foothold tests (the defaults): fitted
+//! patches, valid share, mean residual of the valid ones, the share of valid patches lying across an
+//! edge (ground-truth terrain more than 2 cm off the patch surface inside the foot disc's column
+//! along gravity), and walls accepted (valid patches where the true surface under the centre is
+//! tilted more than 45°).
+//!
+//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12]`
+
+use anyhow::{Context, Result};
+use nalgebra::{Unit, Vector3};
+use patchwalk_mapping::mapper::{default_volume_from_map, single_frame_volume_from_camera, FrameInput, Mapper, MapperConfig, Verdict};
+use patchwalk_spl::patch::Patch;
+use patchwalk_spl::transform::transform_patch;
+use patchwalk_spl::validate::{FootColumn, ValidateConfig};
+use terrain_sim::config::SimConfig;
+use terrain_sim::scene::Heightfield;
+use terrain_sim::sim::Simulator;
+
+/// Ground truth's verdict on one valid patch (world frame, z up).
+fn ground_truth(patch: &Patch, terrain: &Heightfield) -> (bool, bool) {
+    let up = Vector3::z();
+    let column = FootColumn::new(patch, Some(&up), ValidateConfig::default().edge_column_height_m);
+    // The terrain under the disc on a 4 mm grid over the boundary's reach (tilted discs reach further).
+    let reach = patch.boundary_half_extents().max() + 0.05;
+    let step = 0.004;
+    let n = (reach / step).ceil() as i64;
+    let mut across = false;
+    'grid: for i in -n..=n {
+        for j in -n..=n {
+            let (x, y) = (patch.center.x + i as f64 * step, patch.center.y + j as f64 * step);
+            let Some(z) = terrain.height_at(x, y) else { continue };
+            if let Some(local) = column.local_if_inside(&Vector3::new(x, y, z)) {
+                if column.distance_local(&local) > 0.02 {
+                    across = true;
+                    break 'grid;
+                }
+            }
+        }
+    }
+    let wall = terrain.normal_at(patch.center.x, patch.center.y).is_some_and(|n| n.z.abs() < 45f64.to_radians().cos());
+    (across, wall)
+}
+
+#[derive(Default)]
+struct Tally {
+    fitted: usize,
+    valid: usize,
+    residual_sum: f64,
+    across: usize,
+    walls: usize,
+    verdicts: std::collections::BTreeMap<&'static str, usize>,
+}
+
+impl Tally {
+    fn line(&self, name: &str) -> String {
+        let pct = |a: usize, b: usize| if b == 0 { 0.0 } else { 100.0 * a as f64 / b as f64 };
+        format!(
+            "{name:<22} fitted {:>5}  valid {:>5} ({:>5.1} %)  mean residual {:>5.2} mm  valid across an edge {:>4} ({:>5.1} %)  walls accepted {:>3}  dropped {:?}",
+            self.fitted,
+            self.valid,
+            pct(self.valid, self.fitted),
+            if self.valid == 0 { 0.0 } else { 1e3 * self.residual_sum / self.valid as f64 },
+            self.across,
+            pct(self.across, self.valid),
+            self.walls,
+            self.verdicts
+        )
+    }
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let flag = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
+    let frames: usize = flag("--frames").map(|s| s.parse()).transpose().context("--frames N")?.unwrap_or(12);
+    let seeds: Vec<u64> =
+        flag("--seeds").unwrap_or_else(|| "11,12".into()).split(',').map(|s| s.parse()).collect::<Result<_, _>>().context("--seeds a,b")?;
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/heightmaps");
+    // (name, file, height range at 1 cm/px: the README's 0.04 m/px course scaled by 1/4)
+    let scenes = [("terrain.png", data.join("terrain.png"), 0.25), ("real_stairs_125cm.png", data.join("real_stairs_125cm.png"), 0.3125)];
+    let mut j33 = MapperConfig { time_limit_ms: f64::INFINITY, coverage_fraction: f64::INFINITY, ..MapperConfig::default() };
+    j33.saliency.fixation_radius_m = f64::INFINITY;
+    j33.volume_edge_m = 2.56;
+    let mut footholds = j33.clone();
+    j33.validate.tilt_max_deg = f64::INFINITY;
+    j33.validate.edge_max_offset_m = f64::INFINITY;
+    footholds.validate = ValidateConfig::default();
+    println!("bench_footholds: {frames} frames per path, seeds {seeds:?}, {} threads", rayon::current_num_threads());
+    for (name, path, height_max) in &scenes {
+        let mut tallies = [Tally::default(), Tally::default()];
+        for &seed in &seeds {
+            let mut config = SimConfig { seed, ..SimConfig::default() };
+            config.scene.terrain.path = path.clone();
+            config.scene.terrain.metres_per_pixel = 0.01;
+            config.scene.terrain.height_min_m = 0.0;
+            config.scene.terrain.height_max_m = *height_max;
+            let probe = Simulator::new(config.clone()).with_context(|| format!("loading {}", path.display()))?;
+            let terrain = probe.scene.terrain.clone().context("no terrain")?;
+            let [[x0, y0], [x1, y1]] = terrain.extent_m();
+            // A path per seed: a start inside the terrain and a heading, from the seed.
+            let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(seed);
+            let fx = rand::Rng::random_range(&mut rng, 0.15..0.6);
+            let fy = rand::Rng::random_range(&mut rng, 0.2..0.8);
+            config.path.start_m = Some([x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)]);
+            config.path.heading_deg = rand::Rng::random_range(&mut rng, -30.0..30.0);
+            config.path.step_per_frame_m = 0.05;
+            let sim = Simulator::new(config)?;
+            for frame in 0..frames as u64 {
+                let rendered = sim.depth_frame(frame);
+                let gravity = Unit::new_normalize(rendered.world_from_camera.inverse().rotation * -Vector3::z());
+                for (tally, mapper_config) in tallies.iter_mut().zip([&j33, &footholds]) {
+                    let volume_from_camera = single_frame_volume_from_camera(&gravity, mapper_config.volume_edge_m);
+                    let mut mapper = Mapper::new(mapper_config.clone(), "camera_optical", default_volume_from_map())?;
+                    let result = mapper.process(&FrameInput {
+                        depth: &rendered.depth,
+                        intrinsics: &sim.camera.intrinsics,
+                        volume_from_camera,
+                        timestamp: rendered.timestamp,
+                    })?;
+                    let s = result.summary();
+                    tally.fitted += s.fitted;
+                    for outcome in &result.outcomes {
+                        let Some(patch) = &outcome.patch_in_camera else { continue };
+                        if !outcome.verdict.is_valid() {
+                            if !matches!(outcome.verdict, Verdict::TooFewPoints | Verdict::FitFailed(_) | Verdict::Skipped) {
+                                *tally.verdicts.entry(outcome.verdict.name()).or_default() += 1;
+                            }
+                            continue;
+                        }
+                        let Some(world) = transform_patch(patch, &rendered.world_from_camera) else { continue };
+                        let (across, wall) = ground_truth(&world, &terrain);
+                        tally.valid += 1;
+                        tally.residual_sum += patch.residual;
+                        tally.across += usize::from(across);
+                        tally.walls += usize::from(wall);
+                    }
+                }
+            }
+        }
+        println!("{name}:");
+        println!("  {}", tallies[0].line("J 3.3 tests only"));
+        println!("  {}", tallies[1].line("with tilt + edge"));
+    }
+    Ok(())
+}

@@ -438,7 +438,7 @@ mod tests {
     #[test]
     fn real_frames_get_a_ground_plane_consistent_with_the_prior() {
         let data = test_data_dir();
-        for (name, frame) in [("tum_fr1_xyz", 0), ("tum_fr1_xyz", 36), ("open3d_rgbd", 0), ("open3d_rgbd", 4), ("cape_tunnel", 0)] {
+        for (name, frame) in [("tum_fr1_xyz", 0), ("tum_fr1_xyz", 36), ("open3d_rgbd", 0), ("open3d_rgbd", 4), ("cape_tunnel/depth_0.png", 0)] {
             let dataset = Dataset::open(&data.join(name)).unwrap();
             let cloud = organized_cloud(&dataset.load_depth(frame).unwrap(), &dataset.intrinsics).unwrap();
             let prior = PlanePrior::default();

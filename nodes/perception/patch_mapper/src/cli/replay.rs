@@ -287,7 +287,7 @@ fn adapt_to_dataset(dataset: &Dataset, config: &mut PatchMapperConfig) -> Result
         let block = f64::from(tsdf.voxel_size_m) * 8.0;
         if let Some(fit) = size_volume_to_depth(&points, gravity.map(Unit::into_inner), block, &VolumeSizing::default()) {
             eprintln!(
-                "volume: {:.0} % of the first frame's valid depth lies outside the {edge} m volume; fitted a {:.2} m volume to the first \
+                "volume: {:.0} % of the first frame's valid depth lies outside the {edge:.2} m volume; fitted a {:.2} m volume to the first \
                  frames ({:.0} % inside); --no-adapt or -p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=.. keep a fixed one",
                 100.0 * outside,
                 fit.edge_m,
@@ -298,7 +298,7 @@ fn adapt_to_dataset(dataset: &Dataset, config: &mut PatchMapperConfig) -> Result
             config.tracker.moving_volume.nominal_position_fraction = fit.nominal_position_fraction;
         }
     } else if outside > 0.2 {
-        eprintln!("warning: {:.0} % of the first frame's valid depth lies outside the {edge} m volume (-p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=..)", 100.0 * outside);
+        eprintln!("warning: {:.0} % of the first frame's valid depth lies outside the {edge:.2} m volume (-p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=..)", 100.0 * outside);
     }
     if let Some(gravity) = gravity {
         match ground_plane(&cloud, 0.02, &gravity, 15.0, 0).map_err(anyhow::Error::from).and_then(|g| Ok(RigEstimate::new(g.distance_m, &gravity)?)) {

@@ -319,3 +319,34 @@ fn write_birds_eye_png(path: &Path, view: &BirdsEyeView) -> anyhow::Result<()> {
     writer.finish()?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_flags_track_the_tum_excerpt() {
+        let out = tempfile::tempdir().unwrap();
+        let args = TrackArgs {
+            dataset: patchwalk_fusion::dataset::test_data_dir().join("tum_fr1_xyz"),
+            out: out.path().to_path_buf(),
+            voxel_size: TsdfConfig::default().voxel_size_m,
+            volume_size: None,
+            fit_frames: 5,
+            volume_coverage: VolumeSizing::default().coverage,
+            max_depth: TsdfConfig::default().max_depth_m,
+            fixed_volume: false,
+            gravity: GravitySource::Auto,
+            camera_from_imu: None,
+            birds_eye_every: 0,
+            max_frames: None,
+            config: None,
+        };
+        let summary = track(args).unwrap();
+        // The volume is fitted to the desk 1–2 m away instead of the robot-scale 1.28 m cube.
+        assert!(summary.volume_edge_m > 2.0, "{summary:?}");
+        assert_eq!((summary.frames, summary.lost), (37, 0), "{summary:?}");
+        let ate = summary.ate_m.unwrap();
+        assert!(ate <= 0.0035, "ATE {:.2} mm", ate * 1e3);
+    }
+}

@@ -154,7 +154,7 @@ pub fn size_volume_to_depth(
     block_m: f64,
     sizing: &VolumeSizing,
 ) -> Option<VolumeFit> {
-    if points_in_camera.is_empty() || !(block_m > 0.0) {
+    if points_in_camera.is_empty() || block_m.is_nan() || block_m <= 0.0 {
         return None;
     }
     let rotation = initial_volume_from_camera(gravity_in_camera, 1.0, &MovingVolumeConfig::default()).rotation;
@@ -403,7 +403,8 @@ mod tests {
         let [fx, fy, fz] = fit.nominal_position_fraction;
         assert!((fx - 0.5).abs() < 0.01 && (fz - 0.25).abs() < 1e-9 && fy < 0.5, "{fit:?}");
         assert!(fit.inside_share > 0.65, "{fit:?}");
-        let at_back = size_volume_to_depth(&points, Some(Vector3::y()), 0.04, &VolumeSizing { min_camera_fraction: 0.0, ..sizing }).unwrap();
+        let at_back =
+            size_volume_to_depth(&points, Some(Vector3::y()), 0.04, &VolumeSizing { min_camera_fraction: 0.0, ..sizing }).unwrap();
         assert!(at_back.inside_share > 0.95 && at_back.nominal_position_fraction[2] < 0.1, "{at_back:?}");
         // The default robot cube around the camera holds much less of it.
         let robot = initial_volume_from_camera(Some(Vector3::y()), 1.28, &MovingVolumeConfig::default());

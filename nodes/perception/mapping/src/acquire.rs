@@ -53,7 +53,11 @@ pub struct AcquireConfig {
 
 impl Default for AcquireConfig {
     fn default() -> Self {
-        Self { camera_from_imu: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], accel_half_window_s: 0.05, plane_prior: PlanePrior::default() }
+        Self {
+            camera_from_imu: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            accel_half_window_s: 0.05,
+            plane_prior: PlanePrior::default(),
+        }
     }
 }
 
@@ -268,7 +272,11 @@ pub fn dominant_planes(cloud: &OrganizedCloud, inlier_distance_m: f64, max_plane
         if normal.dot(&mean) < 0.0 {
             normal = -normal;
         }
-        planes.push(Plane { normal_away: Unit::new_normalize(normal), distance_m: normal.dot(&mean), share: inliers.len() as f64 / sampled as f64 });
+        planes.push(Plane {
+            normal_away: Unit::new_normalize(normal),
+            distance_m: normal.dot(&mean),
+            share: inliers.len() as f64 / sampled as f64,
+        });
     }
     if planes.is_empty() {
         return Err(AcquireError::NoPlane(format!("no plane holds {:.0} % of the {sampled} sampled points", 100.0 * MIN_PLANE_SHARE)));
@@ -438,7 +446,9 @@ mod tests {
     #[test]
     fn real_frames_get_a_ground_plane_consistent_with_the_prior() {
         let data = test_data_dir();
-        for (name, frame) in [("tum_fr1_xyz", 0), ("tum_fr1_xyz", 36), ("open3d_rgbd", 0), ("open3d_rgbd", 4), ("cape_tunnel/depth_0.png", 0)] {
+        for (name, frame) in
+            [("tum_fr1_xyz", 0), ("tum_fr1_xyz", 36), ("open3d_rgbd", 0), ("open3d_rgbd", 4), ("cape_tunnel/depth_0.png", 0)]
+        {
             let dataset = Dataset::open(&data.join(name)).unwrap();
             let cloud = organized_cloud(&dataset.load_depth(frame).unwrap(), &dataset.intrinsics).unwrap();
             let prior = PlanePrior::default();

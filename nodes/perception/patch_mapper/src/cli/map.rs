@@ -21,7 +21,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use nalgebra::{Unit, Vector3};
 use patchwalk_fusion::dataset::Dataset;
-use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_ground_plane, gravity_from_vector, ground_plane, organized_cloud};
+use patchwalk_mapping::acquire::{
+    gravity_from_accelerometer, gravity_from_ground_plane, gravity_from_vector, ground_plane, organized_cloud,
+};
 use patchwalk_mapping::mapper::{
     default_volume_from_map, single_frame_volume_from_camera, FrameInput, FrameResult, FrameSummary, Mapper, MapperConfig, StageTimings,
     Verdict,
@@ -351,7 +353,10 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
 }
 
 /// J Table 2-like table: one row per frame and the total.
-fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, StageTimings, Unit<Vector3<f64>>, Option<RigEstimate>)]) {
+/// One frame's row of the table: index, counts, times, gravity and the rig estimate.
+type FrameRow = (usize, FrameSummary, StageTimings, Unit<Vector3<f64>>, Option<RigEstimate>);
+
+fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
     println!("patch mapping of {} ({} frames, gravity from {source})", args.input.display(), rows.len());
     let rigs: Vec<&RigEstimate> = rows.iter().filter_map(|row| row.4.as_ref()).collect();
     if let (Some(first), false) = (rigs.first(), rigs.is_empty()) {

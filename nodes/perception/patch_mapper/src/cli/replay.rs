@@ -23,16 +23,16 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{Isometry3, Unit};
-use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
-use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_ground_plane, ground_plane, organized_cloud};
-use patchwalk_mapping::rig::RigEstimate;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::{nearest_by_time, read_tum_poses, write_tum_poses, AccelSample, Dataset, StampedPose};
 use patchwalk_fusion::trajectory::absolute_trajectory_rmse;
+use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
+use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_ground_plane, ground_plane, organized_cloud};
 use patchwalk_mapping::mapper::FrameSummary;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
 use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::render_patches;
+use patchwalk_mapping::rig::RigEstimate;
 use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
@@ -301,7 +301,10 @@ fn adapt_to_dataset(dataset: &Dataset, config: &mut PatchMapperConfig) -> Result
         eprintln!("warning: {:.0} % of the first frame's valid depth lies outside the {edge:.2} m volume (-p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=..)", 100.0 * outside);
     }
     if let Some(gravity) = gravity {
-        match ground_plane(&cloud, 0.02, &gravity, 15.0, 0).map_err(anyhow::Error::from).and_then(|g| Ok(RigEstimate::new(g.distance_m, &gravity)?)) {
+        match ground_plane(&cloud, 0.02, &gravity, 15.0, 0)
+            .map_err(anyhow::Error::from)
+            .and_then(|g| Ok(RigEstimate::new(g.distance_m, &gravity)?))
+        {
             Ok(rig) => {
                 let down = rig.camera_height_m + config.tracker.birds_eye.offset_above_camera_m;
                 eprintln!(

@@ -212,7 +212,14 @@ pub fn track(args: TrackArgs) -> anyhow::Result<TrackSummary> {
         let r = (rpe.iter().map(|(_, r)| r * r).sum::<f64>() / n).sqrt();
         println!("RPE (consecutive poses) RMS {:.2} mm, {:.3} deg", t * 1e3, r);
     }
-    Ok(TrackSummary { frames: trajectory.len(), lost, remaps, ate_m, median_ms: median, volume_edge_m: f64::from(tracker.volume().edge_m()) })
+    Ok(TrackSummary {
+        frames: trajectory.len(),
+        lost,
+        remaps,
+        ate_m,
+        median_ms: median,
+        volume_edge_m: f64::from(tracker.volume().edge_m()),
+    })
 }
 
 /// Sizes and places the volume from the first `--fit-frames` frames, or (with `--volume-size` or a

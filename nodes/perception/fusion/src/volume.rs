@@ -9,6 +9,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
+use crate::camera::{DepthImage, Intrinsics};
 use crate::fusion::{floor_i, Block, TsdfVolume, Voxel, BLOCK_EDGE, BLOCK_VOXELS};
 
 /// Moving-volume parameters (J 4 "moving policies", J 5.2).
@@ -67,6 +68,119 @@ pub fn initial_volume_from_camera(gravity_in_camera: Option<Vector3<f64>>, edge_
     let camera_from_volume = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, down, horizontal]));
     let rotation = UnitQuaternion::from_rotation_matrix(&camera_from_volume.inverse());
     Isometry3::from_parts(Translation3::from(config.nominal_position(edge_m)), rotation)
+}
+
+/// Sizing and placing the moving volume from the depth the camera sees (J 5.1 keeps the volume
+/// around the data the camera observes; J 5.2 starts it around the camera). A robot-scale 1.28 m
+/// cube holds little of a desk 1–2 m away; this fits the cube to the first frames instead.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VolumeSizing {
+    /// Share of the valid depth points (within the fusion's depth range) the cube should hold along
+    /// each axis; the rest (far background, outliers) is trimmed equally from both ends.
+    pub coverage: f64,
+    /// Smallest edge (m).
+    pub min_edge_m: f64,
+    /// Largest edge (m): bounds memory and the raycast's work.
+    pub max_edge_m: f64,
+    /// Free space kept around the data and the camera inside the cube (m).
+    pub margin_m: f64,
+    /// The camera's nominal position stays at least this fraction of the edge inside every face, so
+    /// the cube keeps some of what is behind and above the camera when it moves or turns (J 5.2
+    /// starts with the camera in the middle). On TUM fr1/xyz a camera at the back face tracked
+    /// worse than a centred one.
+    pub min_camera_fraction: f64,
+}
+
+impl Default for VolumeSizing {
+    fn default() -> Self {
+        Self { coverage: 0.95, min_edge_m: 1.28, max_edge_m: 4.0, margin_m: 0.1, min_camera_fraction: 0.25 }
+    }
+}
+
+/// The cube fitted to the depth of the first frames by [`size_volume_to_depth`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct VolumeFit {
+    /// Edge Vs (m), a whole number of blocks.
+    pub edge_m: f64,
+    /// Where the camera sits in the cube, as fractions of the edge (the moving volume's nominal
+    /// position, [`MovingVolumeConfig::nominal_position_fraction`]).
+    pub nominal_position_fraction: [f64; 3],
+    /// Share of the valid depth points inside the fitted cube.
+    pub inside_share: f64,
+}
+
+/// The valid points of a depth image in the camera frame, limited to `[min_depth_m, max_depth_m]`
+/// (the depth range the fusion integrates), every `stride`-th pixel.
+pub fn depth_points(depth: &DepthImage, intrinsics: &Intrinsics, min_depth_m: f64, max_depth_m: f64, stride: usize) -> Vec<Vector3<f64>> {
+    depth
+        .depth_m
+        .iter()
+        .enumerate()
+        .step_by(stride.max(1))
+        .filter_map(|(i, &z)| {
+            let z = f64::from(z);
+            (z.is_finite() && z >= min_depth_m && z <= max_depth_m)
+                .then(|| intrinsics.back_project((i % depth.width) as f64, (i / depth.width) as f64, z))
+        })
+        .collect()
+}
+
+/// Share of `points_in_camera` inside the cube `[0, edge_m)³` posed by `volume_from_camera`
+/// (1 for no points).
+pub fn share_inside(points_in_camera: &[Vector3<f64>], volume_from_camera: &Isometry3<f64>, edge_m: f64) -> f64 {
+    if points_in_camera.is_empty() {
+        return 1.0;
+    }
+    let inside = points_in_camera
+        .par_iter()
+        .filter(|p| {
+            let q = volume_from_camera * Point3::from(**p);
+            q.iter().all(|c| (0.0..edge_m).contains(c))
+        })
+        .count();
+    inside as f64 / points_in_camera.len() as f64
+}
+
+/// Fits the cube to the points (camera frame) of the first frames: gravity-aligned axes as in
+/// [`initial_volume_from_camera`], per axis the central `coverage` share of the points together with
+/// the camera (it must stay inside the cube for tracking and the birds-eye view), plus `margin_m`;
+/// the edge is the largest extent rounded up to whole blocks of `block_m` and clamped to
+/// `[min_edge_m, max_edge_m]`; the data's bounding box is centred in the cube, the camera kept at
+/// least `min_camera_fraction` of the edge inside. `None` without points.
+pub fn size_volume_to_depth(
+    points_in_camera: &[Vector3<f64>],
+    gravity_in_camera: Option<Vector3<f64>>,
+    block_m: f64,
+    sizing: &VolumeSizing,
+) -> Option<VolumeFit> {
+    if points_in_camera.is_empty() || block_m.is_nan() || block_m <= 0.0 {
+        return None;
+    }
+    let rotation = initial_volume_from_camera(gravity_in_camera, 1.0, &MovingVolumeConfig::default()).rotation;
+    let rotated: Vec<Vector3<f64>> = points_in_camera.par_iter().map(|p| rotation * p).collect();
+    let trim = (0.5 * (1.0 - sizing.coverage.clamp(0.0, 1.0)) * rotated.len() as f64) as usize;
+    let mut lo = Vector3::zeros();
+    let mut hi = Vector3::zeros();
+    for axis in 0..3 {
+        let mut values: Vec<f64> = rotated.iter().map(|p| p[axis]).collect();
+        values.sort_by(f64::total_cmp);
+        let last = values.len() - 1;
+        let (a, b) = (values[trim.min(last)], values[last.saturating_sub(trim)]);
+        // The camera (the origin) is part of the box.
+        lo[axis] = a.min(0.0) - sizing.margin_m;
+        hi[axis] = b.max(0.0) + sizing.margin_m;
+    }
+    let extent = (hi - lo).max();
+    let edge = ((extent / block_m).ceil() * block_m).clamp(sizing.min_edge_m, sizing.max_edge_m.max(sizing.min_edge_m));
+    let centre = 0.5 * (lo + hi);
+    // Camera position in the cube: the box centred, the camera at least the margin inside.
+    let inner = sizing.margin_m.max(sizing.min_camera_fraction * edge).min(0.5 * edge);
+    let camera = (Vector3::repeat(0.5 * edge) - centre).map(|c| c.clamp(inner, edge - inner));
+    let nominal_position_fraction = [camera.x / edge, camera.y / edge, camera.z / edge];
+    let volume_from_camera = Isometry3::from_parts(Translation3::from(camera), rotation);
+    let inside_share = share_inside(points_in_camera, &volume_from_camera, edge);
+    Some(VolumeFit { edge_m: edge, nominal_position_fraction, inside_share })
 }
 
 /// Heading of the camera about the volume's vertical (rad): angle of its forward axis, made
@@ -268,5 +382,63 @@ mod tests {
         let surface = volume.surface_voxels(0.2);
         assert!(surface.len() > 100);
         assert!(surface.iter().all(|p| (p.y - 0.9).abs() < 0.01), "surface moved");
+    }
+
+    #[test]
+    fn the_volume_is_sized_and_placed_around_a_desk_ahead() {
+        // A level camera, a 1.6 m wide desk top 0.5 m below from 0.8 m to 2.4 m ahead, and a wall behind it.
+        let mut points = Vec::new();
+        for i in 0..80 {
+            for j in 0..80 {
+                points.push(Vector3::new(-0.8 + 0.02 * f64::from(i), 0.5, 0.8 + 0.02 * f64::from(j)));
+            }
+        }
+        let sizing = VolumeSizing::default();
+        let fit = size_volume_to_depth(&points, Some(Vector3::y()), 0.04, &sizing).unwrap();
+        // Extent: 1.6 m + 2 × 0.1 m margin along z (the camera at z = 0 included), 1.6 + 0.2 along x.
+        assert!((fit.edge_m - 2.6).abs() < 0.041, "{fit:?}");
+        assert!((fit.edge_m / 0.04 - (fit.edge_m / 0.04).round()).abs() < 1e-9);
+        // The camera sits a quarter of the edge from the back face (no closer), centred across,
+        // above the desk: most of the desk is inside.
+        let [fx, fy, fz] = fit.nominal_position_fraction;
+        assert!((fx - 0.5).abs() < 0.01 && (fz - 0.25).abs() < 1e-9 && fy < 0.5, "{fit:?}");
+        assert!(fit.inside_share > 0.65, "{fit:?}");
+        let at_back =
+            size_volume_to_depth(&points, Some(Vector3::y()), 0.04, &VolumeSizing { min_camera_fraction: 0.0, ..sizing }).unwrap();
+        assert!(at_back.inside_share > 0.95 && at_back.nominal_position_fraction[2] < 0.1, "{at_back:?}");
+        // The default robot cube around the camera holds much less of it.
+        let robot = initial_volume_from_camera(Some(Vector3::y()), 1.28, &MovingVolumeConfig::default());
+        assert!(share_inside(&points, &robot, 1.28) < 0.2);
+        // Far outliers (1.5 %) do not inflate the cube; nothing to fit gives None.
+        let mut with_outliers = points.clone();
+        with_outliers.extend((0..100).map(|k| Vector3::new(0.0, 0.0, 8.0 + f64::from(k) * 0.01)));
+        let trimmed = size_volume_to_depth(&with_outliers, Some(Vector3::y()), 0.04, &sizing).unwrap();
+        assert!(trimmed.edge_m <= fit.edge_m + 0.2, "{trimmed:?}");
+        assert!(size_volume_to_depth(&[], None, 0.04, &sizing).is_none());
+    }
+
+    #[test]
+    fn a_robot_view_keeps_the_minimum_cube_and_clamps_huge_scenes() {
+        // Ground 0.45 m below, 0.2–0.8 m ahead: fits in the 1.28 m minimum.
+        let points: Vec<_> = (0..100).map(|k| Vector3::new(0.0, 0.45, 0.2 + 0.006 * f64::from(k))).collect();
+        let sizing = VolumeSizing::default();
+        let fit = size_volume_to_depth(&points, Some(Vector3::y()), 0.04, &sizing).unwrap();
+        assert_eq!(fit.edge_m, 1.28);
+        assert_eq!(fit.inside_share, 1.0);
+        // A hall 10 m deep: the edge stops at max_edge_m and the camera stays inside the cube.
+        let far: Vec<_> = (0..100).map(|k| Vector3::new(0.0, 1.0, 0.1 * f64::from(k))).collect();
+        let fit = size_volume_to_depth(&far, Some(Vector3::y()), 0.04, &sizing).unwrap();
+        assert_eq!(fit.edge_m, 4.0);
+        assert!(fit.nominal_position_fraction.iter().all(|f| (0.0..=1.0).contains(f)), "{fit:?}");
+        assert!(fit.inside_share < 0.5);
+    }
+
+    #[test]
+    fn depth_points_respect_the_depth_range() {
+        let intrinsics = Intrinsics::new(4, 1, 2.0, 2.0, 1.5, 0.0).unwrap();
+        let depth = DepthImage::new(4, 1, vec![0.1, 1.0, f32::NAN, 5.0]).unwrap();
+        let points = depth_points(&depth, &intrinsics, 0.2, 3.0, 1);
+        assert_eq!(points.len(), 1);
+        assert!((points[0] - intrinsics.back_project(1.0, 0.0, 1.0)).norm() < 1e-12);
     }
 }

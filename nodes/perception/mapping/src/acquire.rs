@@ -6,9 +6,11 @@
 //! 1. an explicit gravity vector in the camera frame (e.g. `--gravity` of `patch_mapper map`),
 //! 2. an IMU orientation quaternion or an accelerometer reading, through `camera_from_imu`
 //!    (J 2.2: the rotation found by Procrustes calibration, see `calibration.rs`),
-//! 3. the fallback: the normal of the dominant plane of the frame ([`gravity_from_dominant_plane`]),
-//!    valid when the frame is dominated by a horizontal floor or table (the assumption J 2.2 makes
-//!    for calibration).
+//! 3. the fallback: the normal of a dominant plane of the frame ([`gravity_from_ground_plane`]): of
+//!    up to four RANSAC planes, the largest whose normal agrees with the camera's nominal down
+//!    ([`PlanePrior`]); a frame with no such plane (only walls) is refused with
+//!    [`AcquireError::NoGroundPlane`] instead of taking a wall for the floor. J 2.2 makes the same
+//!    horizontal-floor assumption for calibration.
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -27,6 +29,13 @@ pub enum AcquireError {
     BadRotation { det: f64, error: f64 },
     #[error("no dominant plane: {0}")]
     NoPlane(String),
+    #[error(
+        "no dominant plane is within {tolerance_deg}° of the nominal down {down:.2?} (planes found: {}); the view holds no floor: set mapper.acquire.plane_prior (nominal_pitch_deg, tolerance_deg) or give gravity (--gravity, an IMU)",
+        if found.is_empty() { "none".to_string() } else { found.join("; ") }
+    )]
+    NoGroundPlane { down: [f64; 3], tolerance_deg: f64, found: Vec<String> },
+    #[error("invalid plane prior: {0}")]
+    BadPrior(String),
 }
 
 /// Configuration of stage i.
@@ -38,11 +47,17 @@ pub struct AcquireConfig {
     pub camera_from_imu: [[f64; 3]; 3],
     /// Half window (s) over which accelerometer samples are averaged around a frame timestamp.
     pub accel_half_window_s: f64,
+    /// Plane gravity (no IMU): which of the dominant planes may be the ground.
+    pub plane_prior: PlanePrior,
 }
 
 impl Default for AcquireConfig {
     fn default() -> Self {
-        Self { camera_from_imu: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], accel_half_window_s: 0.05 }
+        Self {
+            camera_from_imu: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            accel_half_window_s: 0.05,
+            plane_prior: PlanePrior::default(),
+        }
     }
 }
 
@@ -157,44 +172,152 @@ pub fn map_from_camera_from_gravity(gravity_in_camera: &Unit<Vector3<f64>>) -> I
     Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_rotation_matrix(&camera_from_map.inverse()))
 }
 
-/// Fallback gravity: the normal of the dominant plane of the cloud (RANSAC on a subsample, then a
-/// least-squares refit on the inliers), oriented away from the camera (the camera sees the top of
-/// the floor, so down points from the camera towards the plane). Deterministic for a given `seed`.
-pub fn gravity_from_dominant_plane(cloud: &OrganizedCloud, inlier_distance_m: f64, seed: u64) -> Result<Unit<Vector3<f64>>, AcquireError> {
-    let valid: Vec<Vector3<f64>> = cloud.points_in_camera.iter().step_by(7).filter(|p| p.z.is_finite()).map(|p| p.cast::<f64>()).collect();
-    if valid.len() < 50 {
-        return Err(AcquireError::NoPlane(format!("only {} valid sample points", valid.len())));
+/// The prior on "down" that plane gravity checks its planes against: the camera's nominal down in
+/// the optical frame is +y (image down) rotated about the optical x axis by the nominal pitch,
+/// `d = (0, cos θ, sin θ)` (θ = 0: looking level, 90°: looking straight down). A plane is taken as
+/// the ground only if its downward normal lies within `tolerance_deg` of `d`, so a wall (normal
+/// horizontal) or a desk front cannot become "down".
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PlanePrior {
+    /// θ: nominal pitch of the optical axis below the horizontal (degrees).
+    pub nominal_pitch_deg: f64,
+    /// Largest angle between a plane's downward normal and the nominal down (degrees).
+    pub tolerance_deg: f64,
+}
+
+impl Default for PlanePrior {
+    /// 35° ± 40°: from a level camera to one looking 75° down (hand-held rigs, robot heads, the
+    /// TUM and Open3D recordings); a wall seen by such a camera is at least 50° off.
+    fn default() -> Self {
+        Self { nominal_pitch_deg: 35.0, tolerance_deg: 40.0 }
+    }
+}
+
+impl PlanePrior {
+    /// The nominal down `(0, cos θ, sin θ)` in the optical frame.
+    pub fn nominal_down(&self) -> Unit<Vector3<f64>> {
+        let pitch = self.nominal_pitch_deg.to_radians();
+        Unit::new_normalize(Vector3::new(0.0, pitch.cos(), pitch.sin()))
+    }
+
+    /// Checks the prior's numbers.
+    pub fn validate(&self) -> Result<(), AcquireError> {
+        if !(self.nominal_pitch_deg.is_finite() && (-90.0..=90.0).contains(&self.nominal_pitch_deg)) {
+            return Err(AcquireError::BadPrior(format!("nominal_pitch_deg {} is not in [-90, 90]", self.nominal_pitch_deg)));
+        }
+        if !(self.tolerance_deg.is_finite() && self.tolerance_deg > 0.0 && self.tolerance_deg <= 180.0) {
+            return Err(AcquireError::BadPrior(format!("tolerance_deg {} is not in (0, 180]", self.tolerance_deg)));
+        }
+        Ok(())
+    }
+}
+
+/// One plane found by [`dominant_planes`], in the camera frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Plane {
+    /// Unit normal pointing away from the camera (for the ground: gravity, down).
+    pub normal_away: Unit<Vector3<f64>>,
+    /// Distance from the camera centre to the plane (m): the camera height for the ground.
+    pub distance_m: f64,
+    /// Share of the sampled valid points that are inliers of this plane.
+    pub share: f64,
+}
+
+impl Plane {
+    /// Angle between the plane's away-normal and `down` (degrees).
+    pub fn angle_to_deg(&self, down: &Unit<Vector3<f64>>) -> f64 {
+        self.normal_away.dot(down).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+}
+
+/// Smallest share of the sampled points a plane needs to count as dominant.
+const MIN_PLANE_SHARE: f64 = 0.05;
+
+/// Up to `max_planes` dominant planes of the cloud, largest first: sequential RANSAC on a subsample
+/// (each plane's inliers are removed before the next is searched), each plane refitted by least
+/// squares on its inliers. Planes holding less than 5 % of the sampled points are not reported.
+/// Deterministic for a given `seed`.
+pub fn dominant_planes(cloud: &OrganizedCloud, inlier_distance_m: f64, max_planes: usize, seed: u64) -> Result<Vec<Plane>, AcquireError> {
+    let mut remaining: Vec<Vector3<f64>> =
+        cloud.points_in_camera.iter().step_by(7).filter(|p| p.z.is_finite()).map(|p| p.cast::<f64>()).collect();
+    let sampled = remaining.len();
+    if sampled < 50 {
+        return Err(AcquireError::NoPlane(format!("only {sampled} valid sample points")));
     }
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let mut best: Option<(usize, Vector3<f64>, f64)> = None;
-    for _ in 0..200 {
-        let [a, b, c] = [0; 3].map(|_| valid[rng.random_range(0..valid.len())]);
-        let normal = (b - a).cross(&(c - a));
-        if normal.norm() < 1e-9 {
-            continue;
+    let mut planes = Vec::new();
+    while planes.len() < max_planes && remaining.len() >= 50 {
+        let mut best: Option<(usize, Vector3<f64>, f64)> = None;
+        for _ in 0..200 {
+            let [a, b, c] = [0; 3].map(|_| remaining[rng.random_range(0..remaining.len())]);
+            let Some(normal) = (b - a).cross(&(c - a)).try_normalize(1e-9) else { continue };
+            let offset = normal.dot(&a);
+            let inliers = remaining.par_iter().filter(|p| (normal.dot(p) - offset).abs() < inlier_distance_m).count();
+            if best.is_none_or(|(count, _, _)| inliers > count) {
+                best = Some((inliers, normal, offset));
+            }
         }
-        let normal = normal.normalize();
-        let offset = normal.dot(&a);
-        let inliers = valid.iter().filter(|p| (normal.dot(p) - offset).abs() < inlier_distance_m).count();
-        if best.is_none_or(|(count, _, _)| inliers > count) {
-            best = Some((inliers, normal, offset));
+        let Some((count, normal, offset)) = best else { break };
+        if (count as f64) < MIN_PLANE_SHARE * sampled as f64 {
+            break;
         }
+        let (inliers, rest): (Vec<_>, Vec<_>) = remaining.iter().partition(|p| (normal.dot(p) - offset).abs() < inlier_distance_m);
+        remaining = rest;
+        // Least-squares refit: smallest eigenvector of the inliers' covariance.
+        let mean = inliers.iter().sum::<Vector3<f64>>() / inliers.len() as f64;
+        let covariance = inliers.iter().fold(Matrix3::zeros(), |acc, p| acc + (p - mean) * (p - mean).transpose());
+        let eigen = covariance.symmetric_eigen();
+        let mut normal: Vector3<f64> = eigen.eigenvectors.column(eigen.eigenvalues.imin()).into_owned();
+        if normal.dot(&mean) < 0.0 {
+            normal = -normal;
+        }
+        planes.push(Plane {
+            normal_away: Unit::new_normalize(normal),
+            distance_m: normal.dot(&mean),
+            share: inliers.len() as f64 / sampled as f64,
+        });
     }
-    let (count, normal, offset) = best.ok_or_else(|| AcquireError::NoPlane("degenerate samples".into()))?;
-    if count < valid.len() / 10 {
-        return Err(AcquireError::NoPlane(format!("best plane holds {count} of {} points", valid.len())));
+    if planes.is_empty() {
+        return Err(AcquireError::NoPlane(format!("no plane holds {:.0} % of the {sampled} sampled points", 100.0 * MIN_PLANE_SHARE)));
     }
-    // Least-squares refit: smallest eigenvector of the inliers' covariance.
-    let inliers: Vec<_> = valid.iter().filter(|p| (normal.dot(p) - offset).abs() < inlier_distance_m).collect();
-    let mean = inliers.iter().copied().sum::<Vector3<f64>>() / inliers.len() as f64;
-    let covariance = inliers.iter().fold(Matrix3::zeros(), |acc, p| acc + (*p - mean) * (*p - mean).transpose());
-    let eigen = covariance.symmetric_eigen();
-    let smallest = eigen.eigenvalues.imin();
-    let mut normal: Vector3<f64> = eigen.eigenvectors.column(smallest).into_owned();
-    if normal.dot(&mean) < 0.0 {
-        normal = -normal;
+    Ok(planes)
+}
+
+/// The ground among the dominant planes: the largest plane whose away-normal lies within
+/// `tolerance_deg` of `down` (the nominal down of a [`PlanePrior`], or a measured gravity when only
+/// the camera height is wanted). Refuses a frame where no plane qualifies, listing the planes found.
+pub fn ground_plane(
+    cloud: &OrganizedCloud,
+    inlier_distance_m: f64,
+    down: &Unit<Vector3<f64>>,
+    tolerance_deg: f64,
+    seed: u64,
+) -> Result<Plane, AcquireError> {
+    let planes = dominant_planes(cloud, inlier_distance_m, 4, seed)?;
+    if let Some(ground) = planes.iter().find(|p| p.angle_to_deg(down) <= tolerance_deg) {
+        return Ok(*ground);
     }
-    gravity_from_vector(normal)
+    let found = planes.iter().map(|p| format!("{:.0}° off, {:.0} % of the points", p.angle_to_deg(down), 100.0 * p.share)).collect();
+    Err(AcquireError::NoGroundPlane { down: (*down).into_inner().into(), tolerance_deg, found })
+}
+
+/// Plane gravity: the downward normal of the ground plane chosen by [`ground_plane`] against the
+/// prior's nominal down (the camera sees the top of the floor, so down points from the camera towards
+/// the plane).
+pub fn gravity_from_ground_plane(
+    cloud: &OrganizedCloud,
+    inlier_distance_m: f64,
+    prior: &PlanePrior,
+    seed: u64,
+) -> Result<Unit<Vector3<f64>>, AcquireError> {
+    prior.validate()?;
+    Ok(ground_plane(cloud, inlier_distance_m, &prior.nominal_down(), prior.tolerance_deg, seed)?.normal_away)
+}
+
+/// [`gravity_from_ground_plane`] with the default [`PlanePrior`].
+pub fn gravity_from_dominant_plane(cloud: &OrganizedCloud, inlier_distance_m: f64, seed: u64) -> Result<Unit<Vector3<f64>>, AcquireError> {
+    gravity_from_ground_plane(cloud, inlier_distance_m, &PlanePrior::default(), seed)
 }
 
 #[cfg(test)]
@@ -276,5 +399,62 @@ mod tests {
         let documented_down = Vector3::new(-0.01, 0.79, 0.62).normalize();
         let angle = g.dot(&documented_down).clamp(-1.0, 1.0).acos().to_degrees();
         assert!(angle < 10.0, "angle to documented gravity {angle}°");
+    }
+
+    /// A camera 0.4 m above a floor pitched 10° down, facing a wall 0.9 m ahead that fills most of the
+    /// view (the wall is the largest plane).
+    fn wall_and_floor() -> (OrganizedCloud, Unit<Vector3<f64>>) {
+        use crate::saliency::tests::{render, small_camera};
+        let intrinsics = small_camera();
+        let pitch = 10f64.to_radians();
+        let down = Unit::new_normalize(Vector3::new(0.0, pitch.cos(), pitch.sin()));
+        let forward = Vector3::new(0.0, -pitch.sin(), pitch.cos());
+        let depth = render(&intrinsics, |p| (0.4 - down.dot(p)).min(0.9 - forward.dot(p)));
+        (organized_cloud(&depth, &intrinsics).unwrap(), down)
+    }
+
+    #[test]
+    fn plane_gravity_takes_the_floor_not_the_larger_wall() {
+        let (cloud, down) = wall_and_floor();
+        let planes = dominant_planes(&cloud, 0.02, 4, 3).unwrap();
+        assert!(planes.len() >= 2, "{planes:?}");
+        // The wall is the dominant plane; the prior still picks the floor.
+        assert!(planes[0].angle_to_deg(&down) > 80.0, "{planes:?}");
+        let g = gravity_from_dominant_plane(&cloud, 0.02, 3).unwrap();
+        assert!(g.dot(&down) > 1f64.to_radians().cos(), "{g:?}");
+        let ground = ground_plane(&cloud, 0.02, &down, 10.0, 3).unwrap();
+        assert!((ground.distance_m - 0.4).abs() < 0.01, "{ground:?}");
+    }
+
+    #[test]
+    fn a_frame_of_walls_only_is_refused_with_the_planes_found() {
+        use crate::saliency::tests::{render, small_camera};
+        let intrinsics = small_camera();
+        // A level camera facing a wall 1.5 m ahead: no floor in view.
+        let cloud = organized_cloud(&render(&intrinsics, |p| 1.5 - p.z), &intrinsics).unwrap();
+        let err = gravity_from_dominant_plane(&cloud, 0.02, 1).unwrap_err();
+        let AcquireError::NoGroundPlane { found, tolerance_deg, .. } = &err else { panic!("{err:?}") };
+        assert_eq!(*tolerance_deg, 40.0);
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert!(err.to_string().contains("plane_prior") && err.to_string().contains("55° off"), "{err}");
+        // A prior that expects the camera to look straight down takes the wall for the ground.
+        let level = PlanePrior { nominal_pitch_deg: 90.0, tolerance_deg: 10.0 };
+        assert!(gravity_from_ground_plane(&cloud, 0.02, &level, 1).is_ok());
+        assert!(matches!(PlanePrior { nominal_pitch_deg: 120.0, ..level }.validate(), Err(AcquireError::BadPrior(_))));
+    }
+
+    #[test]
+    fn real_frames_get_a_ground_plane_consistent_with_the_prior() {
+        let data = test_data_dir();
+        for (name, frame) in
+            [("tum_fr1_xyz", 0), ("tum_fr1_xyz", 36), ("open3d_rgbd", 0), ("open3d_rgbd", 4), ("cape_tunnel/depth_0.png", 0)]
+        {
+            let dataset = Dataset::open(&data.join(name)).unwrap();
+            let cloud = organized_cloud(&dataset.load_depth(frame).unwrap(), &dataset.intrinsics).unwrap();
+            let prior = PlanePrior::default();
+            let g = gravity_from_ground_plane(&cloud, 0.02, &prior, 7).unwrap_or_else(|e| panic!("{name} {frame}: {e}"));
+            let angle = g.dot(&prior.nominal_down()).acos().to_degrees();
+            assert!(angle <= prior.tolerance_deg, "{name} {frame}: {angle}°");
+        }
     }
 }

@@ -6,7 +6,7 @@
 //! steps 1–10) → [`neighbourhood`] (r-balls, nf subsets) → fit and validate (the Surface Patch
 //! Library; [`foot_column`] gathers the foot disc's terrain for its edge test) → [`patch_map`] (J 4.6) and [`patch_tracking`] (J 5.2). [`mapper`] runs one frame,
 //! [`pipeline`] the node's per-frame sequence with fusion and tracking; [`render`] draws pictures;
-//! [`record`] is the one JSON record of a patch and its verdict that the CLIs write.
+//! [`rig`] turns camera height and pitch into the fixation point and seed area; [`record`] is the one JSON record of a patch and its verdict that the CLIs write.
 //!
 //! ROS-free; the `patch_mapper` node wraps it.
 
@@ -20,5 +20,6 @@ pub mod pipeline;
 pub mod preprocess;
 pub mod record;
 pub mod render;
+pub mod rig;
 pub mod saliency;
 pub mod seeds;

@@ -83,6 +83,9 @@ pub struct Saliency {
     pub fixation_in_camera: Vector3<f64>,
     /// Sampled surface area S of H (m²): Σ z²/(f_x f_y) / |n·ray| over the salient pixels.
     pub salient_area_m2: f64,
+    /// Set when the DtFP ball around the fixation point held no salient point and the labels are
+    /// those of the DoN/DoNG filters alone (no region of interest): why, in words.
+    pub dtfp_fallback: Option<String>,
 }
 
 impl Saliency {
@@ -187,6 +190,11 @@ impl IntegralCloud {
 }
 
 /// Step 6 on D: labels, normals and the salient area. `foot_radius_m` is r (J 4: foot size).
+///
+/// When the R-ball around the fixation point holds no salient point (the fixation point does not
+/// match the camera rig, or the view there is all steep or irregular) while the image has valid
+/// depth elsewhere, the labels are recomputed without DtFP and [`Saliency::dtfp_fallback`] says why,
+/// so a mis-set fixation point never silently yields no seeds.
 pub fn hiking_saliency(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
@@ -194,10 +202,44 @@ pub fn hiking_saliency(
     foot_radius_m: f64,
     config: &SaliencyConfig,
 ) -> Saliency {
-    let (width, height) = (depth.width, depth.height);
     let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
-    let radius_sq = if config.fixation_radius_m.is_finite() { config.fixation_radius_m.powi(2) } else { f64::INFINITY };
     let integral = IntegralCloud::new(depth, intrinsics);
+    let pass = |radius_m: f64| label_pixels(depth, intrinsics, &integral, gravity_in_camera, &fixation, radius_m, foot_radius_m, config);
+    let first = pass(config.fixation_radius_m);
+    if !config.fixation_radius_m.is_finite() || first.count(SaliencyLabel::Salient) > 0 || first.count(SaliencyLabel::Distant) == 0 {
+        return first;
+    }
+    let valid = first.labels.len() - first.count(SaliencyLabel::Invalid);
+    let in_ball = valid - first.count(SaliencyLabel::Distant);
+    let reason = format!(
+        "no salient point within R = {:.2} m of the fixation point ({:.2} m down, {:.2} m ahead): {in_ball} of {valid} valid points in the ball \
+         ({} steep, {} irregular, {} without a normal); saliency ran without DtFP",
+        config.fixation_radius_m,
+        config.fixation_down_m,
+        config.fixation_forward_m,
+        first.count(SaliencyLabel::Steep),
+        first.count(SaliencyLabel::Irregular),
+        first.count(SaliencyLabel::NoNormal),
+    );
+    let mut fallback = pass(f64::INFINITY);
+    fallback.dtfp_fallback = Some(reason);
+    fallback
+}
+
+/// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest).
+#[allow(clippy::too_many_arguments)]
+fn label_pixels(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    integral: &IntegralCloud,
+    gravity_in_camera: &Unit<Vector3<f64>>,
+    fixation: &Vector3<f64>,
+    radius_m: f64,
+    foot_radius_m: f64,
+    config: &SaliencyConfig,
+) -> Saliency {
+    let (width, height) = (depth.width, depth.height);
+    let radius_sq = if radius_m.is_finite() { radius_m.powi(2) } else { f64::INFINITY };
     let cos_don = config.don_max_deg.to_radians().cos();
     let cos_dong = config.dong_max_deg.to_radians().cos();
     let focal = 0.5 * (intrinsics.fx + intrinsics.fy);
@@ -246,7 +288,7 @@ pub fn hiking_saliency(
             area
         })
         .sum();
-    Saliency { width, height, labels, normals_in_camera, fixation_in_camera: fixation, salient_area_m2 }
+    Saliency { width, height, labels, normals_in_camera, fixation_in_camera: *fixation, salient_area_m2, dtfp_fallback: None }
 }
 
 #[cfg(test)]
@@ -385,5 +427,26 @@ pub(crate) mod tests {
         }
         assert!(salient > 200);
         assert!(saliency.count(SaliencyLabel::Distant) > saliency.count(SaliencyLabel::Salient));
+    }
+
+    #[test]
+    fn a_fixation_point_off_the_rig_falls_back_to_no_dtfp_and_says_why() {
+        // The floor is 0.4 m below the camera; a chest-height fixation point 1.2 m down has no
+        // surface within its ball.
+        let intrinsics = small_camera();
+        let depth = floor_and_wall(&intrinsics);
+        let g = gravity_from_vector(Vector3::y()).unwrap();
+        let config = SaliencyConfig { fixation_down_m: 1.2, fixation_forward_m: 1.5, fixation_radius_m: 0.5, ..Default::default() };
+        let saliency = hiking_saliency(&depth, &intrinsics, &g, 0.05, &config);
+        let reason = saliency.dtfp_fallback.as_deref().unwrap();
+        assert!(reason.contains("no salient point within R = 0.50 m") && reason.contains("1.20 m down"), "{reason}");
+        let no_dtfp = SaliencyConfig { fixation_radius_m: f64::INFINITY, ..config.clone() };
+        let expected = hiking_saliency(&depth, &intrinsics, &g, 0.05, &no_dtfp);
+        assert_eq!(saliency.labels, expected.labels);
+        assert!(saliency.count(SaliencyLabel::Salient) > 200);
+        assert!(expected.dtfp_fallback.is_none());
+        // A fixation point on the rig's floor needs no fallback.
+        let on_rig = SaliencyConfig { fixation_down_m: 0.4, fixation_forward_m: 1.0, ..config };
+        assert!(hiking_saliency(&depth, &intrinsics, &g, 0.05, &on_rig).dtfp_fallback.is_none());
     }
 }

@@ -4,23 +4,33 @@
 //! a summary like J Table 2.
 //!
 //! Gravity (in the camera frame) comes from, in order: `--gravity x,y,z`; the dataset's
-//! accelerometer through `mapper.acquire.camera_from_imu` when that rotation is configured (not the
-//! identity) or `--gravity-source imu` is given; otherwise the normal of the frame's dominant plane
-//! (valid when a horizontal floor or table dominates the view, J 2.2's calibration assumption).
+//! accelerometer, through `mapper.acquire.camera_from_imu` when that rotation is configured (not the
+//! identity), else through a rotation calibrated on the dataset (J 2.2); otherwise the ground plane
+//! of the frame: of its dominant planes, the largest consistent with the camera's nominal down
+//! (`mapper.acquire.plane_prior`), never a wall.
+//!
+//! The fixation point and the seed area follow the rig: the camera height above the ground plane
+//! (the plane perpendicular to gravity) and the camera pitch give the fixation point two steps ahead
+//! on the ground ([`patchwalk_mapping::rig`]), and the single-frame volume is centred on it.
+//! `--camera-height` gives the height instead; `--fixed-fixation` keeps the configured
+//! `mapper.saliency.fixation_*_m` and the volume at the camera.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use nalgebra::{Matrix3, Unit, Vector3};
+use nalgebra::{Unit, Vector3};
 use patchwalk_fusion::dataset::Dataset;
-use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_dominant_plane, gravity_from_vector, organized_cloud};
+use patchwalk_mapping::acquire::{
+    gravity_from_accelerometer, gravity_from_ground_plane, gravity_from_vector, ground_plane, organized_cloud,
+};
 use patchwalk_mapping::mapper::{
     default_volume_from_map, single_frame_volume_from_camera, FrameInput, FrameResult, FrameSummary, Mapper, MapperConfig, StageTimings,
     Verdict,
 };
 use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::{render_patches, render_saliency};
+use patchwalk_mapping::rig::{volume_from_camera_at_fixation, RigEstimate};
 use serde::Serialize;
 
 /// Arguments of `patch_mapper map`.
@@ -39,8 +49,10 @@ pub struct MapArgs {
     /// Gravity (down) in the camera frame, e.g. `0,0.79,0.62`; overrides every other source.
     #[arg(long, value_parser = super::parse_vec3, allow_hyphen_values = true)]
     pub gravity: Option<Vector3<f64>>,
-    /// Where gravity comes from without --gravity: auto, imu (accelerometer through
-    /// mapper.acquire.camera_from_imu) or plane (dominant plane normal).
+    /// Where gravity comes from without --gravity: auto (the accelerometer when the data has one,
+    /// else the ground plane), imu (accelerometer through mapper.acquire.camera_from_imu, or a
+    /// rotation calibrated on the data when that is the identity) or plane (the dominant plane
+    /// consistent with mapper.acquire.plane_prior).
     #[arg(long, default_value = "auto")]
     pub gravity_source: String,
     /// Neighbourhood radius r (m), overriding the config (J: 0.05 RPBP foot, 0.1 human data).
@@ -49,6 +61,14 @@ pub struct MapArgs {
     /// Disable the DtFP region of interest (keep the DoN/DoNG filters).
     #[arg(long)]
     pub no_dtfp: bool,
+    /// Camera height above the ground (m) for the fixation point and seed area, instead of the
+    /// distance to the frame's ground plane.
+    #[arg(long)]
+    pub camera_height: Option<f64>,
+    /// Keep the configured fixation point (mapper.saliency.fixation_down_m / fixation_forward_m)
+    /// and the single-frame volume at the camera instead of following the rig.
+    #[arg(long)]
+    pub fixed_fixation: bool,
     /// Process at most this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -119,16 +139,34 @@ pub fn run(args: MapArgs) -> Result<()> {
     let jsonl_path = args.out.join("patches.jsonl");
     let mut jsonl =
         std::io::BufWriter::new(std::fs::File::create(&jsonl_path).with_context(|| format!("creating {}", jsonl_path.display()))?);
-    let camera_from_imu = config.acquire.camera_from_imu()?;
-    let imu_configured = camera_from_imu.matrix() != &Matrix3::identity();
+    if let Some(h) = args.camera_height {
+        if !(h.is_finite() && h > 0.0) {
+            bail!("--camera-height must be positive, got {h}");
+        }
+    }
+    config.acquire.plane_prior.validate()?;
+    let configured_camera_from_imu = config.acquire.camera_from_imu()?;
     let source = match (args.gravity.is_some(), args.gravity_source.as_str()) {
-        (true, _) => "--gravity",
-        (false, "imu") => "imu",
-        (false, "plane") => "plane",
-        (false, "auto") if imu_configured && !dataset.accelerometer.is_empty() => "imu",
-        (false, "auto") => "plane",
+        (true, _) => "--gravity".to_string(),
+        (false, "imu" | "auto") if !dataset.accelerometer.is_empty() => "imu".to_string(),
+        (false, "imu") => bail!("--gravity-source imu: {} has no accelerometer", args.input.display()),
+        (false, "auto" | "plane") => "plane".to_string(),
         (false, other) => bail!("--gravity-source must be auto, imu or plane, got '{other}'"),
     };
+    let (camera_from_imu, source) = if source == "imu" {
+        match super::dataset_camera_from_imu(&dataset, &configured_camera_from_imu) {
+            (Some(rotation), how) => (rotation, format!("the accelerometer ({how})")),
+            (None, why) if args.gravity_source == "auto" => {
+                eprintln!("warning: {why}; gravity from the ground plane instead");
+                (configured_camera_from_imu, "plane".to_string())
+            }
+            (None, why) => bail!("--gravity-source imu: {why}"),
+        }
+    } else {
+        (configured_camera_from_imu, source)
+    };
+    let source = if source == "plane" { "the ground plane".to_string() } else { source };
+    let mut warnings = Warnings::default();
     let progress = (frames.len() > 1).then(|| {
         let bar = indicatif::ProgressBar::new(frames.len() as u64);
         bar.set_style(
@@ -141,9 +179,30 @@ pub fn run(args: MapArgs) -> Result<()> {
     for &index in &frames {
         let frame = &dataset.frames[index];
         let depth = dataset.load_depth(index)?;
-        let gravity = frame_gravity(&args, source, &dataset, index, &depth, &camera_from_imu)?;
-        let volume_from_camera = single_frame_volume_from_camera(&gravity, config.volume_edge_m);
-        let mut mapper = Mapper::new(config.clone(), "camera_optical", default_volume_from_map())?;
+        let gravity = match frame_gravity(&args, &source, &dataset, index, &depth, &camera_from_imu, &config) {
+            Ok(gravity) => gravity,
+            Err(err) => {
+                // A frame without gravity (e.g. no floor in view) is skipped; the others map.
+                warnings.once("gravity", format!("frame {index}: {err:#}; frame skipped"));
+                warnings.skipped += 1;
+                if let Some(bar) = &progress {
+                    bar.inc(1);
+                }
+                continue;
+            }
+        };
+        let mut frame_config = config.clone();
+        let rig = if args.fixed_fixation { None } else { frame_rig(&args, &dataset, index, &depth, &gravity, &mut warnings) };
+        let volume_from_camera = match rig {
+            Some(rig) => {
+                let (down, forward) = rig.fixation_distances(&dataset.intrinsics);
+                frame_config.saliency.fixation_down_m = down;
+                frame_config.saliency.fixation_forward_m = forward;
+                volume_from_camera_at_fixation(&gravity, config.volume_edge_m, down, forward)
+            }
+            None => single_frame_volume_from_camera(&gravity, config.volume_edge_m),
+        };
+        let mut mapper = Mapper::new(frame_config, "camera_optical", default_volume_from_map())?;
         let result = mapper.process(&FrameInput {
             depth: &depth,
             intrinsics: &dataset.intrinsics,
@@ -157,17 +216,30 @@ pub fn run(args: MapArgs) -> Result<()> {
             render_saliency(&result.saliency).save_png(&args.out.join(format!("frame_{index:05}_saliency.png")))?;
         }
         let summary = result.summary();
+        if let Some(reason) = &result.saliency.dtfp_fallback {
+            warnings.once("dtfp", format!("frame {index}: {reason}"));
+        }
+        if result.outcomes.is_empty() {
+            let salient = result.saliency.count(patchwalk_mapping::saliency::SaliencyLabel::Salient);
+            let why = if salient == 0 {
+                "no salient point (every valid point is steep or irregular)".to_string()
+            } else {
+                format!("none of the {salient} salient points lies in the {} m seed volume", config.volume_edge_m)
+            };
+            warnings.once("seeds", format!("frame {index}: no seeds: {why}"));
+        }
         if let Some(bar) = &progress {
             bar.set_message(format!("{} valid", summary.valid));
             bar.inc(1);
         }
-        rows.push((index, summary, result.timings, gravity));
+        rows.push((index, summary, result.timings, gravity, rig));
     }
     if let Some(bar) = progress {
         bar.finish_and_clear();
     }
     jsonl.flush()?;
-    print_table(&args, source, &rows);
+    print_table(&args, &source, &rows);
+    warnings.print_counts();
     println!(
         "patches: {}   pictures: {}",
         jsonl_path.display(),
@@ -183,11 +255,12 @@ fn frame_gravity(
     index: usize,
     depth: &patchwalk_fusion::camera::DepthImage,
     camera_from_imu: &nalgebra::Rotation3<f64>,
+    config: &MapperConfig,
 ) -> Result<Unit<Vector3<f64>>> {
     if let Some(g) = args.gravity {
         return Ok(gravity_from_vector(g)?);
     }
-    if source == "imu" {
+    if source.starts_with("the accelerometer") {
         let timestamp = dataset.frames[index].timestamp;
         let acceleration = dataset
             .mean_acceleration_near(timestamp, 0.05)
@@ -195,7 +268,65 @@ fn frame_gravity(
         return Ok(gravity_from_accelerometer(&acceleration, camera_from_imu)?);
     }
     let cloud = organized_cloud(depth, &dataset.intrinsics)?;
-    gravity_from_dominant_plane(&cloud, 0.02, index as u64).with_context(|| format!("frame {index}: no gravity (try --gravity x,y,z)"))
+    Ok(gravity_from_ground_plane(&cloud, 0.02, &config.acquire.plane_prior, index as u64)?)
+}
+
+/// Largest angle (degrees) between gravity and the normal of the plane taken as the ground for the
+/// camera height.
+const GROUND_TOLERANCE_DEG: f64 = 15.0;
+
+/// The rig of one frame: `--camera-height` or the distance to the ground plane perpendicular to
+/// gravity, with the pitch from gravity. `None` (and a warning) when the frame shows no such plane.
+fn frame_rig(
+    args: &MapArgs,
+    dataset: &Dataset,
+    index: usize,
+    depth: &patchwalk_fusion::camera::DepthImage,
+    gravity: &Unit<Vector3<f64>>,
+    warnings: &mut Warnings,
+) -> Option<RigEstimate> {
+    let height = match args.camera_height {
+        Some(h) => Ok(h),
+        None => organized_cloud(depth, &dataset.intrinsics)
+            .map_err(anyhow::Error::from)
+            .and_then(|cloud| Ok(ground_plane(&cloud, 0.02, gravity, GROUND_TOLERANCE_DEG, index as u64)?.distance_m)),
+    };
+    match height.and_then(|h| Ok(RigEstimate::new(h, gravity)?)) {
+        Ok(rig) => Some(rig),
+        Err(err) => {
+            warnings.once(
+                "rig",
+                format!("frame {index}: no camera height ({err:#}); the configured fixation point is used (give --camera-height)"),
+            );
+            None
+        }
+    }
+}
+
+/// Warnings printed once per kind (the first occurrence, naming the frame), counted for the end.
+#[derive(Default)]
+struct Warnings {
+    counts: std::collections::BTreeMap<&'static str, usize>,
+    skipped: usize,
+}
+
+impl Warnings {
+    fn once(&mut self, kind: &'static str, message: String) {
+        let count = self.counts.entry(kind).or_default();
+        if *count == 0 {
+            eprintln!("warning: {message}");
+        }
+        *count += 1;
+    }
+
+    fn print_counts(&self) {
+        for (kind, count) in self.counts.iter().filter(|(_, &n)| n > 1) {
+            eprintln!("warning: the '{kind}' warning above applied to {count} frames");
+        }
+        if self.skipped > 0 {
+            eprintln!("warning: {} frames skipped (no gravity)", self.skipped);
+        }
+    }
 }
 
 fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &FrameResult) -> Result<()> {
@@ -222,8 +353,23 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
 }
 
 /// J Table 2-like table: one row per frame and the total.
-fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, StageTimings, Unit<Vector3<f64>>)]) {
+/// One frame's row of the table: index, counts, times, gravity and the rig estimate.
+type FrameRow = (usize, FrameSummary, StageTimings, Unit<Vector3<f64>>, Option<RigEstimate>);
+
+fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
     println!("patch mapping of {} ({} frames, gravity from {source})", args.input.display(), rows.len());
+    let rigs: Vec<&RigEstimate> = rows.iter().filter_map(|row| row.4.as_ref()).collect();
+    if let (Some(first), false) = (rigs.first(), rigs.is_empty()) {
+        let n = rigs.len() as f64;
+        let height = rigs.iter().map(|r| r.camera_height_m).sum::<f64>() / n;
+        let pitch = rigs.iter().map(|r| r.pitch_deg).sum::<f64>() / n;
+        println!(
+            "rig: camera {height:.2} m above the ground, pitched {pitch:.0}° down (mean of {} frames; first frame {:.2} m, {:.0}°)",
+            rigs.len(),
+            first.camera_height_m,
+            first.pitch_deg
+        );
+    }
     println!(
         "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>8} {:>9} {:>7} {:>7} {:>8}",
         "frame",
@@ -244,7 +390,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[(usize, FrameSummary, Stage
     );
     let mut total = FrameSummary::default();
     let mut times = StageTimings::default();
-    for (index, s, t, _) in rows {
+    for (index, s, t, _, _) in rows {
         total.add(s);
         times.preprocess_ms += t.preprocess_ms;
         times.saliency_ms += t.saliency_ms;
@@ -349,5 +495,37 @@ mod tests {
         std::fs::write(&bad, "mapper:\n  seeds:\n    cells: 4\n").unwrap();
         let message = format!("{:#}", load_config(&bad).unwrap_err());
         assert!(message.contains("cells"), "{message}");
+    }
+
+    /// `patch_mapper map` with default flags on a shared dataset: the number of valid patches written.
+    fn valid_patches_with_default_flags(input: &str) -> usize {
+        let out = tempfile::tempdir().unwrap();
+        let args = MapArgs {
+            input: patchwalk_fusion::dataset::test_data_dir().join(input),
+            config: None,
+            out: out.path().to_path_buf(),
+            gravity: None,
+            gravity_source: "auto".into(),
+            radius: None,
+            no_dtfp: false,
+            camera_height: None,
+            fixed_fixation: false,
+            max_frames: Some(4),
+            step: 9,
+            no_pictures: true,
+        };
+        run(args).unwrap();
+        let text = std::fs::read_to_string(out.path().join("patches.jsonl")).unwrap();
+        text.lines().map(|line| serde_json::from_str::<PatchRecord>(line).unwrap()).filter(|r| r.valid).count()
+    }
+
+    #[test]
+    fn default_flags_map_every_shared_dataset() {
+        // Real frames from a desk-height Kinect (TUM, with an accelerometer), a hand-held PrimeSense
+        // (Open3D) and a tunnel (CAPE): none gives 0 valid patches with the default flags.
+        for input in ["tum_fr1_xyz", "open3d_rgbd", "cape_tunnel/depth_0.png"] {
+            let valid = valid_patches_with_default_flags(input);
+            assert!(valid > 0, "{input}: {valid} valid patches");
+        }
     }
 }

@@ -8,7 +8,30 @@ pub mod map;
 pub mod replay;
 pub mod track;
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use patchwalk_fusion::calibration::{calibrate_dataset, CalibrationConfig};
+use patchwalk_fusion::dataset::Dataset;
+
+/// The IMU→camera rotation to use with a dataset's accelerometer: the configured
+/// `mapper.acquire.camera_from_imu` when it is set (not the identity), otherwise one calibrated on the
+/// dataset itself (J 2.2: accelerometer against the dominant plane of its frames). `None` when the
+/// dataset has no accelerometer or the calibration fails (then gravity comes from the ground plane);
+/// the message says which it was.
+pub fn dataset_camera_from_imu(dataset: &Dataset, configured: &Rotation3<f64>) -> (Option<Rotation3<f64>>, String) {
+    if dataset.accelerometer.is_empty() {
+        return (None, "no accelerometer in the data".into());
+    }
+    if configured.matrix() != &Matrix3::identity() {
+        return (Some(*configured), "configured mapper.acquire.camera_from_imu".into());
+    }
+    match calibrate_dataset(dataset, &CalibrationConfig::default()) {
+        Ok(calibration) => (
+            Some(calibration.camera_from_imu.to_rotation_matrix()),
+            format!("camera_from_imu calibrated on the data, residual RMS {:.2}°", calibration.rms_residual_deg),
+        ),
+        Err(err) => (None, format!("the accelerometer could not be calibrated against the data ({err})")),
+    }
+}
 
 /// Errors of command-line values.
 #[derive(Debug, thiserror::Error, PartialEq)]

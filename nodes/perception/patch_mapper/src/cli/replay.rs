@@ -8,6 +8,13 @@
 //! file, or a bag's ground-truth pose topic) the patches are also given in the dataset's world frame,
 //! to compare with the scene's footholds, and the trajectory's ATE is measured. `stats.json` holds
 //! the throughput and the ATE.
+//!
+//! On a dataset directory the robot-scale configuration adapts to the recording unless `--no-adapt`
+//! is given: an accelerometer with the identity `mapper.acquire.camera_from_imu` gets a rotation
+//! calibrated on the dataset (J 2.2); when more than half of the first frame's valid depth lies
+//! outside the configured moving volume, the volume (`tracker.tsdf.size_m` = `mapper.volume_edge_m`
+//! and the camera's nominal place) is fitted to the first frames' depth; the fixation point's
+//! `l_d` becomes the birds-eye offset plus the camera height above the ground plane.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -15,14 +22,17 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Unit};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::{nearest_by_time, read_tum_poses, write_tum_poses, AccelSample, Dataset, StampedPose};
 use patchwalk_fusion::trajectory::absolute_trajectory_rmse;
+use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
+use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_ground_plane, ground_plane, organized_cloud};
 use patchwalk_mapping::mapper::FrameSummary;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
 use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::render_patches;
+use patchwalk_mapping::rig::RigEstimate;
 use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
@@ -66,6 +76,10 @@ pub struct ReplayArgs {
     /// Process at most this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
+    /// Keep the configured volume, IMU rotation and fixation point as they are instead of adapting
+    /// them to a dataset (see the module docs).
+    #[arg(long)]
+    pub no_adapt: bool,
 }
 
 /// One line of seeds.jsonl: a seed's patch (map frame) and what validation said.
@@ -183,8 +197,11 @@ fn groundtruth_near(poses: &[StampedPose], timestamp: f64, max_gap: f64) -> Opti
 const GROUNDTRUTH_MAX_GAP_S: f64 = 0.02;
 
 pub fn run(args: ReplayArgs) -> Result<()> {
-    let config: PatchMapperConfig = patchwalk_ros::params::load_config(args.config.as_deref(), &args.params)?;
+    let mut config: PatchMapperConfig = patchwalk_ros::params::load_config(args.config.as_deref(), &args.params)?;
     let input = Input::open(&args, &config)?;
+    if let (Input::Dataset(dataset), false) = (&input, args.no_adapt) {
+        adapt_to_dataset(dataset, &mut config)?;
+    }
     let stamps = input.frame_stamps();
     let count = stamps.len().min(args.max_frames.unwrap_or(usize::MAX));
     let groundtruth = match &args.groundtruth {
@@ -238,6 +255,70 @@ pub fn run(args: ReplayArgs) -> Result<()> {
 }
 
 /// Prints the skipped messages of a bag: up to 5 per topic, then a count.
+/// Frames whose depth a fitted volume is sized from.
+const FIT_FRAMES: usize = 5;
+
+/// The adaptations of the module docs, each reported on stderr.
+fn adapt_to_dataset(dataset: &Dataset, config: &mut PatchMapperConfig) -> Result<()> {
+    let configured = config.mapper.acquire.camera_from_imu()?;
+    if !dataset.accelerometer.is_empty() && configured.matrix() == &nalgebra::Matrix3::identity() {
+        if let (Some(rotation), how) = super::dataset_camera_from_imu(dataset, &configured) {
+            eprintln!("IMU: {how}");
+            config.mapper.acquire.camera_from_imu = std::array::from_fn(|r| std::array::from_fn(|c| rotation[(r, c)]));
+        }
+    }
+    let Some(frame) = dataset.frames.first() else { return Ok(()) };
+    let depth = dataset.load_depth(0)?;
+    let cloud = organized_cloud(&depth, &dataset.intrinsics)?;
+    let gravity = match dataset.mean_acceleration_near(frame.timestamp, config.mapper.acquire.accel_half_window_s) {
+        Some(acceleration) => gravity_from_accelerometer(&acceleration, &config.mapper.acquire.camera_from_imu()?).ok(),
+        None => gravity_from_ground_plane(&cloud, 0.02, &config.mapper.acquire.plane_prior, 0).ok(),
+    };
+    let tsdf = &config.tracker.tsdf;
+    let (min_depth, max_depth) = (f64::from(tsdf.min_depth_m), f64::from(tsdf.max_depth_m));
+    let mut points = depth_points(&depth, &dataset.intrinsics, min_depth, max_depth, 8);
+    let edge = f64::from(tsdf.size_m);
+    let pose = initial_volume_from_camera(gravity.map(Unit::into_inner), edge, &config.tracker.moving_volume);
+    let outside = 1.0 - share_inside(&points, &pose, edge);
+    if outside > 0.5 {
+        for index in 1..FIT_FRAMES.min(dataset.frames.len()) {
+            points.extend(depth_points(&dataset.load_depth(index)?, &dataset.intrinsics, min_depth, max_depth, 8));
+        }
+        let block = f64::from(tsdf.voxel_size_m) * 8.0;
+        if let Some(fit) = size_volume_to_depth(&points, gravity.map(Unit::into_inner), block, &VolumeSizing::default()) {
+            eprintln!(
+                "volume: {:.0} % of the first frame's valid depth lies outside the {edge:.2} m volume; fitted a {:.2} m volume to the first \
+                 frames ({:.0} % inside); --no-adapt or -p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=.. keep a fixed one",
+                100.0 * outside,
+                fit.edge_m,
+                100.0 * fit.inside_share
+            );
+            config.tracker.tsdf.size_m = fit.edge_m as f32;
+            config.mapper.volume_edge_m = fit.edge_m;
+            config.tracker.moving_volume.nominal_position_fraction = fit.nominal_position_fraction;
+        }
+    } else if outside > 0.2 {
+        eprintln!("warning: {:.0} % of the first frame's valid depth lies outside the {edge:.2} m volume (-p tracker.tsdf.size_m=.. -p mapper.volume_edge_m=..)", 100.0 * outside);
+    }
+    if let Some(gravity) = gravity {
+        match ground_plane(&cloud, 0.02, &gravity, 15.0, 0)
+            .map_err(anyhow::Error::from)
+            .and_then(|g| Ok(RigEstimate::new(g.distance_m, &gravity)?))
+        {
+            Ok(rig) => {
+                let down = rig.camera_height_m + config.tracker.birds_eye.offset_above_camera_m;
+                eprintln!(
+                    "rig: camera {:.2} m above the ground, pitched {:.0}° down; fixation point {down:.2} m below the birds-eye camera",
+                    rig.camera_height_m, rig.pitch_deg
+                );
+                config.mapper.saliency.fixation_down_m = down;
+            }
+            Err(err) => eprintln!("warning: no camera height from the first frame ({err:#}); the configured fixation point is used"),
+        }
+    }
+    Ok(())
+}
+
 fn report_bag_errors(bag: &BagInput) {
     let mut shown: std::collections::BTreeMap<&str, usize> = std::collections::BTreeMap::new();
     for err in &bag.errors {

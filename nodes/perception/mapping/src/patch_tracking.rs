@@ -252,7 +252,10 @@ mod tests {
     #[test]
     fn loss_resets_and_dcp_drops_patches_behind() {
         let intrinsics = Intrinsics::primesense_default().scaled(0.25);
-        let mut tracker = Tracker::new(TrackerConfig::default(), intrinsics).unwrap();
+        // Every failed frame a real loss (no short losses), as J 5.2 describes it.
+        let mut config = TrackerConfig::default();
+        config.relocalisation.max_lost_frames = 0;
+        let mut tracker = Tracker::new(config, intrinsics).unwrap();
         let depth = render(&intrinsics, &camera_pose(0));
         let empty = DepthImage::new(intrinsics.width, intrinsics.height, vec![f32::NAN; intrinsics.width * intrinsics.height]).unwrap();
         let report = tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();

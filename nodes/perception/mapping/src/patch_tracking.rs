@@ -195,7 +195,12 @@ mod tests {
             let depth = render(&intrinsics, &world_from_camera);
             let gravity_in_camera = world_from_camera.rotation.inverse() * -Vector3::z();
             let report = tracker
-                .process(Frame { depth: &depth, gravity_in_camera: Some(gravity_in_camera), external_map_from_camera: None, timestamp: None })
+                .process(Frame {
+                    depth: &depth,
+                    gravity_in_camera: Some(gravity_in_camera),
+                    external_map_from_camera: None,
+                    timestamp: None,
+                })
                 .unwrap();
             assert!(matches!(report.status, TrackingStatus::Initialized | TrackingStatus::Tracked), "frame {k}: {:?}", report.status);
             if k == 0 {
@@ -258,7 +263,8 @@ mod tests {
         let mut tracker = Tracker::new(config, intrinsics).unwrap();
         let depth = render(&intrinsics, &camera_pose(0));
         let empty = DepthImage::new(intrinsics.width, intrinsics.height, vec![f32::NAN; intrinsics.width * intrinsics.height]).unwrap();
-        let report = tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
+        let report =
+            tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
         let mut map = PatchMap::new("map", volume_grid(&tracker, 8));
         let camera = report.map_from_camera.translation.vector;
         let forward = report.map_from_camera.rotation * Vector3::z();
@@ -274,7 +280,8 @@ mod tests {
         let update = track_patches(&mut map, &report, &tracker, &config);
         assert_eq!(update.dropped_behind_camera, 1);
         assert_eq!(map.len(), 2);
-        let report = tracker.process(Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
+        let report =
+            tracker.process(Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
         assert!(matches!(report.status, TrackingStatus::Lost(_)));
         let update = track_patches(&mut map, &report, &tracker, &config);
         assert!(update.reset && map.is_empty());

@@ -701,7 +701,8 @@ mod tests {
         assert!(patches > 0);
         // Depth noise all over the image (a jolted, smeared frame): ICP finds no consistent surface.
         let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-        let noise = DepthImage::new(depth.width, depth.height, (0..depth.depth_m.len()).map(|_| rng.random_range(0.4f32..3.0)).collect()).unwrap();
+        let noise =
+            DepthImage::new(depth.width, depth.height, (0..depth.depth_m.len()).map(|_| rng.random_range(0.4f32..3.0)).collect()).unwrap();
         let error = frame(&mut pipeline, 3, &noise).unwrap_err();
         assert!(matches!(error, PipelineError::Relocalising { frames_lost: 1, max_lost_frames: 10, .. }), "{error:?}");
         assert!(error.to_string().contains("map kept, relocalising"), "{error}");

@@ -1,3 +1,4 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)] // an integration test
 //! The mapper's tracker on simulated walks it was not tuned on (scene seeds other than the
 //! development seed 7): every 12th frame (10 cm and up to 10° between frames, uneven steps, the
 //! accelerometer's gravity) passes every loss check and never resets the map, and a one-frame

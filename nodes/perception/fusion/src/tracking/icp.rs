@@ -80,7 +80,16 @@ pub fn level_plan(config: &IcpConfig, wide: bool) -> Vec<LevelPlan> {
     for (image, (&iterations, &gate_m)) in config.iterations.iter().zip(&config.max_correspondence_m).enumerate() {
         if iterations > 0 {
             let unlimited = f64::INFINITY;
-            plan.push(LevelPlan { image, stride: 1, iterations, gate_m, max_normal_angle_deg: 180.0, damping: 0.0, max_step_m: unlimited, max_step_deg: unlimited });
+            plan.push(LevelPlan {
+                image,
+                stride: 1,
+                iterations,
+                gate_m,
+                max_normal_angle_deg: 180.0,
+                damping: 0.0,
+                max_step_m: unlimited,
+                max_step_deg: unlimited,
+            });
         }
     }
     plan
@@ -159,7 +168,8 @@ fn source_level(depth: &DepthImage, intrinsics: &Intrinsics, stride: usize, norm
                 points_in_camera.push(p);
                 continue;
             }
-            let neighbours = (u.checked_sub(1).and_then(|l| point(l, v)), point(u + 1, v), v.checked_sub(1).and_then(|t| point(u, t)), point(u, v + 1));
+            let neighbours =
+                (u.checked_sub(1).and_then(|l| point(l, v)), point(u + 1, v), v.checked_sub(1).and_then(|t| point(u, t)), point(u, v + 1));
             let (Some(left), Some(right), Some(top), Some(bottom)) = neighbours else { continue };
             let Some(n) = (right - left).cross(&(bottom - top)).try_normalize(1e-12) else { continue };
             points_in_camera.push(p);
@@ -259,7 +269,8 @@ pub fn icp(config: &IcpConfig, levels: &[(LevelPlan, &SourceLevel)], model: &Mod
             let mut rotation = Vector3::new(delta[3], delta[4], delta[5]);
             // At most max_step per iteration (the whole step scaled down): far-off associations of a
             // wide gate cannot fling the pose away in one step.
-            let scale = (plan.max_step_m / translation.norm().max(1e-12)).min(plan.max_step_deg.to_radians() / rotation.norm().max(1e-12)).min(1.0);
+            let scale =
+                (plan.max_step_m / translation.norm().max(1e-12)).min(plan.max_step_deg.to_radians() / rotation.norm().max(1e-12)).min(1.0);
             translation *= scale;
             rotation *= scale;
             // Left-multiplied increment: p' ← exp(δ) p'.

@@ -243,12 +243,22 @@ pub struct Frame<'a> {
 /// Why tracking was declared lost.
 #[derive(Debug, Clone, PartialEq)]
 pub enum LossReason {
-    TooFewInliers { inliers: usize, associated: usize },
-    LargeResidual { rms_m: f64 },
-    PoseJump { translation_m: f64, rotation_deg: f64 },
+    TooFewInliers {
+        inliers: usize,
+        associated: usize,
+    },
+    LargeResidual {
+        rms_m: f64,
+    },
+    PoseJump {
+        translation_m: f64,
+        rotation_deg: f64,
+    },
     Degenerate,
     /// The pose's gravity and the IMU's disagree.
-    TiltMismatch { tilt_error_deg: f64 },
+    TiltMismatch {
+        tilt_error_deg: f64,
+    },
 }
 
 impl std::fmt::Display for LossReason {
@@ -547,7 +557,8 @@ impl Tracker {
         }
         let config = &self.config;
         let predicted = prior.unwrap_or_else(|| {
-            let prediction = config.motion_prior.constant_velocity.then(|| self.motion.predict(time, config.motion_prior.max_extrapolation));
+            let prediction =
+                config.motion_prior.constant_velocity.then(|| self.motion.predict(time, config.motion_prior.max_extrapolation));
             prediction.flatten().map_or(last_good, |map_from_camera| self.map_from_volume.inverse() * map_from_camera)
         });
         // Gravity in the volume frame is its y axis (J 5.2), when the volume was set up with the IMU.
@@ -624,7 +635,12 @@ fn motion_between(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
 /// prediction (wide if [`wide_first`]), then with `retry_within_frame` the prediction with the wide
 /// level (if the first was narrow) and the last good pose with it (if it differs from the prediction);
 /// during a short loss, the prediction and the last good pose, both wide.
-pub fn hypotheses(config: &TrackerConfig, lost: bool, last_good: &Isometry3<f64>, predicted: &Isometry3<f64>) -> Vec<(Isometry3<f64>, bool)> {
+pub fn hypotheses(
+    config: &TrackerConfig,
+    lost: bool,
+    last_good: &Isometry3<f64>,
+    predicted: &Isometry3<f64>,
+) -> Vec<(Isometry3<f64>, bool)> {
     let (translation_m, rotation_deg) = motion_between(last_good, predicted);
     // A prediction within 0.1 mm and 0.01° of the last pose is the same start.
     let distinct = translation_m > 1e-4 || rotation_deg > 0.01;
@@ -712,7 +728,12 @@ fn elapsed_ms(started: Instant) -> f64 {
 
 /// Tracking-loss checks (J 5.2: loss → reset): inlier ratio, residual, degeneracy, the pose's move from
 /// its initial guess, and its tilt against the IMU's gravity (`gravity_in_volume`'s frame: volume y).
-fn check_loss(config: &TrackerConfig, result: &IcpResult, start: &Isometry3<f64>, gravity_in_camera: Option<&Vector3<f64>>) -> Option<LossReason> {
+fn check_loss(
+    config: &TrackerConfig,
+    result: &IcpResult,
+    start: &Isometry3<f64>,
+    gravity_in_camera: Option<&Vector3<f64>>,
+) -> Option<LossReason> {
     let icp = &config.icp;
     let s = result.summary;
     if s.inliers < icp.min_inliers || (s.inliers as f64) < icp.min_inlier_ratio * s.associated as f64 {
@@ -760,7 +781,8 @@ mod tests {
         let (mut estimate, mut reference) = (Vec::new(), Vec::new());
         for (index, frame) in dataset.frames.iter().enumerate() {
             let depth = dataset.load_depth(index).unwrap();
-            let report = tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
+            let report =
+                tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
             assert!(!matches!(report.status, TrackingStatus::Lost(_)), "frame {index}: {:?}", report.status);
             if let Some(gt) = dataset.groundtruth_near(frame.timestamp, max_gap) {
                 estimate.push(report.map_from_camera);
@@ -852,7 +874,8 @@ mod tests {
         );
         assert_eq!(report.icp.map(|s| s.attempts), Some(2), "the first attempt and the wide retry from the same pose");
         // ... a reset at once without short losses (J 5.2 as written).
-        let config = TrackerConfig { relocalisation: RelocalisationConfig { max_lost_frames: 0, ..Default::default() }, ..TrackerConfig::default() };
+        let config =
+            TrackerConfig { relocalisation: RelocalisationConfig { max_lost_frames: 0, ..Default::default() }, ..TrackerConfig::default() };
         let mut tracker = Tracker::new(config, intrinsics).unwrap();
         assert_eq!(tracker.process(frame).unwrap().status, TrackingStatus::Initialized);
         let report = tracker.process(frame).unwrap();

@@ -76,7 +76,11 @@ pub fn scale_increment(increment: &Isometry3<f64>, s: f64) -> Isometry3<f64> {
 
 /// The pose with its tilt taken from the IMU: `R' = Q R` with Q the smallest rotation that takes the
 /// predicted gravity `R ĝ_c` onto `gravity_in_reference` (both unit). The position is kept.
-pub fn tilt_corrected(reference_from_camera: &Isometry3<f64>, gravity_in_camera: &Vector3<f64>, gravity_in_reference: &Vector3<f64>) -> Isometry3<f64> {
+pub fn tilt_corrected(
+    reference_from_camera: &Isometry3<f64>,
+    gravity_in_camera: &Vector3<f64>,
+    gravity_in_reference: &Vector3<f64>,
+) -> Isometry3<f64> {
     let predicted = reference_from_camera.rotation * gravity_in_camera;
     match UnitQuaternion::rotation_between(&predicted, gravity_in_reference) {
         Some(q) => Isometry3::from_parts(reference_from_camera.translation, q * reference_from_camera.rotation),
@@ -86,7 +90,11 @@ pub fn tilt_corrected(reference_from_camera: &Isometry3<f64>, gravity_in_camera:
 }
 
 /// Angle (deg) between the gravity the pose implies (`R ĝ_c`) and the reference's gravity.
-pub fn tilt_error_deg(reference_from_camera: &Isometry3<f64>, gravity_in_camera: &Vector3<f64>, gravity_in_reference: &Vector3<f64>) -> f64 {
+pub fn tilt_error_deg(
+    reference_from_camera: &Isometry3<f64>,
+    gravity_in_camera: &Vector3<f64>,
+    gravity_in_reference: &Vector3<f64>,
+) -> f64 {
     (reference_from_camera.rotation * gravity_in_camera).angle(gravity_in_reference).to_degrees()
 }
 
@@ -116,7 +124,8 @@ mod tests {
         assert!(close(&next, &expected), "{next} vs {expected}");
         // A skipped frame: twice the increment.
         let two = model.predict(0.3, 3.0).unwrap();
-        let doubled = Isometry3::from_parts(Translation3::new(0.2, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 20f64.to_radians()));
+        let doubled =
+            Isometry3::from_parts(Translation3::new(0.2, 0.0, 0.0), UnitQuaternion::from_euler_angles(0.0, 0.0, 20f64.to_radians()));
         assert!(close(&two, &(pose(0.1, 0.0, 10.0) * doubled)), "{two}");
         assert!(close(&scale_increment(&(pose(0.0, 0.0, 0.0).inverse() * pose(0.1, 0.0, 10.0)), 2.0), &doubled));
         // Half a step: half the rotation and translation.

@@ -122,7 +122,12 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
                 gravity_from_acceleration(&acceleration).map(|g| rotation * g)
             }),
         };
-        let report = tracker.process(Frame { depth: &depth, gravity_in_camera, external_map_from_camera: None, timestamp: Some(frame.timestamp) })?;
+        let report = tracker.process(Frame {
+            depth: &depth,
+            gravity_in_camera,
+            external_map_from_camera: None,
+            timestamp: Some(frame.timestamp),
+        })?;
         match &report.status {
             TrackingStatus::Lost(reason) => {
                 lost += 1;

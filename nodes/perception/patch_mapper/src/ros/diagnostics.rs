@@ -171,10 +171,8 @@ fn tracking_status(s: &MapperStatus, r: &Rates, t: &TrackingHealth, before: &Tra
         kv("last_loss", &t.last_loss),
     ];
     if t.frames_lost > 0 {
-        let message = format!(
-            "lost, relocalising against the map ({} of at most {} frames): {}",
-            t.frames_lost, t.max_lost_frames, t.last_loss
-        );
+        let message =
+            format!("lost, relocalising against the map ({} of at most {} frames): {}", t.frames_lost, t.max_lost_frames, t.last_loss);
         return status(WARN, "tracking", message, values);
     }
     let resets = t.map_resets.saturating_sub(before.map_resets);

@@ -37,8 +37,8 @@ use serde::{Deserialize, Serialize};
 
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::tracking::TrackerConfig;
-use patchwalk_mapping::mapper::MapperConfig;
 use patchwalk_fusion::tracking::TrackingStatus;
+use patchwalk_mapping::mapper::MapperConfig;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, PipelineError, StampWindow};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};

@@ -163,8 +163,12 @@ fn main() -> anyhow::Result<()> {
             for (index, depth) in depths.iter().enumerate().step_by(every) {
                 let Some(frame) = dataset.frames.get(index) else { continue };
                 let started = Instant::now();
-                let report =
-                    tracker.process(Frame { depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: Some(frame.timestamp) })?;
+                let report = tracker.process(Frame {
+                    depth,
+                    gravity_in_camera: None,
+                    external_map_from_camera: None,
+                    timestamp: Some(frame.timestamp),
+                })?;
                 times.push(started.elapsed().as_secs_f64() * 1e3);
                 match report.status {
                     TrackingStatus::Relocalising { .. } => result.frames_lost += 1,

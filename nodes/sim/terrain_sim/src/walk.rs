@@ -123,10 +123,12 @@ mod tests {
         assert!((start.translation.vector - standing.translation.vector).norm() < 1e-9);
         let frame = walk.depth_frame(36);
         assert!(frame.depth.valid_count() > frame.depth.depth_m.len() / 2, "the table fills the view");
-        // The accelerometer's gravity is within a few degrees of the truth while walking.
+        // The accelerometer's gravity is off the truth by the walk's accelerations (the steps' up to
+        // 1.6 m/s² tilt it by up to 9°), not more.
         let t = 36.0 / sim.config.camera.rate_hz;
         let truth = walk.world_from_camera(t).rotation.inverse() * -Vector3::z();
         let measured = walk.gravity_in_camera(t, 0.05).unwrap();
-        assert!(measured.angle(&truth).to_degrees() < 5.0, "{}", measured.angle(&truth).to_degrees());
+        let error_deg = measured.angle(&truth).to_degrees();
+        assert!(error_deg < 10.0, "{error_deg}");
     }
 }

@@ -263,6 +263,8 @@ mod tests {
         let second = |k: u64| t0 + Duration::from_secs(k);
         // Tracking as usual.
         let tracking = |array: &DiagnosticArray| find(array, "tracking").clone();
+        s.frames_received += 30;
+        s.frames_processed += 30;
         let ok = tracking(&window.diagnostics(&s, &health, second(1)));
         assert_eq!(ok.level, OK);
         assert!(ok.message.starts_with("mapping"), "{}", ok.message);

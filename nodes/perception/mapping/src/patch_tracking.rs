@@ -195,7 +195,12 @@ mod tests {
             let depth = render(&intrinsics, &world_from_camera);
             let gravity_in_camera = world_from_camera.rotation.inverse() * -Vector3::z();
             let report = tracker
-                .process(Frame { depth: &depth, gravity_in_camera: Some(gravity_in_camera), external_map_from_camera: None })
+                .process(Frame {
+                    depth: &depth,
+                    gravity_in_camera: Some(gravity_in_camera),
+                    external_map_from_camera: None,
+                    timestamp: None,
+                })
                 .unwrap();
             assert!(matches!(report.status, TrackingStatus::Initialized | TrackingStatus::Tracked), "frame {k}: {:?}", report.status);
             if k == 0 {
@@ -252,10 +257,14 @@ mod tests {
     #[test]
     fn loss_resets_and_dcp_drops_patches_behind() {
         let intrinsics = Intrinsics::primesense_default().scaled(0.25);
-        let mut tracker = Tracker::new(TrackerConfig::default(), intrinsics).unwrap();
+        // Every failed frame a real loss (no short losses), as J 5.2 describes it.
+        let mut config = TrackerConfig::default();
+        config.relocalisation.max_lost_frames = 0;
+        let mut tracker = Tracker::new(config, intrinsics).unwrap();
         let depth = render(&intrinsics, &camera_pose(0));
         let empty = DepthImage::new(intrinsics.width, intrinsics.height, vec![f32::NAN; intrinsics.width * intrinsics.height]).unwrap();
-        let report = tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None }).unwrap();
+        let report =
+            tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
         let mut map = PatchMap::new("map", volume_grid(&tracker, 8));
         let camera = report.map_from_camera.translation.vector;
         let forward = report.map_from_camera.rotation * Vector3::z();
@@ -271,7 +280,8 @@ mod tests {
         let update = track_patches(&mut map, &report, &tracker, &config);
         assert_eq!(update.dropped_behind_camera, 1);
         assert_eq!(map.len(), 2);
-        let report = tracker.process(Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None }).unwrap();
+        let report =
+            tracker.process(Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
         assert!(matches!(report.status, TrackingStatus::Lost(_)));
         let update = track_patches(&mut map, &report, &tracker, &config);
         assert!(update.reset && map.is_empty());

@@ -7,7 +7,11 @@
 //!    steps 3–5),
 //! 4. patch tracking on remaps / re-initialisations: the patch map is re-gridded to the new volume and
 //!    patches that left the cube are dropped (J 5.2 step 6, with [`PatchMap::set_grid`] and
-//!    [`PatchMap::drop_outside_volume`]); after a tracking loss the whole map is reset (J 5.2),
+//!    [`PatchMap::drop_outside_volume`]). A frame ICP cannot align is a short loss: the tracker keeps
+//!    the volume and the last good pose, the frame is refused ([`PipelineError::Relocalising`]) and
+//!    the patch map is kept; the next frame that aligns against the kept model is `Relocalised` and
+//!    mapped as usual. Only a real loss (more than `tracker.relocalisation.max_lost_frames` failed
+//!    frames in a row) resets the whole map (J 5.2),
 //! 5. birds-eye raycast of the volume (J 5.2 step 8),
 //! 6. patch mapping on the birds-eye view ([`Mapper::process`], J 4 stages i–v, J 5.2 step 9): seeds
 //!    fill the gravity-aligned grid nearest-cell-first around the camera, i.e. around and in front of
@@ -30,7 +34,7 @@ use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError,
 use crate::patch_map::{PatchMap, VolumeGrid};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::raycast::BirdsEyeView;
-use patchwalk_fusion::tracking::{FrameReport, Tracker, TrackerConfig, TrackingError, TrackingStatus};
+use patchwalk_fusion::tracking::{FrameReport, LossReason, Tracker, TrackerConfig, TrackingError, TrackingStatus};
 use patchwalk_spl::sensor::ErrorModel;
 
 /// Name of the gravity-aligned output frame (REP-105 `map`).
@@ -117,6 +121,8 @@ pub enum PipelineError {
     Gravity(#[from] AcquireError),
     #[error(transparent)]
     Tracking(#[from] TrackingError),
+    #[error("tracking lost for {frames_lost} of at most {max_lost_frames} frames ({reason}): map kept, relocalising against it")]
+    Relocalising { frames_lost: usize, max_lost_frames: usize, reason: LossReason },
     #[error(transparent)]
     Mapper(#[from] MapperError),
     #[error("invalid pipeline configuration: {0}")]
@@ -358,8 +364,14 @@ impl Pipeline {
             depth,
             gravity_in_camera: gravity_in_camera.map(Unit::into_inner),
             external_map_from_camera: None,
+            timestamp: Some(timestamp),
         })?;
         self.last_stamp = Some(timestamp);
+        if let TrackingStatus::Relocalising { frames_lost, reason } = report.status {
+            // A short loss: the frame has no pose; the map and the volume stay as they are.
+            let max_lost_frames = self.tracker.config().relocalisation.max_lost_frames;
+            return Err(PipelineError::Relocalising { frames_lost, max_lost_frames, reason });
+        }
         // 4. Patch tracking (J 5.2 step 6).
         let t_track = Instant::now();
         let patches_dropped = self.track_patches(&report);
@@ -442,7 +454,8 @@ impl Pipeline {
     }
 
     /// J 5.2 step 6: after a remap or re-initialisation the map frame stays put and the grid follows
-    /// the new volume; patches whose centre left the cube are dropped. A tracking loss resets the map.
+    /// the new volume; patches whose centre left the cube are dropped. A real tracking loss resets the
+    /// map (a relocalised frame keeps it).
     fn track_patches(&mut self, report: &FrameReport) -> usize {
         let before = self.mapper.map.len();
         if matches!(report.status, TrackingStatus::Lost(_)) || (report.status == TrackingStatus::Initialized && before > 0) {
@@ -666,6 +679,52 @@ mod tests {
             Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics),
             Err(PipelineError::Config(_))
         ));
+    }
+
+    #[test]
+    fn a_frame_icp_cannot_align_keeps_the_map_and_the_next_one_relocalises() {
+        use rand::{Rng, SeedableRng};
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let (depth, down) = robot_scene(&intrinsics);
+        let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
+        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        let g = -down * 9.81;
+        let frame = |pipeline: &mut Pipeline, k: usize, depth: &DepthImage| {
+            let t = k as f64 / 30.0;
+            pipeline.push_imu(t - 0.005, g).unwrap();
+            pipeline.process(depth, t)
+        };
+        for k in 0..3 {
+            assert!(frame(&mut pipeline, k, &depth).unwrap().tracking.has_pose());
+        }
+        let patches = pipeline.map().len();
+        assert!(patches > 0);
+        // Depth noise all over the image (a jolted, smeared frame): ICP finds no consistent surface.
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let noise =
+            DepthImage::new(depth.width, depth.height, (0..depth.depth_m.len()).map(|_| rng.random_range(0.4f32..3.0)).collect()).unwrap();
+        let error = frame(&mut pipeline, 3, &noise).unwrap_err();
+        assert!(matches!(error, PipelineError::Relocalising { frames_lost: 1, max_lost_frames: 10, .. }), "{error:?}");
+        assert!(error.to_string().contains("map kept, relocalising"), "{error}");
+        assert_eq!(pipeline.map().len(), patches, "the map is kept");
+        assert_eq!(pipeline.last_stamp(), Some(3.0 / 30.0), "the frame was consumed");
+        // The next good frame is aligned against the kept model: relocalised, nothing dropped.
+        let back = frame(&mut pipeline, 4, &depth).unwrap();
+        assert_eq!(back.tracking, TrackingStatus::Relocalised { frames_lost: 1 });
+        assert_eq!(back.patches_dropped, 0);
+        assert!(pipeline.map().len() >= patches);
+        assert_eq!(frame(&mut pipeline, 5, &depth).unwrap().tracking, TrackingStatus::Tracked);
+        // More than max_lost_frames failures in a row are a real loss: the map is reset.
+        let mut strict = TrackerConfig::default();
+        strict.relocalisation.max_lost_frames = 1;
+        let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
+        let mut pipeline = Pipeline::new(PipelineConfig::default(), strict, mapper, intrinsics).unwrap();
+        frame(&mut pipeline, 0, &depth).unwrap();
+        assert!(!pipeline.map().is_empty());
+        assert!(matches!(frame(&mut pipeline, 1, &noise), Err(PipelineError::Relocalising { frames_lost: 1, .. })));
+        let lost = frame(&mut pipeline, 2, &noise).unwrap();
+        assert!(matches!(lost.tracking, TrackingStatus::Lost(_)), "{:?}", lost.tracking);
+        assert!(lost.patches_dropped > 0);
     }
 
     #[test]

@@ -3,8 +3,25 @@
 //! ICP is frame-to-model: the new depth frame (a 2×2 pyramid, coarse to fine) is aligned to the
 //! model raycast from the previous pose by projective data association and point-to-plane Gauss–Newton
 //! steps; the 6×6 normal equations are summed in parallel (f32 over batches of 64 inliers, f64
-//! totals), with Huber weights and a distance gate. Loss is declared on few inliers, a large residual, a degenerate system or a pose jump, and
-//! the volume is reset (J 5.2: "if camera tracking does fail, then the whole patch map is reset").
+//! totals), with Huber weights and a distance gate.
+//!
+//! For a walking robot (10 cm and 10° between frames at a step) three things come before and after it:
+//!
+//! - **the initial pose** is the constant-velocity prediction of the camera ([`prior`]), with its tilt
+//!   from the IMU's gravity on the wide attempts;
+//! - **a wide first level** ([`level_plan`]: the 1/4 image subsampled, 0.3 m and 40° gates) runs when
+//!   the predicted motion is large, and on every retry;
+//! - **a failed frame is a short loss, not a reset** ([`relocalise`]): the frame is retried within the
+//!   frame (wide level, from the prediction and from the last good pose); if that fails too, the map
+//!   and the last good pose are kept, the frame is not fused (`Relocalising`), and the next frames are
+//!   aligned against the kept model the same way. The first frame that passes the loss checks is
+//!   `Relocalised`; only `relocalisation.max_lost_frames` failed frames in a row are a real loss
+//!   (`Lost`), which resets the volume (J 5.2: "if camera tracking does fail, then the whole patch
+//!   map is reset").
+//!
+//! A frame fails on few inliers, a large residual, a degenerate system, a pose that moved farther
+//! from its initial guess than `max_translation_jump_m` / `max_rotation_jump_deg`, or a tilt that
+//! contradicts the IMU by more than `motion_prior.max_tilt_error_deg`.
 //!
 //! `Tracker::process` reads as the paper's loop: track → integrate → remap → raycast the model.
 //! The ICP itself (pyramid, association, normal equations) is in the `icp` module; trajectory evaluation
@@ -15,13 +32,17 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Translation3, Vector3};
 
 mod icp;
+pub mod prior;
+pub mod relocalise;
 
 use crate::camera::{DepthImage, Intrinsics};
 use crate::fusion::{FusionError, TsdfConfig, TsdfVolume};
 use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint, RaycastConfig};
 use crate::volume::{initial_volume_from_camera, map_from_volume_rotation, plan_remap, remap_tsdf, MovingVolumeConfig};
-use icp::source_pyramid;
-pub use icp::{build_pyramid, downsample, icp, IcpResult, SourceLevel};
+use icp::plan_source;
+pub use icp::{build_pyramid, downsample, icp, level_plan, IcpResult, LevelPlan, SourceLevel, PYRAMID_SCALES};
+use prior::{tilt_corrected, tilt_error_deg, MotionModel};
+use relocalise::{Recovery, Transition};
 
 /// Errors of the tracking loop (bad input; tracking loss is a status, not an error).
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -55,12 +76,103 @@ pub struct IcpConfig {
     pub min_inlier_ratio: f64,
     /// Loss: inlier point-to-plane RMS residual above this (m).
     pub max_rms_m: f64,
-    /// Loss: frame-to-frame translation above this (m).
+    /// Loss: ICP moved the pose farther than this from its initial guess (the prediction) (m).
     pub max_translation_jump_m: f64,
-    /// Loss: frame-to-frame rotation above this (deg).
+    /// Loss: ICP turned the pose farther than this from its initial guess (deg).
     pub max_rotation_jump_deg: f64,
     /// Loss: fewer than this many inliers at the last level.
     pub min_inliers: usize,
+    /// The wide first level for large motions and retries.
+    pub wide: WideLevelConfig,
+}
+
+/// The wide first level of the coarse-to-fine search: the 1/4 image, every `stride`-th pixel, with
+/// distance and normal-angle gates wide enough for a pose 10–30 cm or 10–20° off.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WideLevelConfig {
+    /// Gauss–Newton iterations (0: no wide level).
+    pub iterations: usize,
+    /// Every `stride`-th pixel of the 1/4 image in both directions (2: 80×60 from 640×480).
+    pub stride: usize,
+    /// Correspondence gate (m).
+    pub max_correspondence_m: f64,
+    /// Largest angle between the frame's and the model's normals of a pair (deg).
+    pub max_normal_angle_deg: f64,
+    /// Run it first when the predicted motion since the last tracked frame is above this (m) ...
+    pub when_translation_m: f64,
+    /// ... or above this (deg); retries and relocalisation always run it.
+    pub when_rotation_deg: f64,
+    /// Levenberg damping d of its steps (H + d·tr(H)/6·I).
+    pub damping: f64,
+    /// Largest step per iteration (m, deg).
+    pub max_step_m: f64,
+    pub max_step_deg: f64,
+    /// Coarse search before it: the wide level also starts from the initial pose moved ± this much
+    /// horizontally (along the volume's x and z) and turned ± `search_deg` about gravity; the start
+    /// with the most inliers goes on to the finer levels (0 and 0: no search).
+    pub search_m: f64,
+    pub search_deg: f64,
+}
+
+impl Default for WideLevelConfig {
+    fn default() -> Self {
+        Self {
+            iterations: 12,
+            stride: 2,
+            max_correspondence_m: 0.3,
+            max_normal_angle_deg: 40.0,
+            when_translation_m: 0.04,
+            when_rotation_deg: 4.0,
+            damping: 0.01,
+            max_step_m: 0.05,
+            max_step_deg: 5.0,
+            search_m: 0.08,
+            search_deg: 8.0,
+        }
+    }
+}
+
+/// The initial pose of ICP ([`prior`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MotionPriorConfig {
+    /// Start ICP from the constant-velocity prediction (false: from the last pose).
+    pub constant_velocity: bool,
+    /// The prediction extrapolates at most this many of the last frame steps (a gap of skipped
+    /// frames, a relocalisation after a few lost ones).
+    pub max_extrapolation: f64,
+    /// On the wide attempts, take roll and pitch of the initial pose from the IMU's gravity.
+    pub gravity_tilt: bool,
+    /// Loss: the tracked pose's gravity differs from the IMU's by more than this (deg). The
+    /// accelerometer of a walking robot also measures its accelerations (1 m/s² tilts it by 6°, the
+    /// 3 m/s² of a brisk step by 17°).
+    pub max_tilt_error_deg: f64,
+}
+
+impl Default for MotionPriorConfig {
+    fn default() -> Self {
+        Self { constant_velocity: true, max_extrapolation: 4.0, gravity_tilt: true, max_tilt_error_deg: 30.0 }
+    }
+}
+
+/// Short losses ([`relocalise`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RelocalisationConfig {
+    /// Failed frames in a row kept as a short loss (map and last good pose kept, relocalisation tried
+    /// on each new frame) before the loss is real and the volume is reset; 0: every failure resets
+    /// (J 5.2 as written). 10 frames are a third of a second at 30 Hz.
+    pub max_lost_frames: usize,
+    /// Retry a failed frame at once with the wide level (from the prediction and the last good pose)
+    /// before calling it lost.
+    pub retry_within_frame: bool,
+}
+
+impl Default for RelocalisationConfig {
+    fn default() -> Self {
+        Self { max_lost_frames: 10, retry_within_frame: true }
+    }
 }
 
 impl Default for IcpConfig {
@@ -76,6 +188,7 @@ impl Default for IcpConfig {
             max_translation_jump_m: 0.2,
             max_rotation_jump_deg: 25.0,
             min_inliers: 500,
+            wide: WideLevelConfig::default(),
         }
     }
 }
@@ -94,6 +207,8 @@ pub struct TrackerConfig {
     pub model_scale: f64,
     /// With an external pose: refine it by ICP (true) or take it as is (false).
     pub refine_external_pose: bool,
+    pub motion_prior: MotionPriorConfig,
+    pub relocalisation: RelocalisationConfig,
 }
 
 impl Default for TrackerConfig {
@@ -106,6 +221,8 @@ impl Default for TrackerConfig {
             birds_eye: BirdsEyeConfig::default(),
             model_scale: 0.25,
             refine_external_pose: true,
+            motion_prior: MotionPriorConfig::default(),
+            relocalisation: RelocalisationConfig::default(),
         }
     }
 }
@@ -118,15 +235,44 @@ pub struct Frame<'a> {
     pub gravity_in_camera: Option<Vector3<f64>>,
     /// Camera pose from elsewhere (e.g. kinematics), in the `map` frame.
     pub external_map_from_camera: Option<Isometry3<f64>>,
+    /// Capture time (s), for the constant-velocity prediction across skipped frames; without it every
+    /// frame counts as one time step.
+    pub timestamp: Option<f64>,
 }
 
 /// Why tracking was declared lost.
 #[derive(Debug, Clone, PartialEq)]
 pub enum LossReason {
-    TooFewInliers { inliers: usize, associated: usize },
-    LargeResidual { rms_m: f64 },
-    PoseJump { translation_m: f64, rotation_deg: f64 },
+    TooFewInliers {
+        inliers: usize,
+        associated: usize,
+    },
+    LargeResidual {
+        rms_m: f64,
+    },
+    PoseJump {
+        translation_m: f64,
+        rotation_deg: f64,
+    },
     Degenerate,
+    /// The pose's gravity and the IMU's disagree.
+    TiltMismatch {
+        tilt_error_deg: f64,
+    },
+}
+
+impl std::fmt::Display for LossReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::TooFewInliers { inliers, associated } => write!(f, "too few ICP inliers ({inliers} of {associated} associated)"),
+            Self::LargeResidual { rms_m } => write!(f, "ICP residual {:.1} mm RMS", rms_m * 1e3),
+            Self::PoseJump { translation_m, rotation_deg } => {
+                write!(f, "ICP moved {:.0} mm / {rotation_deg:.1}° from its initial guess", translation_m * 1e3)
+            }
+            Self::Degenerate => write!(f, "degenerate ICP system (no geometry to align)"),
+            Self::TiltMismatch { tilt_error_deg } => write!(f, "pose tilt {tilt_error_deg:.1}° off the IMU's gravity"),
+        }
+    }
 }
 
 /// Outcome of a frame.
@@ -138,8 +284,22 @@ pub enum TrackingStatus {
     Tracked,
     /// The external pose was used (without ICP refinement).
     External,
-    /// Tracking was lost: the volume was reset and re-initialised at this frame.
+    /// ICP failed on this frame, `frames_lost` in a row: a short loss. The volume, the model and the
+    /// last good pose (the reported one) are kept, the frame is not fused; the next frames try to
+    /// relocalise against the model.
+    Relocalising { frames_lost: usize, reason: LossReason },
+    /// Tracked again against the kept model after `frames_lost` failed frames; fused as usual.
+    Relocalised { frames_lost: usize },
+    /// Tracking was lost for good (more than `relocalisation.max_lost_frames` failed frames in a
+    /// row): the volume was reset and re-initialised at this frame.
     Lost(LossReason),
+}
+
+impl TrackingStatus {
+    /// Whether the frame's pose was found (and the frame fused).
+    pub fn has_pose(&self) -> bool {
+        !matches!(self, Self::Relocalising { .. } | Self::Lost(_))
+    }
 }
 
 /// ICP diagnostics of the last level.
@@ -151,6 +311,8 @@ pub struct IcpSummary {
     /// Source points that projected onto a model surface pixel (the inlier ratio's denominator).
     pub associated: usize,
     pub rms_m: f64,
+    /// ICP runs this frame (a first attempt, retries, relocalisation hypotheses).
+    pub attempts: usize,
 }
 
 /// Wall time of each stage of one frame (ms).
@@ -183,6 +345,12 @@ pub struct Tracker {
     volume_from_camera: Isometry3<f64>,
     model: Option<ModelRaycast>,
     frames: usize,
+    /// Tracked poses for the constant-velocity prediction.
+    motion: MotionModel,
+    /// Short losses.
+    recovery: Recovery,
+    /// The volume's y axis is gravity (the volume was initialised with the IMU's gravity).
+    gravity_aligned: bool,
 }
 
 impl Tracker {
@@ -191,7 +359,22 @@ impl Tracker {
         if !(config.model_scale > 0.05 && config.model_scale <= 1.0) {
             return Err(TrackingError::InvalidConfig(format!("model_scale {} must be in (0.05, 1]", config.model_scale)));
         }
+        let wide = &config.icp.wide;
+        if !(wide.max_correspondence_m > 0.0 && wide.max_normal_angle_deg > 0.0 && wide.stride >= 1) {
+            return Err(TrackingError::InvalidConfig(format!(
+                "icp.wide: max_correspondence_m ({}) and max_normal_angle_deg ({}) must be positive and stride ({}) at least 1",
+                wide.max_correspondence_m, wide.max_normal_angle_deg, wide.stride
+            )));
+        }
+        let prior = &config.motion_prior;
+        if !(prior.max_extrapolation >= 0.0 && prior.max_extrapolation.is_finite() && prior.max_tilt_error_deg > 0.0) {
+            return Err(TrackingError::InvalidConfig(format!(
+                "motion_prior: max_extrapolation ({}) must be finite and >= 0, max_tilt_error_deg ({}) positive",
+                prior.max_extrapolation, prior.max_tilt_error_deg
+            )));
+        }
         let volume = TsdfVolume::new(config.tsdf)?;
+        let recovery = Recovery::new(config.relocalisation.max_lost_frames);
         Ok(Self {
             config,
             intrinsics,
@@ -200,6 +383,9 @@ impl Tracker {
             volume_from_camera: Isometry3::identity(),
             model: None,
             frames: 0,
+            motion: MotionModel::default(),
+            recovery,
+            gravity_aligned: false,
         })
     }
 
@@ -226,11 +412,17 @@ impl Tracker {
     pub fn frames(&self) -> usize {
         self.frames
     }
+    /// Failed frames in a row of the current short loss (0 while tracking).
+    pub fn frames_lost(&self) -> usize {
+        self.recovery.frames_lost()
+    }
 
     /// Forgets the volume; the next frame re-initialises it (J 5.2 reset).
     pub fn reset(&mut self) {
         self.volume.clear();
         self.model = None;
+        self.motion.clear();
+        self.recovery.reset();
     }
 
     /// Birds-eye raycast at the current camera pose (J 5.2 step 8).
@@ -244,7 +436,7 @@ impl Tracker {
     }
 
     /// One frame of J 5.2 stage II: track (step 3), integrate (step 4), remap (step 5), then raycast
-    /// the model for the next frame.
+    /// the model for the next frame. A frame of a short loss (`Relocalising`) is only tracked.
     pub fn process(&mut self, frame: Frame<'_>) -> Result<FrameReport, TrackingError> {
         let depth = frame.depth;
         if depth.width != self.intrinsics.width || depth.height != self.intrinsics.height {
@@ -257,6 +449,7 @@ impl Tracker {
         }
         let mut timings = StageTimings::default();
         self.frames += 1;
+        let time = frame.timestamp.unwrap_or(self.frames as f64);
         let started = Instant::now();
         let jump = self.config.icp.pyramid_depth_jump_m;
         let half = downsample(depth, jump);
@@ -267,9 +460,26 @@ impl Tracker {
                 self.initialize(&frame);
                 (TrackingStatus::Initialized, None)
             }
-            Some(model) => self.track(&frame, &images, &model),
+            Some(model) => {
+                let (status, icp) = self.track(&frame, &images, &model, time);
+                if let TrackingStatus::Relocalising { .. } = status {
+                    // The kept model is what the next frames relocalise against.
+                    self.model = Some(model);
+                }
+                (status, icp)
+            }
         };
         timings.icp_ms = elapsed_ms(started);
+        if let TrackingStatus::Relocalising { .. } = status {
+            return Ok(FrameReport {
+                status,
+                map_from_camera: self.map_from_camera(),
+                volume_from_camera: self.volume_from_camera,
+                remap: None,
+                icp,
+                timings,
+            });
+        }
         if let TrackingStatus::Lost(_) = status {
             self.volume.clear();
             self.initialize(&frame);
@@ -289,6 +499,8 @@ impl Tracker {
             self.map_from_volume *= new_from_old.inverse();
         }
         timings.remap_ms = elapsed_ms(started);
+        // The map frame does not move with remaps: the motion model keeps map poses.
+        self.motion.push(time, self.map_from_camera());
 
         let started = Instant::now();
         let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
@@ -322,25 +534,191 @@ impl Tracker {
             // After a loss, keep the map continuous at the last known camera pose.
             None => self.map_from_camera() * self.volume_from_camera.inverse(),
         };
+        self.gravity_aligned = frame.gravity_in_camera.is_some_and(|g| g.norm() > 1e-9);
+        self.motion.clear();
+        self.recovery.reset();
     }
 
-    fn track(&mut self, frame: &Frame<'_>, images: &[&DepthImage; 3], model: &ModelRaycast) -> (TrackingStatus, Option<IcpSummary>) {
-        let previous = self.volume_from_camera;
+    /// ICP against the model from the hypotheses of this frame (see the module doc), and what the
+    /// outcome means for the short-loss state machine.
+    fn track(
+        &mut self,
+        frame: &Frame<'_>,
+        images: &[&DepthImage; 3],
+        model: &ModelRaycast,
+        time: f64,
+    ) -> (TrackingStatus, Option<IcpSummary>) {
+        let last_good = self.volume_from_camera;
         let prior = frame.external_map_from_camera.map(|m| self.map_from_volume.inverse() * m);
         if let (Some(pose), false) = (prior, self.config.refine_external_pose) {
             self.volume_from_camera = pose;
+            self.recovery.on_tracked();
             return (TrackingStatus::External, None);
         }
-        let initial = prior.unwrap_or(previous);
-        let pyramid = source_pyramid(images, &self.intrinsics, &self.config.icp.iterations);
-        let result = icp(&self.config.icp, &pyramid, model, &initial);
-        match check_loss(&self.config.icp, &result, &previous) {
-            Some(reason) => (TrackingStatus::Lost(reason), Some(result.summary)),
-            None => {
-                self.volume_from_camera = result.volume_from_camera;
-                (TrackingStatus::Tracked, Some(result.summary))
+        let config = &self.config;
+        let predicted = prior.unwrap_or_else(|| {
+            let prediction =
+                config.motion_prior.constant_velocity.then(|| self.motion.predict(time, config.motion_prior.max_extrapolation));
+            prediction.flatten().map_or(last_good, |map_from_camera| self.map_from_volume.inverse() * map_from_camera)
+        });
+        // Gravity in the volume frame is its y axis (J 5.2), when the volume was set up with the IMU.
+        let gravity = frame
+            .gravity_in_camera
+            .filter(|_| self.gravity_aligned)
+            .and_then(|g| g.try_normalize(1e-9))
+            .filter(|g| g.iter().all(|v| v.is_finite()));
+        let tilt = |pose: Isometry3<f64>| match gravity.filter(|_| config.motion_prior.gravity_tilt) {
+            Some(g) => tilt_corrected(&pose, &g, &Vector3::y()),
+            None => pose,
+        };
+        let hypotheses = hypotheses(config, self.recovery.frames_lost() > 0, &last_good, &predicted);
+        let mut sources = Sources::new(images, &self.intrinsics);
+        let mut summary = None;
+        let mut failure = LossReason::Degenerate;
+        let mut accepted = None;
+        for (attempt, (start, wide)) in hypotheses.into_iter().enumerate() {
+            let start = if wide { tilt(start) } else { start };
+            let plan = level_plan(&config.icp, wide);
+            let levels = sources.levels(&plan);
+            let result = match levels.split_first() {
+                Some((first, finer)) if wide && plan.first().is_some_and(|p| p.max_normal_angle_deg < 180.0) => {
+                    // The coarse search: the wide level from each start, the best on to the finer levels.
+                    let best = search_starts(&config.icp.wide, &start)
+                        .iter()
+                        .map(|candidate| icp(&config.icp, std::slice::from_ref(first), model, candidate))
+                        .max_by(|a, b| search_score(&config.icp, a).total_cmp(&search_score(&config.icp, b)));
+                    match best {
+                        Some(best) if !finer.is_empty() => icp(&config.icp, finer, model, &best.volume_from_camera),
+                        Some(best) => best,
+                        None => icp(&config.icp, &levels, model, &start),
+                    }
+                }
+                _ => icp(&config.icp, &levels, model, &start),
+            };
+            summary = Some(IcpSummary { attempts: attempt + 1, ..result.summary });
+            match check_loss(config, &result, &start, gravity.as_ref()) {
+                Some(reason) => failure = reason,
+                None => {
+                    accepted = Some(result.volume_from_camera);
+                    break;
+                }
             }
         }
+        if let Some(pose) = accepted {
+            self.volume_from_camera = pose;
+            return match self.recovery.on_tracked() {
+                Transition::Relocalised { frames_lost } => (TrackingStatus::Relocalised { frames_lost }, summary),
+                _ => (TrackingStatus::Tracked, summary),
+            };
+        }
+        match self.recovery.on_failed() {
+            Transition::Coasting { frames_lost } => (TrackingStatus::Relocalising { frames_lost, reason: failure }, summary),
+            _ => (TrackingStatus::Lost(failure), summary),
+        }
+    }
+}
+
+/// Whether the first attempt runs the wide level: the predicted motion since the last tracked pose
+/// is above `icp.wide.when_translation_m` or `when_rotation_deg`.
+pub fn wide_first(config: &IcpConfig, last_good: &Isometry3<f64>, predicted: &Isometry3<f64>) -> bool {
+    let (translation_m, rotation_deg) = motion_between(last_good, predicted);
+    translation_m > config.wide.when_translation_m || rotation_deg > config.wide.when_rotation_deg
+}
+
+/// Translation (m) and rotation (deg) from `a` to `b`.
+fn motion_between(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
+    let motion = a.inverse() * b;
+    (motion.translation.vector.norm(), motion.rotation.angle().to_degrees())
+}
+
+/// The ICP attempts of a frame, in order, as (initial pose, wide level first): while tracking, the
+/// prediction (wide if [`wide_first`]), then with `retry_within_frame` the prediction with the wide
+/// level (if the first was narrow) and the last good pose with it (if it differs from the prediction);
+/// during a short loss, the prediction and the last good pose, both wide.
+pub fn hypotheses(
+    config: &TrackerConfig,
+    lost: bool,
+    last_good: &Isometry3<f64>,
+    predicted: &Isometry3<f64>,
+) -> Vec<(Isometry3<f64>, bool)> {
+    let (translation_m, rotation_deg) = motion_between(last_good, predicted);
+    // A prediction within 0.1 mm and 0.01° of the last pose is the same start.
+    let distinct = translation_m > 1e-4 || rotation_deg > 0.01;
+    let has_wide = config.icp.wide.iterations > 0;
+    let mut attempts = Vec::with_capacity(3);
+    if lost {
+        attempts.push((*predicted, has_wide));
+        if distinct {
+            attempts.push((*last_good, has_wide));
+        }
+        return attempts;
+    }
+    let first_wide = has_wide && wide_first(&config.icp, last_good, predicted);
+    attempts.push((*predicted, first_wide));
+    if config.relocalisation.retry_within_frame && has_wide {
+        if !first_wide {
+            attempts.push((*predicted, true));
+        }
+        if distinct {
+            attempts.push((*last_good, true));
+        }
+    }
+    attempts
+}
+
+/// The starts of the coarse search around `start` (`volume_from_camera`): itself, moved ±`search_m`
+/// along the volume's horizontal axes (x, z), and turned ±`search_deg` about the vertical (volume y,
+/// gravity) through the camera centre.
+pub fn search_starts(wide: &WideLevelConfig, start: &Isometry3<f64>) -> Vec<Isometry3<f64>> {
+    let mut starts = vec![*start];
+    if wide.search_m > 0.0 {
+        for offset in [Vector3::x(), -Vector3::x(), Vector3::z(), -Vector3::z()] {
+            starts.push(Isometry3::from_parts(Translation3::from(start.translation.vector + offset * wide.search_m), start.rotation));
+        }
+    }
+    if wide.search_deg > 0.0 {
+        for angle in [wide.search_deg, -wide.search_deg] {
+            let turn = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle.to_radians());
+            starts.push(Isometry3::from_parts(start.translation, turn * start.rotation));
+        }
+    }
+    starts
+}
+
+/// How well a wide-level result fits: its inliers weighted by h² / (rms² + h²) (h: the Huber
+/// threshold), a soft count of the points that lie on the model.
+fn search_score(config: &IcpConfig, result: &IcpResult) -> f64 {
+    let h2 = config.huber_m * config.huber_m;
+    let s = result.summary;
+    s.inliers as f64 * h2 / (s.rms_m * s.rms_m + h2)
+}
+
+/// The source levels of one frame, each built once for all the attempts that use it.
+struct Sources<'a> {
+    images: &'a [&'a DepthImage; 3],
+    intrinsics: &'a Intrinsics,
+    built: Vec<(LevelPlan, SourceLevel)>,
+}
+
+impl<'a> Sources<'a> {
+    fn new(images: &'a [&'a DepthImage; 3], intrinsics: &'a Intrinsics) -> Self {
+        Self { images, intrinsics, built: Vec::new() }
+    }
+
+    /// Same source points: same image, stride and whether normals are needed.
+    fn same_source(a: &LevelPlan, b: &LevelPlan) -> bool {
+        a.image == b.image && a.stride == b.stride && (a.max_normal_angle_deg < 180.0) == (b.max_normal_angle_deg < 180.0)
+    }
+
+    fn levels(&mut self, plan: &[LevelPlan]) -> Vec<(LevelPlan, &SourceLevel)> {
+        for level in plan {
+            if !self.built.iter().any(|(built, _)| Self::same_source(built, level)) {
+                self.built.push((*level, plan_source(self.images, self.intrinsics, level)));
+            }
+        }
+        plan.iter()
+            .filter_map(|level| self.built.iter().find(|(built, _)| Self::same_source(built, level)).map(|(_, source)| (*level, source)))
+            .collect()
     }
 }
 
@@ -348,24 +726,37 @@ fn elapsed_ms(started: Instant) -> f64 {
     started.elapsed().as_secs_f64() * 1e3
 }
 
-/// Tracking-loss checks (J 5.2: loss → reset): inlier ratio, residual, degeneracy, pose jump.
-fn check_loss(config: &IcpConfig, result: &IcpResult, previous: &Isometry3<f64>) -> Option<LossReason> {
+/// Tracking-loss checks (J 5.2: loss → reset): inlier ratio, residual, degeneracy, the pose's move from
+/// its initial guess, and its tilt against the IMU's gravity (`gravity_in_volume`'s frame: volume y).
+fn check_loss(
+    config: &TrackerConfig,
+    result: &IcpResult,
+    start: &Isometry3<f64>,
+    gravity_in_camera: Option<&Vector3<f64>>,
+) -> Option<LossReason> {
+    let icp = &config.icp;
     let s = result.summary;
-    if s.inliers < config.min_inliers || (s.inliers as f64) < config.min_inlier_ratio * s.associated as f64 {
+    if s.inliers < icp.min_inliers || (s.inliers as f64) < icp.min_inlier_ratio * s.associated as f64 {
         return Some(LossReason::TooFewInliers { inliers: s.inliers, associated: s.associated });
     }
-    if s.rms_m > config.max_rms_m {
+    if s.rms_m > icp.max_rms_m {
         return Some(LossReason::LargeResidual { rms_m: s.rms_m });
     }
     // A NaN eigenvalue is degenerate too.
     if result.min_eigenvalue.is_nan() || result.min_eigenvalue <= 1e-9 {
         return Some(LossReason::Degenerate);
     }
-    let jump = previous.inverse() * result.volume_from_camera;
+    let jump = start.inverse() * result.volume_from_camera;
     let translation_m = jump.translation.vector.norm();
     let rotation_deg = jump.rotation.angle().to_degrees();
-    if translation_m > config.max_translation_jump_m || rotation_deg > config.max_rotation_jump_deg {
+    if translation_m > icp.max_translation_jump_m || rotation_deg > icp.max_rotation_jump_deg {
         return Some(LossReason::PoseJump { translation_m, rotation_deg });
+    }
+    if let Some(g) = gravity_in_camera {
+        let tilt_error_deg = tilt_error_deg(&result.volume_from_camera, g, &Vector3::y());
+        if tilt_error_deg > config.motion_prior.max_tilt_error_deg {
+            return Some(LossReason::TiltMismatch { tilt_error_deg });
+        }
     }
     None
 }
@@ -390,7 +781,8 @@ mod tests {
         let (mut estimate, mut reference) = (Vec::new(), Vec::new());
         for (index, frame) in dataset.frames.iter().enumerate() {
             let depth = dataset.load_depth(index).unwrap();
-            let report = tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None }).unwrap();
+            let report =
+                tracker.process(Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None }).unwrap();
             assert!(!matches!(report.status, TrackingStatus::Lost(_)), "frame {index}: {:?}", report.status);
             if let Some(gt) = dataset.groundtruth_near(frame.timestamp, max_gap) {
                 estimate.push(report.map_from_camera);
@@ -426,17 +818,74 @@ mod tests {
     }
 
     #[test]
+    fn the_wide_level_runs_first_on_large_predicted_motion_and_on_every_retry() {
+        let config = TrackerConfig::default();
+        let last = Isometry3::translation(0.5, 0.3, 0.5);
+        let small = last * Isometry3::translation(0.01, 0.0, 0.0);
+        let large = last * Isometry3::translation(0.1, 0.0, 0.0);
+        let turned = Isometry3::from_parts(last.translation, nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.17, 0.0));
+        assert!(!wide_first(&config.icp, &last, &small));
+        assert!(wide_first(&config.icp, &last, &large) && wide_first(&config.icp, &last, &turned));
+        // Tracking, small motion: narrow first, then the wide retries from the prediction and the last pose.
+        assert_eq!(hypotheses(&config, false, &last, &small), vec![(small, false), (small, true), (last, true)]);
+        // Large motion: wide first, then from the last pose.
+        assert_eq!(hypotheses(&config, false, &last, &large), vec![(large, true), (last, true)]);
+        // No velocity (prediction = last pose): one start, narrow then wide.
+        assert_eq!(hypotheses(&config, false, &last, &last), vec![(last, false), (last, true)]);
+        // During a short loss: both starts, wide.
+        assert_eq!(hypotheses(&config, true, &last, &large), vec![(large, true), (last, true)]);
+        // Without retries or the wide level: one narrow attempt.
+        let mut plain = config.clone();
+        plain.relocalisation.retry_within_frame = false;
+        assert_eq!(hypotheses(&plain, false, &last, &small), vec![(small, false)]);
+        plain.icp.wide.iterations = 0;
+        assert_eq!(hypotheses(&plain, false, &last, &large), vec![(large, false)]);
+        // The coarse search: the start, 4 horizontal moves, 2 turns about gravity.
+        let starts = search_starts(&config.icp.wide, &last);
+        assert_eq!(starts.len(), 7);
+        assert_eq!(starts[0], last);
+        for moved in &starts[1..5] {
+            let d = moved.translation.vector - last.translation.vector;
+            assert!((d.norm() - config.icp.wide.search_m).abs() < 1e-12 && d.y == 0.0);
+        }
+        for turned in &starts[5..] {
+            let turn = turned.rotation * last.rotation.inverse();
+            assert!((turn.angle().to_degrees() - config.icp.wide.search_deg).abs() < 1e-9);
+            assert!(turn.axis().is_some_and(|a| a.y.abs() > 0.999999));
+        }
+    }
+
+    #[test]
     fn wrong_image_size_is_an_error_and_empty_frames_lose_tracking() {
         let intrinsics = Intrinsics::primesense_default().scaled(0.25);
         let mut tracker = Tracker::new(TrackerConfig::default(), intrinsics).unwrap();
         let bad = DepthImage::new(3, 3, vec![1.0; 9]).unwrap();
-        let frame = Frame { depth: &bad, gravity_in_camera: None, external_map_from_camera: None };
+        let frame = Frame { depth: &bad, gravity_in_camera: None, external_map_from_camera: None, timestamp: None };
         assert!(matches!(tracker.process(frame), Err(TrackingError::SizeMismatch { .. })));
         let empty = DepthImage::new(intrinsics.width, intrinsics.height, vec![f32::NAN; intrinsics.width * intrinsics.height]).unwrap();
-        let frame = Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None };
+        let frame = Frame { depth: &empty, gravity_in_camera: None, external_map_from_camera: None, timestamp: None };
+        assert_eq!(tracker.process(frame).unwrap().status, TrackingStatus::Initialized);
+        // An empty frame fails ICP: a short loss first (map kept) ...
+        let report = tracker.process(frame).unwrap();
+        assert!(
+            matches!(report.status, TrackingStatus::Relocalising { frames_lost: 1, reason: LossReason::TooFewInliers { .. } }),
+            "{:?}",
+            report.status
+        );
+        assert_eq!(report.icp.map(|s| s.attempts), Some(2), "the first attempt and the wide retry from the same pose");
+        // ... a reset at once without short losses (J 5.2 as written).
+        let config =
+            TrackerConfig { relocalisation: RelocalisationConfig { max_lost_frames: 0, ..Default::default() }, ..TrackerConfig::default() };
+        let mut tracker = Tracker::new(config, intrinsics).unwrap();
         assert_eq!(tracker.process(frame).unwrap().status, TrackingStatus::Initialized);
         let report = tracker.process(frame).unwrap();
         assert!(matches!(report.status, TrackingStatus::Lost(LossReason::TooFewInliers { .. })), "{:?}", report.status);
         assert!(Tracker::new(TrackerConfig { model_scale: 0.0, ..TrackerConfig::default() }, intrinsics).is_err());
+        let mut bad = TrackerConfig::default();
+        bad.icp.wide.stride = 0;
+        assert!(matches!(Tracker::new(bad, intrinsics), Err(TrackingError::InvalidConfig(m)) if m.contains("icp.wide")));
+        let mut bad = TrackerConfig::default();
+        bad.motion_prior.max_extrapolation = f64::NAN;
+        assert!(matches!(Tracker::new(bad, intrinsics), Err(TrackingError::InvalidConfig(m)) if m.contains("motion_prior")));
     }
 }

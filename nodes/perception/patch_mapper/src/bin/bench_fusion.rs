@@ -92,10 +92,18 @@ fn main() -> anyhow::Result<()> {
             for (index, depth) in frames.iter().enumerate() {
                 let cpu_before = process_cpu_seconds();
                 let started = Instant::now();
-                let report = tracker.process(Frame { depth, gravity_in_camera: None, external_map_from_camera: None })?;
+                let report = tracker.process(Frame {
+                    depth,
+                    gravity_in_camera: None,
+                    external_map_from_camera: None,
+                    timestamp: dataset.frames.get(index).map(|f| f.timestamp),
+                })?;
                 let frame_ms = started.elapsed().as_secs_f64() * 1e3;
-                if let TrackingStatus::Lost(reason) = &report.status {
-                    println!("  frame {index}: tracking lost: {reason:?}");
+                match &report.status {
+                    TrackingStatus::Lost(reason) => println!("  frame {index}: tracking lost: {reason}"),
+                    TrackingStatus::Relocalising { reason, .. } => println!("  frame {index}: short loss: {reason}"),
+                    TrackingStatus::Relocalised { frames_lost } => println!("  frame {index}: relocalised after {frames_lost} frames"),
+                    _ => {}
                 }
                 let t = report.timings;
                 let tracked = report.status == TrackingStatus::Tracked;

@@ -80,6 +80,9 @@ pub struct TrackArgs {
     /// Process at most this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
+    /// Use every n-th frame of the dataset only (larger motion between the frames tracked).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub every: u64,
     /// YAML file with a full `TrackerConfig` (overrides the flags above).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -157,7 +160,8 @@ pub fn track(args: TrackArgs) -> anyhow::Result<TrackSummary> {
     };
     place_volume(&args, &dataset, &mut config, &frame_gravity)?;
     let mut tracker = Tracker::new(config, dataset.intrinsics)?;
-    let count = args.max_frames.unwrap_or(usize::MAX).min(dataset.frames.len());
+    let every = usize::try_from(args.every).unwrap_or(1).max(1);
+    let count = args.max_frames.unwrap_or(usize::MAX).min(dataset.frames.len().div_ceil(every));
     let progress = ProgressBar::new(count as u64);
     progress.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} frames {msg} [{elapsed_precise}<{eta_precise}]")
@@ -166,17 +170,38 @@ pub fn track(args: TrackArgs) -> anyhow::Result<TrackSummary> {
     let mut trajectory = Vec::new();
     let (mut estimate, mut reference) = (Vec::new(), Vec::new());
     let mut timings = Vec::new();
-    let (mut lost, mut remaps) = (0, 0);
-    for (index, frame) in dataset.frames.iter().enumerate().take(count) {
+    let (mut lost, mut remaps, mut relocalised, mut coasting) = (0, 0, 0, 0);
+    for (index, frame) in dataset.frames.iter().enumerate().step_by(every).take(count) {
         let depth = dataset.load_depth(index)?;
         let gravity_in_camera = match gravity {
             GravitySource::Plane if tracker.model().is_some() => None,
             _ => frame_gravity(index, &depth),
         };
-        let report = tracker.process(Frame { depth: &depth, gravity_in_camera, external_map_from_camera: None })?;
-        if let TrackingStatus::Lost(reason) = &report.status {
-            lost += 1;
-            progress.println(format!("frame {index}: tracking lost ({reason:?}); volume reset"));
+        let report = tracker.process(Frame {
+            depth: &depth,
+            gravity_in_camera,
+            external_map_from_camera: None,
+            timestamp: Some(frame.timestamp),
+        })?;
+        match &report.status {
+            TrackingStatus::Lost(reason) => {
+                lost += 1;
+                progress.println(format!("frame {index}: tracking lost ({reason}); volume reset"));
+            }
+            TrackingStatus::Relocalising { frames_lost, reason } => {
+                coasting += 1;
+                progress.println(format!("frame {index}: lost ({reason}), map kept, relocalising ({frames_lost} frames so far)"));
+            }
+            TrackingStatus::Relocalised { frames_lost } => {
+                relocalised += 1;
+                progress.println(format!("frame {index}: relocalised against the map after {frames_lost} lost frames"));
+            }
+            _ => {}
+        }
+        if let TrackingStatus::Relocalising { .. } = report.status {
+            // No pose for this frame (the last good one is kept): not in the trajectory.
+            progress.inc(1);
+            continue;
         }
         remaps += usize::from(report.remap.is_some());
         let t = report.timings;
@@ -199,7 +224,15 @@ pub fn track(args: TrackArgs) -> anyhow::Result<TrackSummary> {
     write_tum_poses(&path, &trajectory)?;
     timings.sort_by(f64::total_cmp);
     let median = timings.get(timings.len() / 2).copied().unwrap_or(f64::NAN);
-    println!("wrote {} ({} poses), {} remaps, {} tracking losses", path.display(), trajectory.len(), remaps, lost);
+    println!(
+        "wrote {} ({} poses), {} remaps, {} frames without a pose (short losses), {} relocalisations, {} tracking losses (volume reset)",
+        path.display(),
+        trajectory.len(),
+        remaps,
+        coasting,
+        relocalised,
+        lost
+    );
     println!("fusion + tracking: median {median:.1} ms/frame ({:.1} Hz)", 1e3 / median);
     let ate_m = absolute_trajectory_rmse(&estimate, &reference);
     if let Some(ate) = ate_m {

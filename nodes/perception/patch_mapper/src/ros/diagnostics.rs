@@ -1,8 +1,13 @@
 //! `/diagnostics` (`diagnostic_msgs/DiagnosticArray`, 1 Hz) of patch_mapper, hardware id
 //! `patch_mapper`: input rates (depth, IMU, camera info), processing latency (depth received →
 //! patches published, p50/p99 over the last second), frames dropped and why, whether frames are
-//! being mapped (tracking), and the map size. Levels: OK, WARN (an input missing or no frame mapped
-//! while frames arrive, frames dropped), ERROR (no depth frames at all).
+//! being mapped and how tracking fares (tracking), and the map size. Levels: OK, WARN (an input
+//! missing or no frame mapped while frames arrive, frames dropped, tracking lost: relocalising or
+//! the map reset), ERROR (no depth frames at all).
+//!
+//! `tracking` tells the two kinds of loss apart: a short loss ("lost, relocalising against the map",
+//! WARN while it lasts; "lost → relocalised after N frames", OK, once it ended, the map kept) and a
+//! real loss ("tracking lost: map reset", WARN), with their totals as values.
 //!
 //! The numbers come from the node's `MapperStatus` counters, sampled by the loop on every pass. The
 //! latency is the one of the latest mapped frame at each pass: when two frames finish between two
@@ -24,10 +29,28 @@ const OK: u8 = DiagnosticStatus::OK;
 const WARN: u8 = DiagnosticStatus::WARN;
 const ERROR: u8 = DiagnosticStatus::ERROR;
 
+/// How tracking fares, kept by the pipeline thread (`MapperStatus` has no fields for it).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TrackingHealth {
+    /// Frames lost in a row right now (0: tracking).
+    pub frames_lost: u64,
+    /// `tracker.relocalisation.max_lost_frames`.
+    pub max_lost_frames: u64,
+    /// Short losses ended by relocalising against the kept map.
+    pub relocalisations: u64,
+    /// Frames lost in the last short loss that ended.
+    pub last_relocalised_after: u64,
+    /// Real losses: the map was reset.
+    pub map_resets: u64,
+    /// Why the last frame without a pose failed.
+    pub last_loss: String,
+}
+
 /// Counters at the start of the window and the latencies sampled in it.
 #[derive(Debug, Default)]
 pub struct MapperWindow {
     start: Option<(Instant, MapperStatus)>,
+    start_tracking: TrackingHealth,
     last_processed: u64,
     latencies_ms: Vec<f64>,
 }
@@ -49,7 +72,7 @@ impl MapperWindow {
     }
 
     /// The array for the window ending at `now` (then a new window starts).
-    pub fn diagnostics(&mut self, status: &MapperStatus, now: Instant, stamp: Time) -> DiagnosticArray {
+    pub fn diagnostics(&mut self, status: &MapperStatus, tracking: &TrackingHealth, now: Instant, stamp: Time) -> DiagnosticArray {
         let (since, before) = self.start.take().unwrap_or_else(|| (now, status.clone()));
         let seconds = now.duration_since(since).as_secs_f64();
         let rate = |after: u64, before: u64| if seconds > 0.0 { after.saturating_sub(before) as f64 / seconds } else { 0.0 };
@@ -67,10 +90,11 @@ impl MapperWindow {
             inputs_status(&rates),
             latency_status(&latencies),
             dropped_status(status, &rates),
-            tracking_status(status, &rates),
+            tracking_status(status, &rates, tracking, &self.start_tracking),
             map_status(status),
         ];
         self.start = Some((now, status.clone()));
+        self.start_tracking = tracking.clone();
         patchwalk_ros::diagnostics::array(stamp, statuses)
     }
 }
@@ -138,8 +162,32 @@ fn dropped_status(s: &MapperStatus, r: &Rates) -> DiagnosticStatus {
     status(WARN, "dropped frames", format!("{} skipped, {} rejected in the last second; last: {why}", r.skipped, r.rejected), values)
 }
 
-fn tracking_status(s: &MapperStatus, r: &Rates) -> DiagnosticStatus {
-    let values = vec![kv("mapped_hz", format!("{:.1}", r.processed_hz)), kv("frames_processed", s.frames_processed)];
+fn tracking_status(s: &MapperStatus, r: &Rates, t: &TrackingHealth, before: &TrackingHealth) -> DiagnosticStatus {
+    let values = vec![
+        kv("mapped_hz", format!("{:.1}", r.processed_hz)),
+        kv("frames_processed", s.frames_processed),
+        kv("frames_lost", t.frames_lost),
+        kv("relocalisations_total", t.relocalisations),
+        kv("map_resets_total", t.map_resets),
+        kv("last_loss", &t.last_loss),
+    ];
+    if t.frames_lost > 0 {
+        let message =
+            format!("lost, relocalising against the map ({} of at most {} frames): {}", t.frames_lost, t.max_lost_frames, t.last_loss);
+        return status(WARN, "tracking", message, values);
+    }
+    let resets = t.map_resets.saturating_sub(before.map_resets);
+    if resets > 0 {
+        return status(WARN, "tracking", format!("tracking lost: map reset ({resets} in the last second): {}", t.last_loss), values);
+    }
+    let relocalised = t.relocalisations.saturating_sub(before.relocalisations);
+    if relocalised > 0 {
+        let message = format!(
+            "mapping {:.0} frames/s; lost → relocalised after {} frames, map kept ({relocalised} in the last second; last loss: {})",
+            r.processed_hz, t.last_relocalised_after, t.last_loss
+        );
+        return status(OK, "tracking", message, values);
+    }
     if r.depth_hz > 0.0 && r.processed_hz <= 0.0 {
         let why = if s.last_error.is_empty() { "no reason reported".to_string() } else { s.last_error.clone() };
         return status(WARN, "tracking", format!("depth frames arrive but none was mapped: {why}"), values);
@@ -179,7 +227,7 @@ mod tests {
         }
         s.frames_skipped = 2;
         s.last_error = "depth frame skipped: no CameraInfo yet".into();
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(1), Time::default());
+        let array = window.diagnostics(&s, &TrackingHealth::default(), t0 + Duration::from_secs(1), Time::default());
         assert_eq!(find(&array, "inputs").level, OK);
         let latency = find(&array, "latency");
         assert!(latency.message.contains("p50 15.0 ms") && latency.message.contains("p99 30.0 ms"), "{}", latency.message);
@@ -197,13 +245,61 @@ mod tests {
         window.sample(&s, t0);
         s.frames_received = 30;
         s.last_error = "ICP did not converge".into();
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(1), Time::default());
+        let array = window.diagnostics(&s, &TrackingHealth::default(), t0 + Duration::from_secs(1), Time::default());
         let tracking = find(&array, "tracking");
         assert_eq!(tracking.level, WARN);
         assert!(tracking.message.contains("ICP"), "{}", tracking.message);
         assert_eq!(find(&array, "inputs").level, WARN, "IMU and camera info missing");
-        let array = window.diagnostics(&s, t0 + Duration::from_secs(2), Time::default());
+        let array = window.diagnostics(&s, &TrackingHealth::default(), t0 + Duration::from_secs(2), Time::default());
         assert_eq!(find(&array, "inputs").level, ERROR);
+    }
+
+    #[test]
+    fn short_losses_and_map_resets_are_reported_apart() {
+        let t0 = Instant::now();
+        let mut window = MapperWindow::default();
+        let mut s = MapperStatus { frames_received: 30, frames_processed: 30, ..Default::default() };
+        window.sample(&s, t0);
+        let mut health = TrackingHealth { max_lost_frames: 10, ..TrackingHealth::default() };
+        let second = |k: u64| t0 + Duration::from_secs(k);
+        // Tracking as usual.
+        let tracking = |array: &DiagnosticArray| find(array, "tracking").clone();
+        s.frames_received += 30;
+        s.frames_processed += 30;
+        let ok = tracking(&window.diagnostics(&s, &health, second(1), Time::default()));
+        assert_eq!(ok.level, OK);
+        assert!(ok.message.starts_with("mapping"), "{}", ok.message);
+        // A short loss in progress: WARN, relocalising, the map kept.
+        health.frames_lost = 2;
+        health.last_loss = "too few ICP inliers (12 of 900 associated)".into();
+        s.frames_received += 30;
+        s.frames_processed += 28;
+        let lost = tracking(&window.diagnostics(&s, &health, second(2), Time::default()));
+        assert_eq!(lost.level, WARN);
+        assert!(lost.message.contains("relocalising against the map (2 of at most 10 frames)"), "{}", lost.message);
+        // It ended: OK, "lost → relocalised".
+        health.frames_lost = 0;
+        health.relocalisations = 1;
+        health.last_relocalised_after = 2;
+        s.frames_received += 30;
+        s.frames_processed += 30;
+        let back = tracking(&window.diagnostics(&s, &health, second(3), Time::default()));
+        assert_eq!(back.level, OK);
+        assert!(back.message.contains("lost → relocalised after 2 frames, map kept"), "{}", back.message);
+        // The next second without events is plain again.
+        s.frames_received += 30;
+        s.frames_processed += 30;
+        assert!(tracking(&window.diagnostics(&s, &health, second(4), Time::default())).message.starts_with("mapping"));
+        // A real loss: WARN, the map reset, named apart from the short losses.
+        health.map_resets = 1;
+        health.last_loss = "ICP residual 25.0 mm RMS".into();
+        s.frames_received += 30;
+        s.frames_processed += 30;
+        let reset = tracking(&window.diagnostics(&s, &health, second(5), Time::default()));
+        assert_eq!(reset.level, WARN);
+        assert!(reset.message.starts_with("tracking lost: map reset (1 in the last second)"), "{}", reset.message);
+        let value = |key: &str| reset.values.iter().find(|v| v.key == key).map(|v| v.value.clone());
+        assert_eq!((value("relocalisations_total"), value("map_resets_total")), (Some("1".into()), Some("1".into())));
     }
 
     #[test]

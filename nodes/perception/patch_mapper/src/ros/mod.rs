@@ -37,8 +37,9 @@ use serde::{Deserialize, Serialize};
 
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::tracking::TrackerConfig;
+use patchwalk_fusion::tracking::TrackingStatus;
 use patchwalk_mapping::mapper::MapperConfig;
-use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, StampWindow};
+use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, PipelineError, StampWindow};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
@@ -209,6 +210,9 @@ fn validate_config(config: &PatchMapperConfig) -> Result<(), String> {
 /// Status shared by both threads (counters of MapperStatus, last error, timings).
 type SharedStatus = Arc<Mutex<MapperStatus>>;
 
+/// How tracking fares, written by the pipeline thread, read for `/diagnostics`.
+type SharedTracking = Arc<Mutex<diagnostics::TrackingHealth>>;
+
 fn with_status(status: &SharedStatus, update: impl FnOnce(&mut MapperStatus)) {
     if let Ok(mut status) = status.lock() {
         update(&mut status);
@@ -344,6 +348,7 @@ struct Worker {
     pipeline: Option<Pipeline>,
     recent_imu: VecDeque<(f64, Vector3<f64>)>,
     status: SharedStatus,
+    tracking: SharedTracking,
     outputs: Outputs,
     log: RateLimitedLog,
     dds_log: RateLimitedLog,
@@ -394,6 +399,9 @@ impl Worker {
                 self.recent_imu.clear();
                 self.last_reset = Some(mark);
                 with_status(&self.status, |s| s.patches_in_map = 0);
+                if let Ok(mut health) = self.tracking.lock() {
+                    health.frames_lost = 0;
+                }
             }
             self.take_inputs(&inputs);
             if let Ok(job) = job {
@@ -481,6 +489,18 @@ impl Worker {
         }
         let output = match pipeline.process(&job.depth, publish::seconds_from_time(&job.stamp)) {
             Ok(output) => output,
+            Err(PipelineError::Relocalising { frames_lost, max_lost_frames, reason }) => {
+                // A short loss: the map is kept and not published until the camera is found again.
+                if let Ok(mut health) = self.tracking.lock() {
+                    health.frames_lost = frames_lost as u64;
+                    health.max_lost_frames = max_lost_frames as u64;
+                    health.last_loss = reason.to_string();
+                }
+                with_status(&self.status, |s| s.frames_skipped += 1);
+                let message = PipelineError::Relocalising { frames_lost, max_lost_frames, reason }.to_string();
+                self.warn("relocalising", format!("depth frame skipped: {message}"));
+                return;
+            }
             Err(e) => {
                 with_status(&self.status, |s| s.frames_skipped += 1);
                 self.warn("frame", format!("depth frame skipped: {e}"));
@@ -491,6 +511,22 @@ impl Worker {
             // A reset came while this frame was processed: its map shows the world before it.
             with_status(&self.status, |s| s.frames_skipped += 1);
             return;
+        }
+        if let Ok(mut health) = self.tracking.lock() {
+            match &output.tracking {
+                TrackingStatus::Relocalised { frames_lost } => {
+                    health.relocalisations += 1;
+                    health.last_relocalised_after = *frames_lost as u64;
+                    tracing::info!("tracking relocalised against the map after {frames_lost} lost frames (map kept)");
+                }
+                TrackingStatus::Lost(reason) => {
+                    health.map_resets += 1;
+                    health.last_loss = reason.to_string();
+                    tracing::warn!("tracking lost: {reason}; the map was reset");
+                }
+                _ => {}
+            }
+            health.frames_lost = 0;
         }
         if let Some(accepted_at) = self.parameters_since.take() {
             let ms = accepted_at.elapsed().as_secs_f64() * 1e3;
@@ -586,6 +622,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         .context("invalid pipeline/tracker/mapper configuration")?;
 
     let status: SharedStatus = Arc::default();
+    let tracking: SharedTracking = Arc::new(Mutex::new(diagnostics::TrackingHealth {
+        max_lost_frames: config.tracker.relocalisation.max_lost_frames as u64,
+        ..Default::default()
+    }));
     let (job_tx, job_rx) = crossbeam_channel::bounded::<DepthJob>(1);
     let (input_tx, input_rx) = crossbeam_channel::unbounded::<WorkerInput>();
     let reset: Arc<Mutex<Option<ResetMark>>> = Arc::default();
@@ -596,6 +636,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         pipeline: None,
         recent_imu: VecDeque::new(),
         status: status.clone(),
+        tracking: tracking.clone(),
         outputs: Outputs {
             patches: patches_pub,
             markers: params.publish_markers.then_some(markers_pub),
@@ -679,7 +720,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         if let Ok(s) = status.lock() {
             diagnostics_window.sample(&s, now);
             if now >= next_diagnostics {
-                let array = diagnostics_window.diagnostics(&s, now, clock.now());
+                let health = tracking.lock().map(|t| t.clone()).unwrap_or_default();
+                let array = diagnostics_window.diagnostics(&s, &health, now, clock.now());
                 node::publish(&diagnostics_pub, diagnostics::DIAGNOSTICS_TOPIC, array, &mut dds_log);
                 next_diagnostics = now + diagnostics::DIAGNOSTICS_PERIOD;
             }

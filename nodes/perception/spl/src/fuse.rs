@@ -422,7 +422,7 @@ pub fn pose_mahalanobis2(a: &Patch, b: &Patch) -> Option<(f64, usize)> {
 /// independent is exact when the second one's Σ is inflated by `(1 + c)/(1 − c)`: η = `(1 − c)/(1 + c)`.
 /// `W ≤ 1` (no memory: independent frames) gives 1.
 pub fn ar1_independent_share(memory_frames: f64, frames_apart: u64) -> f64 {
-    if !(memory_frames > 1.0) {
+    if memory_frames.is_nan() || memory_frames <= 1.0 {
         return 1.0;
     }
     let rho = 1.0 - 1.0 / memory_frames;

@@ -375,5 +375,8 @@ mod tests {
         map.transform_all(&t, "map");
         assert_eq!(map.frame_id, "map");
         assert!((map.patches()[0].patch.center - moved.center).norm() < 1e-12);
+        // The anchor (here the centre: no seed given) moves with the patch.
+        assert!((map.patches()[0].anchor - moved.center).norm() < 1e-12);
+        assert_eq!(map.patches()[0].observations, 1);
     }
 }

@@ -18,6 +18,7 @@ use rayon::prelude::*;
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
 use crate::foot_column::{foot_column, DEFAULT_MAX_PIXELS};
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
+use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobserved};
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
 use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
@@ -63,6 +64,8 @@ pub struct MapperConfig {
     /// the ellipse without data and fails the coverage test (J eq 16) on every r-ball; true
     /// rescales the plane's d (and its covariance) by `λ / √(−2 ln(1 − Γ))`.
     pub plane_boundary_j_step5: bool,
+    /// Re-observation of mapped patches and their fusion with Σ (see [`crate::patch_fusion`]).
+    pub fusion: FusionConfig,
 }
 
 impl Default for MapperConfig {
@@ -82,6 +85,7 @@ impl Default for MapperConfig {
             sensor: ErrorModel::default(),
             containment: 0.95,
             plane_boundary_j_step5: true,
+            fusion: FusionConfig::default(),
         }
     }
 }
@@ -187,6 +191,16 @@ pub struct SeedOutcome {
     pub verdict: Verdict,
 }
 
+/// A mapped patch re-fitted this frame: the seed at its centre, and what fusion did with a valid re-fit.
+#[derive(Debug, Clone)]
+pub struct Revisited {
+    /// The id the patch had before this frame.
+    pub id: u64,
+    pub outcome: SeedOutcome,
+    /// `None` when the re-fit failed validation (the patch is left as it was).
+    pub fused: Option<Reobserved>,
+}
+
 /// Why stage v stopped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 pub enum StopReason {
@@ -208,8 +222,12 @@ pub struct StageTimings {
     pub fit_validate_cpu_ms: f64,
     /// The validation part of `fit_validate_cpu_ms` (J 3.3 on the full neighbourhood).
     pub validate_cpu_ms: f64,
-    /// Wall time of stages iv–v together.
+    /// Wall time of stages iv–v together (new seeds and re-observations).
     pub fit_stage_ms: f64,
+    /// Wall time of the re-observations: the re-fits of mapped patches and their fusion.
+    pub reobserve_ms: f64,
+    /// The fusion part of `reobserve_ms` (gate, update, map bookkeeping).
+    pub fusion_ms: f64,
     pub total_ms: f64,
 }
 
@@ -217,6 +235,8 @@ pub struct StageTimings {
 #[derive(Debug, Clone)]
 pub struct FrameResult {
     pub outcomes: Vec<SeedOutcome>,
+    /// The mapped patches re-fitted this frame ([`crate::patch_fusion`]).
+    pub revisited: Vec<Revisited>,
     pub preprocessed: Preprocessed,
     pub saliency: Saliency,
     /// Unit gravity in the camera frame (from `volume_from_camera`).
@@ -249,6 +269,10 @@ impl FrameResult {
         }
         s.seeds = self.outcomes.len();
         s.fitted = s.valid + s.residual + s.coverage + s.curvature + s.tilt + s.edge;
+        s.fusion.revisited = self.revisited.len();
+        for fused in self.revisited.iter().filter_map(|r| r.fused.as_ref()) {
+            s.fusion.count(fused);
+        }
         s
     }
 }
@@ -274,6 +298,8 @@ pub struct FrameSummary {
     pub residual_sum_m: f64,
     /// Σ boundary area of the valid patches (m²).
     pub area_m2: f64,
+    /// Re-observations of mapped patches and what fusion made of them.
+    pub fusion: FusionCounts,
 }
 
 impl FrameSummary {
@@ -291,6 +317,7 @@ impl FrameSummary {
         self.skipped += other.skipped;
         self.residual_sum_m += other.residual_sum_m;
         self.area_m2 += other.area_m2;
+        self.fusion.add(&other.fusion);
     }
 
     /// Mean residual of the valid patches (m).
@@ -374,25 +401,50 @@ impl Mapper {
             self.frames,
         );
         let t_seeds = Instant::now();
+        // Re-observations first (at most `fusion.reobserve_per_frame` fits), within the same tm.
+        let deadline =
+            std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0).ok().and_then(|limit| start.checked_add(limit));
+        let map_from_camera = self.map.grid().volume_from_map.inverse() * input.volume_from_camera;
+        self.map.set_frame(self.frames);
+        let revisit =
+            revisits(&self.map, &map_from_camera.inverse(), &preprocessed.filtered, input.intrinsics, config.foot_radius_m, &config.fusion);
+        let revisit_seeds: Vec<Seed> = revisit
+            .iter()
+            .filter_map(|r| Some(Seed { pixel: r.pixel, point_in_camera: r.anchor_in_camera, cell: self.map.get(r.id)?.cell? }))
+            .collect();
+        let (revisit_outcomes, _, _) =
+            fit_seeds(&revisit_seeds, &cloud, input.intrinsics, config, usize::MAX, deadline, self.frames ^ REVISIT_RNG_SALT);
+        let t_revisit = Instant::now();
         // Stages iv–v until tm, ns or ν (J eq 19).
         let target_patches =
             (config.coverage_fraction * saliency.salient_area_m2 / (std::f64::consts::PI * config.foot_radius_m.powi(2))).ceil() as usize;
-        // An infinite (or huge) tm means no time limit.
-        let deadline =
-            std::time::Duration::try_from_secs_f64(config.time_limit_ms.max(0.0) / 1000.0).ok().and_then(|limit| start.checked_add(limit));
         let (mut outcomes, stop, [neighbourhood_cpu_ms, fit_validate_cpu_ms, validate_cpu_ms]) =
             fit_seeds(&seeds, &cloud, input.intrinsics, &(-gravity_in_camera.into_inner()), config, target_patches, deadline, self.frames);
         let t_fit = Instant::now();
         // Into the map, in seed order.
-        let map_from_camera = self.map.grid().volume_from_map.inverse() * input.volume_from_camera;
         for outcome in &mut outcomes {
             if let (Verdict::Valid { id }, Some(patch)) = (&mut outcome.verdict, &outcome.patch_in_camera) {
                 match transform_patch(patch, &map_from_camera) {
-                    Some(patch_in_map) => *id = self.map.insert_in_cell(patch_in_map, Some(outcome.seed.cell), input.timestamp),
+                    Some(patch_in_map) => {
+                        let anchor = (map_from_camera * nalgebra::Point3::from(outcome.seed.point_in_camera)).coords;
+                        *id = self.map.insert_anchored(patch_in_map, Some(outcome.seed.cell), anchor, input.timestamp);
+                    }
                     None => outcome.verdict = Verdict::FitFailed("patch could not be moved to the map frame".into()),
                 }
             }
         }
+        // Re-observations fused into their patches.
+        let t_fuse = Instant::now();
+        let mut revisited = Vec::with_capacity(revisit_outcomes.len());
+        for (r, outcome) in revisit.iter().zip(revisit_outcomes) {
+            let fused = match (&outcome.verdict, &outcome.patch_in_camera) {
+                (Verdict::Valid { .. }, Some(patch)) => transform_patch(patch, &map_from_camera)
+                    .map(|in_map| reobserve(&mut self.map, r.id, in_map, input.timestamp, &config.fusion)),
+                _ => None,
+            };
+            revisited.push(Revisited { id: r.id, outcome, fused });
+        }
+        let t_done = Instant::now();
         self.frames += 1;
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         let timings = StageTimings {
@@ -403,9 +455,11 @@ impl Mapper {
             fit_validate_cpu_ms,
             validate_cpu_ms,
             fit_stage_ms: ms(t_seeds, t_fit),
+            reobserve_ms: ms(t_seeds, t_revisit) + ms(t_fuse, t_done),
+            fusion_ms: ms(t_fuse, t_done),
             total_ms: ms(start, Instant::now()),
         };
-        Ok(FrameResult { outcomes, preprocessed, saliency, gravity_in_camera, target_patches, stop, timings })
+        Ok(FrameResult { outcomes, revisited, preprocessed, saliency, gravity_in_camera, target_patches, stop, timings })
     }
 }
 
@@ -444,8 +498,13 @@ pub fn check_config(config: &MapperConfig) -> Result<(), MapperError> {
     }
     config.acquire.camera_from_imu()?;
     config.validate.check().map_err(MapperError::Config)?;
+    config.fusion.validate().map_err(MapperError::Config)?;
     Ok(())
 }
+
+/// Mixed into the frame counter for the re-observations' neighbourhood subsets, so they do not
+/// draw the same random subsets as the new seeds of the same index.
+const REVISIT_RNG_SALT: u64 = 0x5EED_F05E_0000;
 
 /// Stages iv–v over the seeds in parallel. Workers pull seeds in order (nearest cells first), so a
 /// time limit drops the farthest seeds. Returns outcomes in seed order, the stop reason and the

@@ -94,6 +94,13 @@ pub struct MappedPatch {
     pub first_seen: f64,
     /// Timestamp (s) of the last frame that fitted or tracked it.
     pub last_seen: f64,
+    /// Observations fused into the patch since it was added or changed type (1 for a new patch).
+    pub observations: u32,
+    /// The map's frame counter ([`PatchMap::set_frame`]) at the last observation.
+    pub observed_frame: u64,
+    /// The point (map frame) whose r-ball neighbourhood defines the patch: the seed it was fitted
+    /// to (J step 10), or its centre when it was added without one. Re-observations fit the same ball.
+    pub anchor: Vector3<f64>,
 }
 
 /// The patch map: patches in frame `frame_id`, gridded by a [`VolumeGrid`].
@@ -104,12 +111,13 @@ pub struct PatchMap {
     grid: VolumeGrid,
     patches: Vec<MappedPatch>,
     next_id: u64,
+    frame: u64,
 }
 
 impl PatchMap {
     /// An empty map.
     pub fn new(frame_id: impl Into<String>, grid: VolumeGrid) -> Self {
-        Self { frame_id: frame_id.into(), grid, patches: Vec::new(), next_id: 0 }
+        Self { frame_id: frame_id.into(), grid, patches: Vec::new(), next_id: 0, frame: 0 }
     }
 
     /// The grid.
@@ -141,10 +149,53 @@ impl PatchMap {
     /// Adds a patch associated with `cell` (J 4.3: the cell of the seed it was fitted to; the
     /// fitted centre can lie just across a cell border). Returns its id.
     pub fn insert_in_cell(&mut self, patch: Patch, cell: Option<Cell>, timestamp: f64) -> u64 {
+        let anchor = patch.center;
+        self.insert_anchored(patch, cell, anchor, timestamp)
+    }
+
+    /// Adds a patch fitted to the r-ball around `anchor` (map frame; the seed point), in `cell`.
+    /// Returns its id.
+    pub fn insert_anchored(&mut self, patch: Patch, cell: Option<Cell>, anchor: Vector3<f64>, timestamp: f64) -> u64 {
         let id = self.next_id;
         self.next_id += 1;
-        self.patches.push(MappedPatch { id, patch, cell, first_seen: timestamp, last_seen: timestamp });
+        self.patches.push(MappedPatch {
+            id,
+            patch,
+            cell,
+            first_seen: timestamp,
+            last_seen: timestamp,
+            observations: 1,
+            observed_frame: self.frame,
+            anchor,
+        });
         id
+    }
+
+    /// Sets the frame counter recorded with each observation (the mapper's frame number), which
+    /// tells re-observation how many frames apart two observations of a patch are.
+    pub fn set_frame(&mut self, frame: u64) {
+        self.frame = frame;
+    }
+
+    /// The frame counter of [`PatchMap::set_frame`].
+    pub fn frame(&self) -> u64 {
+        self.frame
+    }
+
+    /// The patch with id `id`.
+    pub fn get(&self, id: u64) -> Option<&MappedPatch> {
+        self.patches.iter().find(|p| p.id == id)
+    }
+
+    /// Mutable access to the patch with id `id` (for the fusion of re-observations).
+    pub(crate) fn get_mut(&mut self, id: u64) -> Option<&mut MappedPatch> {
+        self.patches.iter_mut().find(|p| p.id == id)
+    }
+
+    /// Removes the patch with id `id`; returns it.
+    pub fn remove(&mut self, id: u64) -> Option<MappedPatch> {
+        let index = self.patches.iter().position(|p| p.id == id)?;
+        Some(self.patches.remove(index))
     }
 
     /// Marks a patch as seen at `timestamp`; false if the id is unknown.
@@ -178,6 +229,7 @@ impl PatchMap {
             if let Some(moved) = transform_patch(&mapped.patch, new_from_old) {
                 mapped.patch = moved;
             }
+            mapped.anchor = (new_from_old * nalgebra::Point3::from(mapped.anchor)).coords;
         }
         self.reassociate();
     }
@@ -323,5 +375,8 @@ mod tests {
         map.transform_all(&t, "map");
         assert_eq!(map.frame_id, "map");
         assert!((map.patches()[0].patch.center - moved.center).norm() < 1e-12);
+        // The anchor (here the centre: no seed given) moves with the patch.
+        assert!((map.patches()[0].anchor - moved.center).norm() < 1e-12);
+        assert_eq!(map.patches()[0].observations, 1);
     }
 }

@@ -196,12 +196,14 @@ pub struct PipelineTimings {
     pub map_saliency_ms: f64,
     pub map_seeds_ms: f64,
     pub map_fit_ms: f64,
+    /// The part of `map_fit_ms` spent re-fitting mapped patches and fusing them (`mapper.fusion`).
+    pub map_reobserve_ms: f64,
     pub total_ms: f64,
 }
 
 impl PipelineTimings {
     /// `(name, ms)` pairs for diagnostics (MapperStatus.timing_names / timing_ms).
-    pub fn named(&self) -> [(&'static str, f64); 12] {
+    pub fn named(&self) -> [(&'static str, f64); 13] {
         [
             ("gravity", self.gravity_ms),
             ("icp", self.icp_ms),
@@ -214,6 +216,7 @@ impl PipelineTimings {
             ("map_saliency", self.map_saliency_ms),
             ("map_seeds", self.map_seeds_ms),
             ("map_fit_validate", self.map_fit_ms),
+            ("map_reobserve_fuse", self.map_reobserve_ms),
             ("total", self.total_ms),
         ]
     }
@@ -400,6 +403,7 @@ impl Pipeline {
             map_saliency_ms: mapped.timings.saliency_ms,
             map_seeds_ms: mapped.timings.seeds_ms,
             map_fit_ms: mapped.timings.fit_stage_ms,
+            map_reobserve_ms: mapped.timings.reobserve_ms,
             total_ms: ms(start, Instant::now()),
         };
         Ok(FrameOutput {

@@ -11,6 +11,8 @@
 //! - [`validate`]: J 3.3's residual, coverage and curvature tests, and the foothold tests tilt
 //!   (against gravity) and edge (the terrain in the foot disc's column).
 //! - [`transform`]: a patch moved by a rigid transform with its covariance.
+//! - [`fuse`]: two observations of one patch fused with their covariances (information-form Kalman
+//!   update in the tangent space of the pose), the Mahalanobis association gate.
 //! - [`points_io`]: point files (`x y z` text, PCD ASCII/binary).
 //!
 //! Fitting a patch to points, in five lines:
@@ -25,6 +27,8 @@
 //! ```
 
 pub mod fit;
+pub mod fuse;
+pub mod fuse_views;
 pub mod geometry;
 pub mod patch;
 pub mod points_io;

@@ -123,6 +123,26 @@ if [ "${PATCHWALK_SKIP_RUST:-0}" != 1 ]; then
     fi
 fi
 
+# --- 5b. fuzz smoke (nodes/fuzz, launch_scripts/fuzz.sh) -----------------------------------------------
+# The stored corpus and every kept crashing input (tests/data/fuzz/<target>/) ran above as ordinary
+# `cargo test` regression tests on stable. With a nightly toolchain, each fuzz target also runs for
+# PATCHWALK_FUZZ_SECONDS (5) s, cargo-fuzz installed when missing; without one only the replay ran.
+# PATCHWALK_SKIP_FUZZ=1 skips the smoke.
+if [ "${PATCHWALK_SKIP_RUST:-0}" != 1 ] && [ "${PATCHWALK_SKIP_FUZZ:-0}" != 1 ]; then
+    if cargo +nightly --version >/dev/null 2>&1; then
+        log "fuzz smoke: mode nightly (corpus replayed by cargo test, then launch_scripts/fuzz.sh ${PATCHWALK_FUZZ_SECONDS:-5})"
+        if ! "$REPO/launch_scripts/fuzz.sh" "${PATCHWALK_FUZZ_SECONDS:-5}" >"$LOG_DIR/fuzz.log" 2>&1; then
+            tail -30 "$LOG_DIR/fuzz.log"
+            echo "test.sh: the fuzz smoke found a crash or did not build (log: $LOG_DIR/fuzz.log)"
+            RUST_FAILED=$((RUST_FAILED + 1))
+            RUST_STATUS=1
+        fi
+        grep -A20 '^fuzz.sh summary' "$LOG_DIR/fuzz.log"
+    else
+        log "fuzz smoke: mode replay only (no nightly toolchain: the stored corpus ran as cargo tests, no fuzzing)"
+    fi
+fi
+
 # --- 6. rclpy integration tests -----------------------------------------------------------------------
 PY_PASSED=0
 PY_FAILED=0

@@ -4,7 +4,7 @@
 //! (the same `supported_encodings` check, the same `CDRDeserializerAdapter`). [`encode`] writes the
 //! header and body a little-endian publisher sends; tests and fuzz seeds are made with it.
 
-use rustdds::dds::adapters::no_key::{DeserializerAdapter, DefaultDecoder};
+use rustdds::dds::adapters::no_key::{DefaultDecoder, DeserializerAdapter};
 use rustdds::serialization::{to_writer_with_rep_id, CDRDeserializerAdapter};
 use rustdds::RepresentationIdentifier;
 use serde::de::DeserializeOwned;

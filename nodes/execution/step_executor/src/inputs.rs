@@ -170,8 +170,15 @@ fn write_replay_library() -> Result<PathBuf, LibraryError> {
     let path = dir.join("motions.yaml");
     let joints = StepExecutorConfig::default().joint_names();
     let mut library = MotionLibrary::new(&path, joints.clone());
-    let patch = Patch::new(SurfaceType::Plane, BoundaryType::Circle, vec![0.03], Vector2::zeros(), Vector3::zeros(), Vector3::new(0.12, 0.04, -0.3))
-        .map_err(|e| LibraryError::Malformed { path: path.clone(), location: "patch".into(), message: e.to_string() })?;
+    let patch = Patch::new(
+        SurfaceType::Plane,
+        BoundaryType::Circle,
+        vec![0.03],
+        Vector2::zeros(),
+        Vector3::zeros(),
+        Vector3::new(0.12, 0.04, -0.3),
+    )
+    .map_err(|e| LibraryError::Malformed { path: path.clone(), location: "patch".into(), message: e.to_string() })?;
     let keyframes = vec![Keyframe { positions: vec![0.0; joints.len()], move_s: 0.5, pause_s: 0.1 }];
     library.insert(Motion { name: "replay_step".into(), patch, keyframes })?;
     library.save()?;

@@ -6,13 +6,13 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
+use nalgebra::{Vector2, Vector3};
 use patchwalk_dynamixel::protocol::{encode, encode_status, instruction, BROADCAST_ID};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::Point;
 use patchwalk_msgs::msg::{Patch, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu};
 use patchwalk_msgs::srv;
-use nalgebra::{Vector2, Vector3};
 use patchwalk_ros::wire::encode as cdr;
 use patchwalk_spl::patch::{BoundaryType, Patch as SplPatch, SurfaceType};
 use step_executor::library::{Keyframe, Motion, MotionLibrary};
@@ -66,7 +66,16 @@ fn depth_m() -> Image {
 }
 
 fn patch_msg(surface: u8, boundary: u8, curvatures: Vec<f64>, boundary_params: Vec<f64>) -> Patch {
-    Patch { id: 1, surface, boundary, curvatures, boundary_params, rotation: [0.1, 0.2, 0.3], center: [0.1, 0.05, 0.9], ..Default::default() }
+    Patch {
+        id: 1,
+        surface,
+        boundary,
+        curvatures,
+        boundary_params,
+        rotation: [0.1, 0.2, 0.3],
+        center: [0.1, 0.05, 0.9],
+        ..Default::default()
+    }
 }
 
 fn main() -> Result<()> {

@@ -51,7 +51,9 @@ fn sensor_messages_decode_and_convert() {
         SensorOutput::Depth { width, height, valid } => assert_eq!((width, height, valid), (4, 2, 8)),
         other => panic!("{other:?}"),
     }
-    assert!(matches!(sensor_message(&selected(1, wire::encode(&camera_info(64, 48)).unwrap())), Ok(SensorOutput::Intrinsics(i)) if i.width == 64));
+    assert!(
+        matches!(sensor_message(&selected(1, wire::encode(&camera_info(64, 48)).unwrap())), Ok(SensorOutput::Intrinsics(i)) if i.width == 64)
+    );
     assert!(matches!(sensor_message(&selected(2, wire::encode(&gravity()).unwrap())), Ok(SensorOutput::Acceleration(a)) if a[1] == 9.81));
     assert!(matches!(sensor_message(&[]), Err(InputError::Empty)));
     assert!(matches!(sensor_message(&[9, 0, 1, 0, 0]), Err(InputError::Selector(9))));

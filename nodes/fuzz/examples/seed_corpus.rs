@@ -1,7 +1,7 @@
 //! Writes the seed inputs of every fuzz target into `tests/data/fuzz/<target>/seed-*`: well-formed
 //! messages, requests, frames and files the nodes accept, made with the same encoders the nodes use,
 //! so the fuzzer starts from inputs that reach deep into each parser. Run from the repository root:
-//! `cargo run --manifest-path nodes/fuzz/Cargo.toml --bin seed_corpus`.
+//! `cargo run --manifest-path nodes/fuzz/Cargo.toml --example seed_corpus`.
 
 use std::path::Path;
 

@@ -4,7 +4,8 @@
 #   launch_scripts/fuzz.sh [SECONDS] [TARGET...]
 #
 # Runs each target (all of `cargo fuzz list` when none is named) for SECONDS (default 60) with
-# `-max_total_time`, one after the other, and prints per target the executions, exec/s and crashes.
+# `-max_total_time`, one after the other, and prints per target the executions, exec/s, coverage
+# (libFuzzer's `cov` edges), the working corpus (inputs / size) and crashes.
 # Each target's working corpus is nodes/fuzz/corpus/<target>/, seeded from the stored corpus
 # tests/data/fuzz/<target>/ (which `cargo test` replays on stable); crashing inputs go to
 # nodes/fuzz/artifacts/<target>/. A long campaign: `launch_scripts/fuzz.sh 600`.
@@ -61,7 +62,11 @@ for target in "${TARGETS[@]}"; do
     rate=$(grep -oE 'stat::average_exec_per_sec: *[0-9]+' "$log" | awk '{ n += $2 } END { print n + 0 }')
     crashes=$(($(find "$artifacts" -type f | wc -l) - before))
     if [ "$rc" != 0 ] && [ "$crashes" = 0 ]; then crashes="? (exit $rc, see $log)"; fi
-    line=$(printf '%-26s executions %10s   exec/s %7s   crashes %s' "$target" "$execs" "$rate" "$crashes")
+    cov=$(grep -oE '(DONE|pulse|NEW|REDUCE) +cov: [0-9]+' "$log" | tail -1 | awk '{ print $3 }')
+    inputs=$(find "$corpus" -type f | wc -l)
+    size=$(du -sk "$corpus" | awk '{ print $1 }')
+    line=$(printf '%-24s executions %10s  exec/s %6s  cov %5s  corpus %5s inputs %6s kB  crashes %s' \
+        "$target" "$execs" "$rate" "${cov:-?}" "$inputs" "$size" "$crashes")
     echo "$line"
     SUMMARY+=("$line")
     if [ "$crashes" != 0 ]; then

@@ -1,11 +1,17 @@
 //! Writes the seed inputs of every fuzz target into `tests/data/fuzz/<target>/seed-*`: well-formed
-//! messages, requests, frames and files the nodes accept, made with the same encoders the nodes use,
-//! so the fuzzer starts from inputs that reach deep into each parser. Run from the repository root:
+//! messages, requests, frames, bags and files the nodes accept, made with the same encoders the
+//! nodes use (depth frames also cut from the recorded TUM fr1/xyz excerpt in `tests/data`), so the
+//! fuzzer starts from inputs that reach deep into each parser. Run from the repository root:
 //! `cargo run --manifest-path nodes/fuzz/Cargo.toml --example seed_corpus`.
 
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::{ensure, Context, Result};
+use patchwalk_bag::messages as bag;
+use patchwalk_bag::metadata::Qos;
+use patchwalk_bag::{BagWriter, Compression};
+use patchwalk_fusion::dataset::{test_data_dir, Dataset};
+use step_executor::action_file::{keyframes_to_page, page_name, Page};
 use nalgebra::{Vector2, Vector3};
 use patchwalk_dynamixel::protocol::{encode, encode_status, instruction, BROADCAST_ID};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
@@ -65,6 +71,126 @@ fn depth_m() -> Image {
     image
 }
 
+/// Frame `index` of the TUM fr1/xyz excerpt, every `stride`-th pixel (millimetres), its intrinsics
+/// scaled alike and the accelerometer sample nearest it; restamped at 1e9 s (the replay clock).
+fn tum_frame(index: usize, stride: usize) -> Result<(CameraInfo, Imu, Image)> {
+    let dataset = Dataset::open(&test_data_dir().join("tum_fr1_xyz"))?;
+    let depth = dataset.load_depth(index)?;
+    let (w, h) = (depth.width / stride, depth.height / stride);
+    let data = (0..h)
+        .flat_map(|v| (0..w).map(move |u| (u, v)))
+        .map(|(u, v)| depth.depth_m[v * stride * depth.width + u * stride])
+        .map(|d| if d.is_finite() { (f64::from(d) * 1000.0).round().clamp(0.0, 65535.0) as u16 } else { 0 })
+        .flat_map(u16::to_le_bytes)
+        .collect();
+    let t = dataset.frames[index].timestamp;
+    let sample = dataset
+        .accelerometer
+        .iter()
+        .min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()))
+        .context("the excerpt has no accelerometer samples")?;
+    let k = &dataset.intrinsics;
+    let scale = stride as f64;
+    let mut info = CameraInfo { width: w as u32, height: h as u32, ..Default::default() };
+    info.header.stamp = stamp();
+    info.k = [k.fx / scale, 0.0, k.cx / scale, 0.0, k.fy / scale, k.cy / scale, 0.0, 0.0, 1.0];
+    let mut imu = Imu::default();
+    imu.header.stamp = Time { sec: 999_999_999, nanosec: 990_000_000 };
+    let a = sample.acceleration_in_imu;
+    (imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z) = (a.x, a.y, a.z);
+    let mut image = Image { width: w as u32, height: h as u32, encoding: "16UC1".into(), step: 2 * w as u32, data, ..Default::default() };
+    image.header.stamp = stamp();
+    Ok((info, imu, image))
+}
+
+/// A bag of `frames` TUM frames (every 20th pixel: 32×24) on the replay topics, with IMU samples and
+/// ground-truth poses (PoseStamped, or TFMessage with the camera frame as child), as file bytes.
+fn tum_bag(frames: usize, compression: Compression, tf_groundtruth: bool) -> Result<Vec<u8>> {
+    let dataset = Dataset::open(&test_data_dir().join("tum_fr1_xyz"))?;
+    let dir = std::env::temp_dir().join(format!("patchwalk-seed-bag-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let path = dir.join("seed.mcap");
+    let _ = std::fs::remove_file(&path);
+    let mut writer = BagWriter::create(&path, compression)?;
+    let topics = patch_mapper::inputs::replay_bag_topics();
+    let info_topic = writer.add_topic::<bag::CameraInfo>(&topics.camera_info, Qos::SensorData)?;
+    let imu_topic = writer.add_topic::<bag::Imu>(&topics.imu, Qos::SensorData)?;
+    let depth_topic = writer.add_topic::<bag::Image>(&topics.depth, Qos::SensorData)?;
+    let frame_id = "camera_depth_optical_frame";
+    for index in 0..frames {
+        let (info, imu, image) = tum_frame(index, 20)?;
+        let t = dataset.frames[index].timestamp;
+        let stamp = bag::Time::from_seconds(t);
+        let log_time = (t * 1e9) as u64;
+        let header = bag::Header::new(stamp, frame_id);
+        let mut bag_info =
+            bag::CameraInfo { header: header.clone(), width: info.width, height: info.height, distortion_model: "plumb_bob".into(), ..Default::default() };
+        bag_info.k = info.k;
+        writer.write(info_topic, log_time, &bag_info)?;
+        let a = &imu.linear_acceleration;
+        let bag_imu = bag::Imu { header: header.clone(), linear_acceleration: bag::Vector3::new(a.x, a.y, a.z), ..Default::default() };
+        writer.write(imu_topic, log_time, &bag_imu)?;
+        let bag_image = bag::Image {
+            header: header.clone(),
+            width: image.width,
+            height: image.height,
+            encoding: image.encoding.clone(),
+            is_bigendian: 0,
+            step: image.step,
+            data: image.data.clone(),
+        };
+        writer.write(depth_topic, log_time, &bag_image)?;
+    }
+    let nearest = |t: f64| dataset.groundtruth.iter().min_by(|a, b| (a.timestamp - t).abs().total_cmp(&(b.timestamp - t).abs()));
+    if tf_groundtruth {
+        let gt_topic = writer.add_topic::<bag::TfMessage>(&topics.groundtruth, Qos::Reliable(10))?;
+        for index in 0..frames {
+            let t = dataset.frames[index].timestamp;
+            let pose = nearest(t).context("no ground truth")?;
+            let (p, q) = (pose.world_from_camera.translation.vector, pose.world_from_camera.rotation);
+            let transform = bag::TransformStamped {
+                header: bag::Header::new(bag::Time::from_seconds(t), "world"),
+                child_frame_id: frame_id.into(),
+                translation: bag::Vector3::new(p.x, p.y, p.z),
+                rotation: bag::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            };
+            writer.write(gt_topic, (t * 1e9) as u64, &bag::TfMessage { transforms: vec![transform] })?;
+        }
+    } else {
+        let gt_topic = writer.add_topic::<bag::PoseStamped>(&topics.groundtruth, Qos::Reliable(10))?;
+        for index in 0..frames {
+            let t = dataset.frames[index].timestamp;
+            let pose = nearest(t).context("no ground truth")?;
+            let (p, q) = (pose.world_from_camera.translation.vector, pose.world_from_camera.rotation);
+            let message = bag::PoseStamped {
+                header: bag::Header::new(bag::Time::from_seconds(t), "world"),
+                position: bag::Vector3::new(p.x, p.y, p.z),
+                orientation: bag::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+            };
+            writer.write(gt_topic, (t * 1e9) as u64, &message)?;
+        }
+    }
+    writer.finish()?;
+    let bytes = std::fs::read(&path)?;
+    std::fs::remove_dir_all(&dir)?;
+    Ok(bytes)
+}
+
+/// A page written by the exporter over an empty page: `steps` keyframes bending both knees.
+fn exported_page(steps: u32, move_s: f64, pause_s: f64) -> Result<Vec<u8>> {
+    let (map, limits) = step_executor::inputs::import_tables()?;
+    let keyframes: Vec<Keyframe> = (0..steps)
+        .map(|i| {
+            let mut positions = vec![0.05; 12];
+            positions[6] = 0.3 + 0.15 * f64::from(i);
+            positions[7] = 0.3 + 0.15 * f64::from(i);
+            Keyframe { positions, move_s, pause_s }
+        })
+        .collect();
+    let page = keyframes_to_page(&keyframes, &map, &limits, &Page::empty(), page_name("knee bend")?)?.page;
+    Ok([&[0u8][..], &page.to_bytes()].concat())
+}
+
 fn patch_msg(surface: u8, boundary: u8, curvatures: Vec<f64>, boundary_params: Vec<f64>) -> Patch {
     Patch {
         id: 1,
@@ -85,8 +211,38 @@ fn main() -> Result<()> {
     write(t, "camera_info", &selected(1, cdr(&camera_info())?))?;
     write(t, "imu", &selected(2, cdr(&imu())?))?;
 
+    let (tum_info, tum_imu, tum_image) = tum_frame(0, 10)?;
+    write(t, "tum_fr1_xyz_image_64x48", &selected(0, cdr(&tum_image)?))?;
+    write(t, "tum_fr1_xyz_camera_info", &selected(1, cdr(&tum_info)?))?;
+    write(t, "tum_fr1_xyz_imu", &selected(2, cdr(&tum_imu)?))?;
+
     let t = "pipeline_frame";
     write(t, "floor_16uc1", &patch_mapper::inputs::encode_pipeline_frame(&camera_info(), &imu(), &depth_mm())?)?;
+    let tum = patch_mapper::inputs::encode_pipeline_frame(&tum_info, &tum_imu, &tum_image)?;
+    ensure!(patch_mapper::inputs::pipeline_frame(&tum).is_ok(), "the TUM frame must run through the pipeline");
+    write(t, "tum_fr1_xyz_64x48", &tum)?;
+
+    let t = "mcap_bag";
+    for (name, frames, compression, tf) in [
+        ("tum_fr1_xyz_zstd", 3, Compression::Zstd, false),
+        ("tum_fr1_xyz_lz4_tf", 2, Compression::Lz4, true),
+        ("tum_fr1_xyz_uncompressed", 2, Compression::None, false),
+    ] {
+        let bytes = tum_bag(frames, compression, tf)?;
+        let summary = patch_mapper::inputs::bag(&bytes)?;
+        ensure!(summary.frames == frames && summary.skipped == 0, "{name}: {summary:?}");
+        write(t, name, &bytes)?;
+    }
+
+    let t = "action_page";
+    for (name, steps, move_s, pause_s) in [("knee_bend_3", 3, 0.4, 0.1), ("knee_bend_7_slow", 7, 1.2, 0.5), ("one_step", 1, 0.2, 0.0)] {
+        let bytes = exported_page(steps, move_s, pause_s)?;
+        ensure!(step_executor::inputs::action_page(&bytes)?.keyframes == steps as usize, "{name}");
+        write(t, name, &bytes)?;
+    }
+    let mut empty = Page::empty().to_bytes().to_vec();
+    empty.insert(0, 1);
+    write(t, "empty_page", &empty)?;
 
     let t = "cdr_patch_array";
     let mut map = PatchArray::default();

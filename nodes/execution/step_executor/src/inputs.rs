@@ -1,7 +1,7 @@
 //! The node's inputs as bytes: entry points that take what arrives from the world — a serialized
 //! patch map or service request (encapsulation header + CDR, decoded by
 //! [`patchwalk_ros::wire::decode`], the decoder of the node's endpoints), the motion library file,
-//! the configuration file — and run the node's checks on it, without ROS or a servo bus. The fuzz
+//! the configuration file, a page of a ROBOTIS action file — and run the node's checks on it, without ROS or a servo bus. The fuzz
 //! targets of `nodes/fuzz` call them, and the regression tests replay every stored input of
 //! `tests/data/fuzz/` through them.
 //!
@@ -13,12 +13,14 @@ use std::sync::OnceLock;
 
 use nalgebra::{Vector2, Vector3};
 use patchwalk_msgs::msg::PatchArray;
+use patchwalk_robot_model::kinematics::{JointLimits, RobotModel};
 use patchwalk_msgs::srv;
 use patchwalk_ros::params::ParamError;
 use patchwalk_ros::patch_msg::{self, PatchMsgError};
 use patchwalk_ros::wire::{self, WireError};
 use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
 
+use crate::action_file::{self, ExportError, IdMap, IdMapError, ImportError, PageError};
 use crate::config::{ConfigError, StepExecutorConfig};
 use crate::library::{Keyframe, LibraryError, Motion, MotionLibrary};
 use crate::runtime::{CommandError, Runtime};
@@ -44,6 +46,16 @@ pub enum InputError {
     Config(#[from] ConfigError),
     #[error("the replay runtime could not be built: {0}")]
     Runtime(String),
+    #[error(transparent)]
+    Page(#[from] PageError),
+    #[error("the parsed page does not write back byte for byte")]
+    PageRoundTrip,
+    #[error(transparent)]
+    Import(#[from] ImportError),
+    #[error(transparent)]
+    IdMap(#[from] IdMapError),
+    #[error("the robot model: {0}")]
+    Model(String),
 }
 
 /// The services whose request [`service_request`] takes, by selector byte.
@@ -142,6 +154,71 @@ pub fn split_config_input(bytes: &[u8]) -> (String, Vec<String>) {
     let mut parts = bytes.split(|b| *b == 0).map(|part| String::from_utf8_lossy(part).into_owned());
     let text = parts.next().unwrap_or_default();
     (text, parts.collect())
+}
+
+/// What a page of an action file gave.
+#[derive(Debug)]
+pub struct PageOutcome {
+    /// Keyframes imported from the page.
+    pub keyframes: usize,
+    /// The imported keyframes written back as a page ([`action_file::keyframes_to_page`] over the
+    /// page itself) and imported again: the largest joint angle difference (rad), or why the export
+    /// refused them.
+    pub reexport: Result<f64, ExportError>,
+}
+
+/// One ROBOTIS action file page as `step_executor import-motion` reads it: the page's 512 bytes
+/// follow byte 0, whose bit 0 set means "put the right checksum in first" (so a fuzzer gets past the
+/// checksum to the page's fields). Parsed ([`action_file::parse_page`], which must write it back
+/// byte for byte), converted to keyframes with DARwIn-OP's leg IDs and the built-in robot model's
+/// joint limits (the default configuration's margin), and those exported again over the page.
+pub fn action_page(bytes: &[u8]) -> Result<PageOutcome, InputError> {
+    let (&flags, page_bytes) = bytes.split_first().ok_or(InputError::Empty)?;
+    let mut page_bytes = page_bytes.to_vec();
+    if flags & 1 == 1 {
+        if let Ok(fixed) = <&mut [u8; action_file::PAGE_BYTES]>::try_from(page_bytes.as_mut_slice()) {
+            fixed[31] = action_file::page::checksum_for(fixed);
+        }
+    }
+    let page = action_file::parse_page(&page_bytes)?;
+    if page.to_bytes()[..] != page_bytes[..] {
+        return Err(InputError::PageRoundTrip);
+    }
+    let (map, limits) = import_tables()?;
+    let imported = action_file::page_to_keyframes(&page, &map, &limits)?;
+    let reexport = action_file::keyframes_to_page(&imported.keyframes, &map, &limits, &page, page.name).map(|exported| {
+        match action_file::page_to_keyframes(&exported.page, &map, &limits) {
+            Ok(again) => imported
+                .keyframes
+                .iter()
+                .zip(&again.keyframes)
+                .flat_map(|(a, b)| a.positions.iter().zip(&b.positions).map(|(x, y)| (x - y).abs()))
+                .chain((again.keyframes.len() != imported.keyframes.len()).then_some(f64::INFINITY))
+                .fold(0.0, f64::max),
+            Err(_) => f64::INFINITY,
+        }
+    });
+    Ok(PageOutcome { keyframes: imported.keyframes.len(), reexport })
+}
+
+/// The ID table and joint limits [`action_page`] imports with: DARwIn-OP's leg IDs in the default
+/// configuration's joint order, the built-in robot model's limits narrowed by the player's margin
+/// (as `import-motion` without options).
+pub fn import_tables() -> Result<(IdMap, Vec<JointLimits>), InputError> {
+    let config = StepExecutorConfig::default();
+    let joints = config.joint_names();
+    let map = IdMap::for_joints(&IdMap::darwin_op_legs(), &joints)?;
+    let model = RobotModel::from_urdf_str(patchwalk_robot_model::RPBP_URDF).map_err(|e| InputError::Model(e.to_string()))?;
+    let margin = config.player.limit_margin_rad;
+    let limits = joints
+        .iter()
+        .map(|joint| match model.joint_limits(joint) {
+            Ok(Some(l)) => Ok(JointLimits { lower: l.lower + margin, upper: l.upper - margin }),
+            Ok(None) => Err(InputError::Model(format!("joint {joint:?} has no position limits"))),
+            Err(e) => Err(InputError::Model(e.to_string())),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((map, limits))
 }
 
 /// A runtime as the node builds it (default configuration, the built-in robot model), without a

@@ -4,6 +4,7 @@
 //! targets of `nodes/fuzz` call them, and the regression tests replay every stored input of
 //! `tests/data/fuzz/` through them, so an input that once crashed the node stays a test.
 
+use patchwalk_bag::BagReader;
 use patchwalk_fusion::camera::Intrinsics;
 use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfig, PipelineError, StampWindow};
@@ -11,6 +12,7 @@ use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu};
 use patchwalk_ros::wire::{self, WireError};
 
+use crate::bag_input::{BagInput, BagInputError, BagTopics};
 use crate::convert::{self, CameraInfoError, ImageError, ImuError};
 
 /// The node clock the replayed inputs are checked against (s): stamps are judged by
@@ -48,6 +50,8 @@ pub enum InputError {
     Budget { pixels: usize },
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    #[error(transparent)]
+    Bag(#[from] BagInputError),
 }
 
 /// What one sensor message turned into.
@@ -134,6 +138,53 @@ pub fn encode_pipeline_frame(info: &CameraInfo, imu: &Imu, image: &Image) -> Res
     }
     bytes.extend_from_slice(&wire::encode(image)?);
     Ok(bytes)
+}
+
+/// The topics [`bag`] reads: `patch_mapper replay`'s defaults (the node's topics in the root
+/// namespace and `/groundtruth`).
+pub fn replay_bag_topics() -> BagTopics {
+    BagTopics {
+        depth: "/camera/depth/image_raw".into(),
+        camera_info: "/camera/depth/camera_info".into(),
+        imu: "/imu/data".into(),
+        groundtruth: "/groundtruth".into(),
+    }
+}
+
+/// What `patch_mapper replay` would get from a bag.
+#[derive(Debug)]
+pub struct BagSummary {
+    /// Depth frames decoded by the second pass.
+    pub frames: usize,
+    pub imu_samples: usize,
+    pub groundtruth_poses: usize,
+    /// Messages skipped (each named by topic and index).
+    pub skipped: usize,
+    /// The file could not be read to its end.
+    pub broken: bool,
+}
+
+/// An MCAP file's bytes through the bag reader of `patch_mapper replay` ([`BagReader::from_bytes`],
+/// [`BagInput`]) with [`replay_bag_topics`]: the first pass checks every message, the second
+/// decodes every good depth frame.
+pub fn bag(bytes: &[u8]) -> Result<BagSummary, InputError> {
+    let input = BagInput::from_reader(BagReader::from_bytes("input.mcap", bytes), replay_bag_topics())?;
+    let mut frames = 0;
+    let mut skipped = input.errors.len();
+    let streamed = input.stream_depth(input.frames.len(), |_, depth| {
+        match depth {
+            Ok(_) => frames += 1,
+            Err(_) => skipped += 1,
+        }
+        true
+    });
+    Ok(BagSummary {
+        frames,
+        imu_samples: input.accelerometer.len(),
+        groundtruth_poses: input.groundtruth.len(),
+        skipped,
+        broken: input.broken.is_some() || streamed.is_err(),
+    })
 }
 
 /// A stamp in seconds, refused outside [`StampWindow::default`] around [`REPLAY_NOW_S`].

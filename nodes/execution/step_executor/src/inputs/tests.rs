@@ -110,3 +110,52 @@ fn stored_params_inputs_are_handled() {
     }
     assert!(loaded > 0, "config/step_executor.yaml must load");
 }
+
+/// A three-step page written by the exporter over an empty page (knees bent a little more each step).
+fn exported_page() -> Vec<u8> {
+    let (map, limits) = import_tables().unwrap();
+    let keyframes: Vec<Keyframe> = (0..3)
+        .map(|i| {
+            let mut positions = vec![0.0; 12];
+            positions[6] = 0.3 + 0.1 * f64::from(i);
+            positions[7] = 0.3 + 0.1 * f64::from(i);
+            Keyframe { positions, move_s: 0.4, pause_s: 0.1 }
+        })
+        .collect();
+    let name = action_file::page_name("step up").unwrap();
+    action_file::keyframes_to_page(&keyframes, &map, &limits, &action_file::Page::empty(), name).unwrap().page.to_bytes().to_vec()
+}
+
+#[test]
+fn action_pages_import_and_export_again_within_a_tick() {
+    let page = exported_page();
+    let outcome = action_page(&[&[0u8][..], &page].concat()).unwrap();
+    assert_eq!(outcome.keyframes, 3);
+    let error = outcome.reexport.unwrap();
+    assert!(error <= std::f64::consts::TAU / 4096.0, "{error}");
+    // One position tick changed: the checksum refuses it, unless byte 0 asks to fix it first.
+    let mut changed = page.clone();
+    changed[64 + 2 * 7] ^= 1;
+    assert!(matches!(action_page(&[&[0u8][..], &changed].concat()), Err(InputError::Page(PageError::Checksum { .. }))));
+    assert_eq!(action_page(&[&[1u8][..], &changed].concat()).unwrap().keyframes, 3);
+    assert!(matches!(action_page(&[1, 2, 3]), Err(InputError::Page(PageError::Length(2)))));
+    assert!(matches!(action_page(&[]), Err(InputError::Empty)));
+}
+
+#[test]
+fn stored_action_page_inputs_are_handled() {
+    let mut imported = 0;
+    for (path, bytes) in stored_inputs("action_page") {
+        match action_page(&bytes) {
+            Ok(outcome) => {
+                imported += 1;
+                if let Ok(error) = outcome.reexport {
+                    assert!(error <= std::f64::consts::TAU / 4096.0 * 1.01, "{}: re-export {error} rad off", path.display());
+                }
+            }
+            Err(InputError::PageRoundTrip) => panic!("{}: the page does not write back byte for byte", path.display()),
+            Err(e) => assert!(!e.to_string().is_empty(), "{}", path.display()),
+        }
+    }
+    assert!(imported > 0, "the seed pages must import");
+}

@@ -96,3 +96,66 @@ fn stored_pipeline_frame_inputs_are_handled() {
     }
     assert!(accepted > 0, "the seed frame must run through the pipeline");
 }
+
+/// A two-frame bag on the replay topics (CameraInfo, IMU, depth, ground truth), as an MCAP file's bytes.
+fn tiny_bag(compression: patchwalk_bag::Compression) -> Vec<u8> {
+    use patchwalk_bag::messages as bag;
+    use patchwalk_bag::metadata::Qos;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tiny.mcap");
+    let mut writer = patchwalk_bag::BagWriter::create(&path, compression).unwrap();
+    let topics = replay_bag_topics();
+    let info_topic = writer.add_topic::<bag::CameraInfo>(&topics.camera_info, Qos::SensorData).unwrap();
+    let imu_topic = writer.add_topic::<bag::Imu>(&topics.imu, Qos::SensorData).unwrap();
+    let depth_topic = writer.add_topic::<bag::Image>(&topics.depth, Qos::SensorData).unwrap();
+    let pose_topic = writer.add_topic::<bag::PoseStamped>(&topics.groundtruth, Qos::Reliable(10)).unwrap();
+    let (width, height) = (8u32, 6u32);
+    for frame in 0..2u32 {
+        let stamp = bag::Time { sec: 100, nanosec: frame * 33_000_000 };
+        let t = stamp.nanos() as u64;
+        let header = bag::Header::new(stamp, "camera_depth_optical_frame");
+        let mut info = bag::CameraInfo { header: header.clone(), width, height, ..Default::default() };
+        info.k = [7.0, 0.0, 3.5, 0.0, 7.0, 2.5, 0.0, 0.0, 1.0];
+        writer.write(info_topic, t, &info).unwrap();
+        let imu = bag::Imu { header: header.clone(), linear_acceleration: bag::Vector3::new(0.0, 9.81, 0.0), ..Default::default() };
+        writer.write(imu_topic, t, &imu).unwrap();
+        let data = (0..width * height).flat_map(|i| (800 + i as u16).to_le_bytes()).collect();
+        let image = bag::Image { header: header.clone(), width, height, encoding: "16UC1".into(), is_bigendian: 0, step: 2 * width, data };
+        writer.write(depth_topic, t, &image).unwrap();
+        writer.write(pose_topic, t, &bag::PoseStamped { header, ..Default::default() }).unwrap();
+    }
+    writer.finish().unwrap();
+    std::fs::read(&path).unwrap()
+}
+
+#[test]
+fn a_bag_in_memory_reads_as_replay_reads_it() {
+    for compression in [patchwalk_bag::Compression::Zstd, patchwalk_bag::Compression::None] {
+        let bytes = tiny_bag(compression);
+        let summary = bag(&bytes).unwrap();
+        assert_eq!(
+            (summary.frames, summary.imu_samples, summary.groundtruth_poses, summary.skipped, summary.broken),
+            (2, 2, 2, 0, false),
+            "{compression:?}"
+        );
+        // Cut in its data section: nothing usable before the cut, or the frames before it.
+        match bag(&bytes[..bytes.len() / 2]) {
+            Ok(summary) => assert!(summary.broken && summary.frames < 2, "{summary:?}"),
+            Err(e) => assert!(e.to_string().contains("input.mcap"), "{e}"),
+        }
+    }
+    let err = bag(b"not an mcap file").unwrap_err().to_string();
+    assert!(err.contains("input.mcap: not a readable MCAP file"), "{err}");
+}
+
+#[test]
+fn stored_bag_inputs_are_handled() {
+    let mut accepted = 0;
+    for (path, bytes) in stored_inputs("mcap_bag") {
+        match bag(&bytes) {
+            Ok(_) => accepted += 1,
+            Err(e) => assert!(!e.to_string().is_empty(), "{}", path.display()),
+        }
+    }
+    assert!(accepted > 0, "the seed bags must be read");
+}

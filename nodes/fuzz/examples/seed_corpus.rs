@@ -7,13 +7,12 @@
 use std::path::Path;
 
 use anyhow::{ensure, Context, Result};
+use nalgebra::{Vector2, Vector3};
 use patchwalk_bag::messages as bag;
 use patchwalk_bag::metadata::Qos;
 use patchwalk_bag::{BagWriter, Compression};
-use patchwalk_fusion::dataset::{test_data_dir, Dataset};
-use step_executor::action_file::{keyframes_to_page, page_name, Page};
-use nalgebra::{Vector2, Vector3};
 use patchwalk_dynamixel::protocol::{encode, encode_status, instruction, BROADCAST_ID};
+use patchwalk_fusion::dataset::{test_data_dir, Dataset};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
 use patchwalk_msgs::geometry_msgs::msg::Point;
 use patchwalk_msgs::msg::{Patch, PatchArray};
@@ -21,6 +20,7 @@ use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu};
 use patchwalk_msgs::srv;
 use patchwalk_ros::wire::encode as cdr;
 use patchwalk_spl::patch::{BoundaryType, Patch as SplPatch, SurfaceType};
+use step_executor::action_file::{keyframes_to_page, page_name, Page};
 use step_executor::library::{Keyframe, Motion, MotionLibrary};
 
 fn write(target: &str, name: &str, bytes: &[u8]) -> Result<()> {
@@ -123,8 +123,13 @@ fn tum_bag(frames: usize, compression: Compression, tf_groundtruth: bool) -> Res
         let stamp = bag::Time::from_seconds(t);
         let log_time = (t * 1e9) as u64;
         let header = bag::Header::new(stamp, frame_id);
-        let mut bag_info =
-            bag::CameraInfo { header: header.clone(), width: info.width, height: info.height, distortion_model: "plumb_bob".into(), ..Default::default() };
+        let mut bag_info = bag::CameraInfo {
+            header: header.clone(),
+            width: info.width,
+            height: info.height,
+            distortion_model: "plumb_bob".into(),
+            ..Default::default()
+        };
         bag_info.k = info.k;
         writer.write(info_topic, log_time, &bag_info)?;
         let a = &imu.linear_acceleration;

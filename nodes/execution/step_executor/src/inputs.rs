@@ -13,8 +13,8 @@ use std::sync::OnceLock;
 
 use nalgebra::{Vector2, Vector3};
 use patchwalk_msgs::msg::PatchArray;
-use patchwalk_robot_model::kinematics::{JointLimits, RobotModel};
 use patchwalk_msgs::srv;
+use patchwalk_robot_model::kinematics::{JointLimits, RobotModel};
 use patchwalk_ros::params::ParamError;
 use patchwalk_ros::patch_msg::{self, PatchMsgError};
 use patchwalk_ros::wire::{self, WireError};

@@ -7,7 +7,8 @@
 #
 # Environment: PATCHWALK_VENV (default .venv), PATCHWALK_PYTHON (interpreter for the venv),
 # PATCHWALK_PYTEST_ARGS (extra pytest arguments), PATCHWALK_SKIP_RUST=1 / PATCHWALK_SKIP_PYTHON=1,
-# PATCHWALK_NETNS=1 (rclpy tests inside `unshare -n`: a network namespace with only loopback).
+# PATCHWALK_NETNS=1 (rclpy tests inside `unshare -n`: a network namespace with only loopback),
+# PATCHWALK_FUZZ_SECONDS=N (also fuzz each target N s, nightly), PATCHWALK_SKIP_FUZZ=1.
 set -uo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -120,6 +121,29 @@ if [ "${PATCHWALK_SKIP_RUST:-0}" != 1 ]; then
         grep -E '^(error|warning)' -A6 "$LOG_DIR/clippy.log" | head -60
         echo "test.sh: clippy found problems (log: $LOG_DIR/clippy.log)"
         RUST_FAILED=$((RUST_FAILED + 1))
+    fi
+fi
+
+# --- 5b. fuzz smoke (nodes/fuzz, launch_scripts/fuzz.sh) -----------------------------------------------
+# Replay mode (default): every stored input of every fuzz target (tests/data/fuzz/<target>/: seeds and
+# the inputs that once crashed) ran above through the normal build, as the `stored_*_inputs_are_handled`
+# cargo tests; building the fuzz targets with nightly and libFuzzer instrumentation compiles the whole
+# dependency tree a second time, more than a CI run should spend on a smoke. PATCHWALK_FUZZ_SECONDS=N
+# (N > 0) also runs each target N s with launch_scripts/fuzz.sh (needs the nightly toolchain);
+# PATCHWALK_SKIP_FUZZ=1 skips the block.
+if [ "${PATCHWALK_SKIP_RUST:-0}" != 1 ] && [ "${PATCHWALK_SKIP_FUZZ:-0}" != 1 ]; then
+    FUZZ_TARGETS=$(find "$REPO/tests/data/fuzz" -mindepth 1 -maxdepth 1 -type d | wc -l)
+    FUZZ_INPUTS=$(find "$REPO/tests/data/fuzz" -type f | wc -l)
+    FUZZ_REPLAYED=$(grep -cE '(PASS .*stored_[a-z_]+_inputs_[a-z_]+$|stored_[a-z_]+_inputs_[a-z_]+ \.\.\. ok$)' "$LOG_DIR/rust.log" 2>/dev/null)
+    log "fuzz smoke: replay mode ($FUZZ_INPUTS stored inputs of $FUZZ_TARGETS targets replayed by $FUZZ_REPLAYED cargo tests above)"
+    if [ "${PATCHWALK_FUZZ_SECONDS:-0}" -gt 0 ] 2>/dev/null; then
+        log "fuzz smoke: fuzzing mode, launch_scripts/fuzz.sh ${PATCHWALK_FUZZ_SECONDS} (nightly, libFuzzer)"
+        if ! "$REPO/launch_scripts/fuzz.sh" "$PATCHWALK_FUZZ_SECONDS" >"$LOG_DIR/fuzz.log" 2>&1; then
+            tail -30 "$LOG_DIR/fuzz.log"
+            echo "test.sh: the fuzz smoke found a crash or did not build (log: $LOG_DIR/fuzz.log)"
+            RUST_FAILED=$((RUST_FAILED + 1))
+        fi
+        grep -A20 '^fuzz.sh summary' "$LOG_DIR/fuzz.log"
     fi
 fi
 

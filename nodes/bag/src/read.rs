@@ -1,12 +1,13 @@
 //! Reading a bag: every message of a `.mcap` file (or of the files a bag directory's
-//! `metadata.yaml` lists), in file order, streamed from disk (chunks are decompressed one at a
-//! time), with its topic, schema and per-topic index; decoding checks the channel's encodings and
-//! schema name before the CDR.
+//! `metadata.yaml` lists, or of an MCAP file's bytes already in memory), in file order, streamed
+//! (chunks are decompressed one at a time), with its topic, schema and per-topic index; decoding
+//! checks the channel's encodings and schema name before the CDR.
 
 use std::collections::HashMap;
 use std::io::Read;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use mcap::records::Record;
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
@@ -82,11 +83,13 @@ impl BagMessage<'_> {
     }
 }
 
-/// A bag on disk: one `.mcap` file, or a rosbag2 directory with `metadata.yaml`.
+/// A bag on disk (one `.mcap` file, or a rosbag2 directory with `metadata.yaml`) or in memory.
 #[derive(Debug, Clone)]
 pub struct BagReader {
     path: PathBuf,
     files: Vec<PathBuf>,
+    /// The MCAP file's bytes, for a bag read from memory ([`BagReader::from_bytes`]).
+    memory: Option<Arc<[u8]>>,
 }
 
 struct Schema {
@@ -105,7 +108,7 @@ impl BagReader {
     pub fn open(path: &Path) -> Result<Self, BagError> {
         let layout = |reason: String| BagError::Layout { path: path.to_path_buf(), reason };
         if path.is_file() {
-            return Ok(Self { path: path.to_path_buf(), files: vec![path.to_path_buf()] });
+            return Ok(Self { path: path.to_path_buf(), files: vec![path.to_path_buf()], memory: None });
         }
         let metadata_path = path.join("metadata.yaml");
         if !metadata_path.is_file() {
@@ -125,14 +128,20 @@ impl BagReader {
             return Err(BagError::Layout { path: metadata_path, reason: "relative_file_paths is empty".into() });
         }
         let files = info.relative_file_paths.iter().map(|file| path.join(file)).collect();
-        Ok(Self { path: path.to_path_buf(), files })
+        Ok(Self { path: path.to_path_buf(), files, memory: None })
+    }
+
+    /// A bag whose MCAP file is `bytes` (received, or read by the caller); `name` stands for its
+    /// path in errors. Read exactly as a file of these bytes.
+    pub fn from_bytes(name: &str, bytes: impl Into<Arc<[u8]>>) -> Self {
+        Self { path: PathBuf::from(name), files: Vec::new(), memory: Some(bytes.into()) }
     }
 
     pub fn path(&self) -> &Path {
         &self.path
     }
 
-    /// The MCAP files, in order.
+    /// The MCAP files, in order (none for a bag in memory).
     pub fn files(&self) -> &[PathBuf] {
         &self.files
     }
@@ -142,6 +151,9 @@ impl BagReader {
     /// file), after visiting the messages before it.
     pub fn for_each(&self, mut visit: impl FnMut(&BagMessage<'_>) -> ControlFlow<()>) -> Result<(), BagError> {
         let mut counts: HashMap<String, usize> = HashMap::new();
+        if let Some(bytes) = &self.memory {
+            return read_mcap(&self.path, &bytes[..], bytes.len() as u64, &mut counts, &mut visit).map(|_| ());
+        }
         for file in &self.files {
             if read_file(file, &mut counts, &mut visit)?.is_break() {
                 break;
@@ -156,12 +168,23 @@ fn read_file(
     counts: &mut HashMap<String, usize>,
     visit: &mut impl FnMut(&BagMessage<'_>) -> ControlFlow<()>,
 ) -> Result<ControlFlow<()>, BagError> {
+    let file = std::fs::File::open(path).map_err(|source| BagError::Io { path: path.to_path_buf(), source })?;
+    let file_len = file.metadata().map(|m| m.len()).unwrap_or(0);
+    read_mcap(path, file, file_len, counts, visit)
+}
+
+/// The messages of one MCAP file of `file_len` bytes read from `file` (`path` names it in errors).
+fn read_mcap(
+    path: &Path,
+    mut file: impl Read,
+    file_len: u64,
+    counts: &mut HashMap<String, usize>,
+    visit: &mut impl FnMut(&BagMessage<'_>) -> ControlFlow<()>,
+) -> Result<ControlFlow<()>, BagError> {
     let mcap_error = |source| BagError::Mcap { path: path.to_path_buf(), source };
     let layout = |reason: String| BagError::Layout { path: path.to_path_buf(), reason };
-    let mut file = std::fs::File::open(path).map_err(|source| BagError::Io { path: path.to_path_buf(), source })?;
     // A corrupt length field must not make the reader allocate it: no record is longer than the
     // file, or than 1 GiB where a compressed chunk holds more than the file's size.
-    let file_len = file.metadata().map(|m| m.len()).unwrap_or(0);
     let limit = usize::try_from(file_len).unwrap_or(usize::MAX).max(MAX_RECORD_IN_CHUNK);
     let mut reader = LinearReader::new_with_options(LinearReaderOptions::default().with_record_length_limit(limit));
     let mut schemas: HashMap<u16, Schema> = HashMap::new();
@@ -274,6 +297,23 @@ mod tests {
             let header = mcap::read::LinearReader::new(&bytes).unwrap().next().unwrap().unwrap();
             assert!(matches!(header, mcap::records::Record::Header(h) if h.profile == "ros2"), "{compression:?}");
         }
+    }
+
+    #[test]
+    fn bytes_in_memory_read_as_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.mcap");
+        let mut writer = BagWriter::create(&path, Compression::Zstd).unwrap();
+        write_bag(&mut writer);
+        writer.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let from_file = collect(&BagReader::open(&path).unwrap()).unwrap();
+        let memory = BagReader::from_bytes("received.mcap", bytes.clone());
+        assert!(memory.files().is_empty());
+        assert_eq!(collect(&memory).unwrap(), from_file);
+        let cut = BagReader::from_bytes("received.mcap", &bytes[..bytes.len() / 2]);
+        let error = collect(&cut).unwrap_err();
+        assert!(error.to_string().starts_with("received.mcap: "), "{error}");
     }
 
     #[test]

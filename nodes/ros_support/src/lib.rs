@@ -20,6 +20,7 @@
 //! - [`diagnostics`]: `/diagnostics` (REP-107) statuses and arrays.
 //! - [`rosout`]: the node's log lines on `/rosout` (`rcl_interfaces/msg/Log`).
 //! - [`clock`]: the node clock (wall, or `/clock` with `use_sim_time`) and a `/clock` publisher.
+//! - [`wire`]: a serialized payload (encapsulation header + CDR) decoded as the nodes' readers decode it.
 //!
 //! The `patchwalk_interface_echo` binary republishes every patchwalk_msgs type, for wire checks
 //! against other ROS 2 implementations.
@@ -40,3 +41,4 @@ pub mod share;
 pub mod tf;
 pub mod tf_buffer;
 pub mod wait;
+pub mod wire;

@@ -68,6 +68,23 @@ pub fn load_node_config<T: DeserializeOwned>(
         let layer = read_layer(path, node_fqn)?;
         merge(&mut root, layer);
     }
+    let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+    let origin = match names.is_empty() {
+        false => format!("{} with {} override(s)", names.join(", "), overrides.len()),
+        true => format!("embedded defaults with {} override(s)", overrides.len()),
+    };
+    finish(root, overrides, origin)
+}
+
+/// [`load_config`] of a file's text already read (`path` names it in errors): the same parsing (plain
+/// or ROS 2 format, every block applying), overrides and checks.
+pub fn load_config_from_str<T: DeserializeOwned>(text: &str, path: &Path, overrides: &[String]) -> Result<T, ParamError> {
+    let root = layer_of(mapping_from_text(text, path)?, path, None)?;
+    Ok(finish(root, overrides, format!("{} with {} override(s)", path.display(), overrides.len()))?.config)
+}
+
+/// Apply `overrides` to the merged files' `root`, take `use_sim_time` out and deserialize `T`.
+fn finish<T: DeserializeOwned>(mut root: Mapping, overrides: &[String], origin: String) -> Result<NodeConfig<T>, ParamError> {
     for text in overrides {
         apply_override(&mut root, text)?;
     }
@@ -77,11 +94,6 @@ pub fn load_node_config<T: DeserializeOwned>(
         Some(other) => {
             return Err(ParamError::BadUseSimTime { value: serde_yaml_ng::to_string(&other).unwrap_or_default().trim().to_string() })
         }
-    };
-    let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
-    let origin = match names.is_empty() {
-        false => format!("{} with {} override(s)", names.join(", "), overrides.len()),
-        true => format!("embedded defaults with {} override(s)", overrides.len()),
     };
     // Through text so the deserializer's errors carry the dotted path of the offending key.
     let merged =
@@ -115,7 +127,11 @@ fn is_ros_format(root: &Mapping) -> bool {
 
 /// The parameters `path` holds for the node (`None`: every block).
 fn read_layer(path: &Path, node_fqn: Option<&str>) -> Result<Mapping, ParamError> {
-    let root = read_mapping(path)?;
+    layer_of(read_mapping(path)?, path, node_fqn)
+}
+
+/// The parameters a file's top-level mapping `root` holds for the node (`None`: every block).
+fn layer_of(root: Mapping, path: &Path, node_fqn: Option<&str>) -> Result<Mapping, ParamError> {
     if !is_ros_format(&root) {
         return Ok(root);
     }
@@ -184,7 +200,11 @@ pub fn load_config<T: DeserializeOwned>(path: Option<&Path>, overrides: &[String
 
 fn read_mapping(path: &Path) -> Result<Mapping, ParamError> {
     let text = std::fs::read_to_string(path).map_err(|source| ParamError::Read { path: path.to_path_buf(), source })?;
-    let value: Value = serde_yaml_ng::from_str(&text).map_err(|source| ParamError::Yaml { path: path.to_path_buf(), source })?;
+    mapping_from_text(&text, path)
+}
+
+fn mapping_from_text(text: &str, path: &Path) -> Result<Mapping, ParamError> {
+    let value: Value = serde_yaml_ng::from_str(text).map_err(|source| ParamError::Yaml { path: path.to_path_buf(), source })?;
     match value {
         Value::Mapping(mapping) => Ok(mapping),
         // An empty file (or one with only comments) means "all defaults".

@@ -132,6 +132,8 @@ pub enum FrameError {
     Crc { id: u8, received: u16, computed: u16 },
     #[error("packet for id {id}: invalid length {length}")]
     Length { id: u8, length: usize },
+    #[error("packet for id {id}: re-encoding it does not give the same packet")]
+    RoundTrip { id: u8 },
 }
 
 /// Incremental parser over a byte stream (skips garbage before a header).
@@ -192,6 +194,37 @@ impl PacketParser {
     }
 }
 
+/// What a master makes of a received byte stream: byte 0 sets the size of the chunks the rest is fed
+/// in (1 + byte 0 % 64, as reads from a serial port split a stream anywhere), and every packet or
+/// framing error the parser yields, in order. A parsed packet must survive re-encoding: encoding it
+/// again and parsing that gives the same packet (a [`FrameError::RoundTrip`] otherwise).
+pub fn parse_stream(bytes: &[u8]) -> Vec<Result<Packet, FrameError>> {
+    let Some((&chunking, stream)) = bytes.split_first() else { return Vec::new() };
+    let mut parser = PacketParser::new();
+    let mut out = Vec::new();
+    for chunk in stream.chunks(1 + usize::from(chunking % 64)) {
+        parser.feed(chunk);
+        while let Some(frame) = parser.next_packet() {
+            out.push(frame.and_then(|packet| check_round_trip(&packet).map(|()| packet)));
+        }
+    }
+    out
+}
+
+/// Encode `packet` as a device or master would and parse it back.
+fn check_round_trip(packet: &Packet) -> Result<(), FrameError> {
+    let bytes = match (packet.instruction, packet.params.split_first()) {
+        (instruction::STATUS, Some((&error, data))) => encode_status(packet.id, error, data),
+        _ => encode(packet.id, packet.instruction, &packet.params),
+    };
+    let mut parser = PacketParser::new();
+    parser.feed(&bytes);
+    match parser.next_packet() {
+        Some(Ok(back)) if back == *packet => Ok(()),
+        _ => Err(FrameError::RoundTrip { id: packet.id }),
+    }
+}
+
 /// Position of the first (possibly partial, at the end) header prefix.
 fn find_header(buffer: &[u8]) -> usize {
     (0..buffer.len())
@@ -205,6 +238,23 @@ fn find_header(buffer: &[u8]) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every file of `tests/data/fuzz/<target>/` (a missing directory is a failure: the corpus is
+    /// part of the repository).
+    fn stored_inputs(target: &str) -> Vec<(std::path::PathBuf, Vec<u8>)> {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz").join(target);
+        let mut inputs: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+            .map(|entry| entry.unwrap().path())
+            .map(|path| {
+                let bytes = std::fs::read(&path).unwrap();
+                (path, bytes)
+            })
+            .collect();
+        inputs.sort();
+        assert!(!inputs.is_empty(), "no stored inputs in {}", dir.display());
+        inputs
+    }
 
     #[test]
     fn crc_of_manual_ping_example() {
@@ -262,5 +312,31 @@ mod tests {
         parser.feed(&[0xFF, 0xFF, 0xFD, 0x00, 0x01, 0x01, 0x00, 0x01]);
         assert!(matches!(parser.next_packet(), Some(Err(FrameError::Length { .. }))));
         assert!(parser.next_packet().is_none());
+    }
+
+    #[test]
+    fn streams_in_any_chunking_give_the_same_packets() {
+        let mut stream = vec![0x42, 0xFF];
+        stream.extend(encode_status(1, 0, &[0x06, 0x04, 0x26]));
+        stream.extend(encode_status(2, status_error::ALERT, &[0xFF, 0xFF, 0xFD, 0x01]));
+        let whole = parse_stream(&[&[63u8][..], &stream[1..]].concat());
+        for chunking in 0..8u8 {
+            assert_eq!(parse_stream(&[&[chunking][..], &stream[1..]].concat()), whole, "chunks of {}", chunking + 1);
+        }
+        let packets: Vec<Packet> = whole.into_iter().map(Result::unwrap).collect();
+        assert_eq!(packets[1].params, vec![status_error::ALERT, 0xFF, 0xFF, 0xFD, 0x01]);
+        assert!(parse_stream(&[]).is_empty());
+    }
+
+    #[test]
+    fn stored_status_frame_inputs_are_parsed() {
+        for (path, bytes) in stored_inputs("dynamixel_status_frames") {
+            for frame in parse_stream(&bytes) {
+                match frame {
+                    Ok(packet) => assert!(packet.params.len() <= MAX_PACKET, "{}", path.display()),
+                    Err(e) => assert!(!matches!(e, FrameError::RoundTrip { .. }), "{}: {e}", path.display()),
+                }
+            }
+        }
     }
 }

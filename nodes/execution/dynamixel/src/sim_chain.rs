@@ -457,16 +457,44 @@ fn serve(master: OwnedFd, shared: Arc<Shared>, stop: Arc<AtomicBool>, config: Si
             }
         }
         while let Some(frame) = parser.next_packet() {
-            // Frames with a bad CRC are ignored by MX-28s when addressed by broadcast; for a unicast
-            // instruction the servo answers with a CRC error status.
-            let responses = match frame {
-                Ok(packet) => handle(&packet, &shared, config.boot_time),
-                Err(protocol::FrameError::Crc { id, .. }) => crc_error_response(id, &shared),
-                Err(_) => Vec::new(),
-            };
+            let responses = responses_to(frame, &shared, config.boot_time);
             respond(&master, &shared, &config, responses);
         }
     }
+}
+
+/// The chain's answers to one parsed frame. Frames with a bad CRC are ignored by MX-28s when
+/// addressed by broadcast; for a unicast instruction the servo answers with a CRC error status.
+fn responses_to(frame: Result<Packet, protocol::FrameError>, shared: &Shared, boot_time: Duration) -> Vec<Response> {
+    match frame {
+        Ok(packet) => handle(&packet, shared, boot_time),
+        Err(protocol::FrameError::Crc { id, .. }) => crc_error_response(id, shared),
+        Err(_) => Vec::new(),
+    }
+}
+
+/// The device side without a pty or a thread: `bytes` (instruction packets, noise) go into a chain
+/// of `SimConfig::with_servos(12)` in chunks, the servos advance 8 ms between frames, and the status
+/// packets they would send come back, concatenated (no injected faults, no wire time, a reboot is
+/// over at once so the answers do not depend on how fast the host replays).
+pub fn replay_instructions(bytes: &[u8]) -> Vec<u8> {
+    let config = SimConfig::with_servos(12);
+    let servos = config.ids.iter().map(|&id| SimServo::new(id, config.return_delay_register, 2048.0)).collect();
+    let shared = Shared { faults: Mutex::new(Faults::default()), servos: Mutex::new(servos) };
+    let mut parser = PacketParser::new();
+    let mut out = Vec::new();
+    for chunk in bytes.chunks(64) {
+        parser.feed(chunk);
+        while let Some(frame) = parser.next_packet() {
+            for (id, error, data) in responses_to(frame, &shared, Duration::ZERO) {
+                out.extend(protocol::encode_status(id, error, &data));
+            }
+            for servo in lock(&shared.servos).iter_mut() {
+                servo.advance(0.008);
+            }
+        }
+    }
+    out
 }
 
 /// A response: (responding servo id, error byte, data).
@@ -605,6 +633,23 @@ fn respond(master: &OwnedFd, shared: &Shared, config: &SimConfig, responses: Vec
 mod tests {
     use super::*;
     use crate::protocol::{encode, PacketParser};
+
+    /// Every file of `tests/data/fuzz/<target>/` (a missing directory is a failure: the corpus is
+    /// part of the repository).
+    fn stored_inputs(target: &str) -> Vec<(std::path::PathBuf, Vec<u8>)> {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz").join(target);
+        let mut inputs: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+            .map(|entry| entry.unwrap().path())
+            .map(|path| {
+                let bytes = std::fs::read(&path).unwrap();
+                (path, bytes)
+            })
+            .collect();
+        inputs.sort();
+        assert!(!inputs.is_empty(), "no stored inputs in {}", dir.display());
+        inputs
+    }
     use std::io::{Read, Write};
 
     /// Minimal raw client over the pty for framing-level checks.
@@ -773,5 +818,28 @@ mod tests {
         assert!(raw.recv().is_none());
         raw.send(2, instruction::FACTORY_RESET, &[0xFF]);
         assert_eq!(raw.recv().unwrap().params, vec![status_error::INSTRUCTION]);
+    }
+
+    #[test]
+    fn replayed_instructions_are_answered_like_the_live_chain() {
+        let mut bytes = encode(protocol::BROADCAST_ID, instruction::PING, &[]);
+        bytes.extend(encode(3, instruction::READ, &[0, 0, 2, 0]));
+        let answers = protocol::parse_stream(&[&[63u8][..], &replay_instructions(&bytes)].concat());
+        let packets: Vec<Packet> = answers.into_iter().map(Result::unwrap).collect();
+        assert_eq!(packets.len(), 13);
+        assert_eq!(packets.iter().take(12).map(|p| p.id).collect::<Vec<_>>(), (1..=12).collect::<Vec<_>>());
+        let model = mx28::MODEL_NUMBER.to_le_bytes();
+        assert_eq!((packets[12].id, packets[12].params.clone()), (3, vec![0, model[0], model[1]]));
+    }
+
+    #[test]
+    fn stored_sim_chain_inputs_are_answered() {
+        for (path, bytes) in stored_inputs("dynamixel_sim_chain") {
+            let answers = replay_instructions(&bytes);
+            for frame in protocol::parse_stream(&[&[63u8][..], &answers].concat()) {
+                let packet = frame.unwrap_or_else(|e| panic!("{}: the chain sent a bad frame: {e}", path.display()));
+                assert_eq!(packet.instruction, instruction::STATUS, "{}", path.display());
+            }
+        }
     }
 }

@@ -79,9 +79,48 @@ impl SimConfig {
     }
 }
 
+/// A configuration file and its `--param` overrides as `terrain_sim run --config FILE -p ..` takes
+/// them (the file's text up to the first NUL byte, then NUL-separated overrides; invalid UTF-8
+/// replaced), loaded by `patchwalk_ros::params` and checked by building the simulator from it, as the
+/// node does before it starts.
+pub fn config_file(bytes: &[u8]) -> Result<crate::sim::Simulator, ConfigFileError> {
+    let mut parts = bytes.split(|b| *b == 0).map(|part| String::from_utf8_lossy(part).into_owned());
+    let text = parts.next().unwrap_or_default();
+    let overrides: Vec<String> = parts.collect();
+    let config: SimConfig = patchwalk_ros::params::load_config_from_str(&text, std::path::Path::new("terrain_sim.yaml"), &overrides)?;
+    Ok(crate::sim::Simulator::new(config)?)
+}
+
+/// Why a configuration input was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigFileError {
+    #[error(transparent)]
+    Params(#[from] patchwalk_ros::params::ParamError),
+    #[error(transparent)]
+    Simulator(#[from] crate::sim::SimError),
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every stored fuzz input of the configuration loader (seeds, minimised corpus, inputs that
+    /// once crashed) loads or is refused with a message; the shipped config must load.
+    #[test]
+    fn stored_params_inputs_are_handled() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz/params_yaml");
+        let mut loaded = 0;
+        let mut count = 0;
+        for entry in std::fs::read_dir(&dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
+            let path = entry.unwrap().path();
+            count += 1;
+            match config_file(&std::fs::read(&path).unwrap()) {
+                Ok(_) => loaded += 1,
+                Err(e) => assert!(!e.to_string().is_empty(), "{}", path.display()),
+            }
+        }
+        assert!(count > 0 && loaded > 0, "{loaded} of {count} stored inputs loaded in {}", dir.display());
+    }
 
     #[test]
     fn shipped_config_parses() {

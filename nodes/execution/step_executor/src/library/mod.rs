@@ -243,7 +243,13 @@ impl MotionLibrary {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::new(path, joints.to_vec())),
             Err(source) => return Err(LibraryError::Io { path: path.to_path_buf(), source }),
         };
-        let text = text.strip_prefix('\u{FEFF}').unwrap_or(&text);
+        Self::from_text(path, &text, joints)
+    }
+
+    /// [`MotionLibrary::load`] of a file's text already read (`path` is where it lives): the same
+    /// parsing and validation, a leading byte order mark skipped.
+    pub fn from_text(path: &Path, text: &str, joints: &[String]) -> Result<Self, LibraryError> {
+        let text = text.strip_prefix('\u{FEFF}').unwrap_or(text);
         let file = parse_library(text, joints).map_err(|(location, message)| LibraryError::Malformed {
             path: path.to_path_buf(),
             location,

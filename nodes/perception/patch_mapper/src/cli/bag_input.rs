@@ -159,7 +159,12 @@ fn groundtruth_poses(message: &BagMessage<'_>, camera_frame: Option<&str>) -> Re
 impl BagInput {
     /// First pass over the bag at `path` (an `.mcap` file or a bag directory).
     pub fn open(path: &Path, topics: BagTopics) -> Result<Self, BagInputError> {
-        let reader = BagReader::open(path)?;
+        Self::from_reader(BagReader::open(path)?, topics)
+    }
+
+    /// First pass over an opened bag (a file, a directory or bytes in memory).
+    pub fn from_reader(reader: BagReader, topics: BagTopics) -> Result<Self, BagInputError> {
+        let path = reader.path().to_path_buf();
         let mut intrinsics: Option<Intrinsics> = None;
         let mut frames = Vec::new();
         let mut sizes = Vec::new();

@@ -1,5 +1,5 @@
 //! Offline subcommands of the `patch_mapper` binary.
-pub mod bag_input;
+pub use patch_mapper::bag_input;
 pub mod calibrate_imu;
 pub mod fit;
 pub mod footholds;

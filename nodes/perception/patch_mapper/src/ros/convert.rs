@@ -1,9 +1,11 @@
 //! Message conversion of the patch_mapper node: `sensor_msgs/Image` (16UC1/mono16 mm, 32FC1 m) ->
-//! [`DepthImage`] in metres, `sensor_msgs/CameraInfo` -> [`Intrinsics`]. Every malformed input gives a
-//! typed error naming what is wrong; nothing here can panic on input.
+//! [`DepthImage`] in metres, `sensor_msgs/CameraInfo` -> [`Intrinsics`], `sensor_msgs/Imu` -> the
+//! accelerometer reading. Every malformed input gives a typed error naming what is wrong; nothing here
+//! can panic on input.
 
+use nalgebra::Vector3;
 use patchwalk_fusion::camera::{CameraError, DepthImage, Intrinsics};
-use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image};
+use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu};
 
 /// Largest accepted image side; larger headers are corrupt, not cameras.
 const MAX_SIDE: u32 = 16_384;
@@ -30,6 +32,13 @@ pub enum CameraInfoError {
     Size { width: u32, height: u32 },
     #[error(transparent)]
     Camera(#[from] CameraError),
+}
+
+/// Why an IMU sample was rejected.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ImuError {
+    #[error("non-finite acceleration {0:?}")]
+    NotFinite([f64; 3]),
 }
 
 /// Depth encodings of REP-118.
@@ -124,6 +133,17 @@ pub fn intrinsics(msg: &CameraInfo) -> Result<Intrinsics, CameraInfoError> {
     Ok(Intrinsics::new(width as usize, height as usize, k[0], k[4], k[2], k[5])?)
 }
 
+/// `sensor_msgs/Imu` -> linear acceleration (m/s², IMU frame); every component must be finite.
+pub fn imu_acceleration(msg: &Imu) -> Result<Vector3<f64>, ImuError> {
+    let a = &msg.linear_acceleration;
+    let acceleration = Vector3::new(a.x, a.y, a.z);
+    if acceleration.iter().all(|v| v.is_finite()) {
+        Ok(acceleration)
+    } else {
+        Err(ImuError::NotFinite([a.x, a.y, a.z]))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -182,5 +202,14 @@ mod tests {
         assert!(intrinsics(&info).is_err());
         info.width = 0;
         assert!(matches!(intrinsics(&info), Err(CameraInfoError::Size { .. })));
+    }
+
+    #[test]
+    fn imu_acceleration_must_be_finite() {
+        let mut imu = Imu::default();
+        imu.linear_acceleration.y = -9.81;
+        assert_eq!(imu_acceleration(&imu), Ok(Vector3::new(0.0, -9.81, 0.0)));
+        imu.linear_acceleration.z = f64::NAN;
+        assert!(imu_acceleration(&imu).unwrap_err().to_string().contains("non-finite"));
     }
 }

@@ -16,10 +16,11 @@
 //! image is paired with its CameraInfo (see [`camera_info`]).
 
 mod camera_info;
-mod convert;
 mod diagnostics;
 mod publish;
 mod tf;
+
+use patch_mapper::convert;
 
 /// The longest the loop sleeps without input (a shutdown request is seen within this).
 const MAX_WAIT: Duration = Duration::from_millis(100);
@@ -314,13 +315,14 @@ impl State {
 
     fn on_imu(&mut self, msg: &Imu, log: &mut RateLimitedLog) {
         self.count(|s| s.imu_received += 1);
-        let a = &msg.linear_acceleration;
-        let acceleration_in_imu = Vector3::new(a.x, a.y, a.z);
         let stamp = if msg.header.stamp.sec == 0 && msg.header.stamp.nanosec == 0 { self.clock.now() } else { msg.header.stamp.clone() };
-        if !acceleration_in_imu.iter().all(|v| v.is_finite()) {
-            self.fail(log, "imu", format!("IMU sample rejected: non-finite acceleration {acceleration_in_imu:?}"));
-            return;
-        }
+        let acceleration_in_imu = match convert::imu_acceleration(msg) {
+            Ok(acceleration) => acceleration,
+            Err(e) => {
+                self.fail(log, "imu", format!("IMU sample rejected: {e}"));
+                return;
+            }
+        };
         if !self.stamp_plausible(log, "imu_stamp", "IMU", &stamp) {
             return;
         }

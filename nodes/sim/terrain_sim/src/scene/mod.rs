@@ -40,6 +40,10 @@ use rock::T_MIN;
 pub use rock::{Foothold, Hit, Ray, Rock, RockShape, ShapeError};
 pub use terrain::{TerrainConfig, TerrainError};
 
+/// Most rocks a scene holds (every rock has its own station along the table; a config asking for
+/// more is a typo, and generating them would stall the simulator's start).
+pub const MAX_ROCKS: usize = 1000;
+
 /// Errors building a scene from its configuration.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum SceneError {
@@ -165,6 +169,12 @@ impl Scene {
             return Err(SceneError::Invalid("need station_spacing_m > 0, standoff_m > 0 and rock_x_m inside the table".into()));
         }
         let training = config.training_rocks.clone().unwrap_or_else(default_training_rocks);
+        let count = training.len().saturating_add(config.untrained_rocks).saturating_add(config.twins_of_training.len());
+        if count > MAX_ROCKS {
+            return Err(SceneError::Invalid(format!(
+                "{count} rocks (training_rocks + untrained_rocks + twins_of_training); at most {MAX_ROCKS}, one station each"
+            )));
+        }
         let mut shapes: Vec<(String, RockShape, bool, f64)> = Vec::new();
         for (i, shape) in training.iter().enumerate() {
             let yaw = if matches!(shape, RockShape::LyingCylinder { .. }) { std::f64::consts::FRAC_PI_2 } else { 0.0 };

@@ -78,7 +78,11 @@ def test_stamps_are_consistent(ros, start_node):
     assert abs(min(b - a for a, b in zip(image_stamps, image_stamps[1:])) - 1 / 30) < 1e-3
     # Each image has a CameraInfo with the same stamp, on the IMU's clock.
     infos.wait_for(lambda m: abs(_stamp(m) - image_stamps[-1]) < 1e-6)
-    assert min(imu_stamps) - 0.05 < image_stamps[0] < max(imu_stamps) + 1.0
+    # The images that fall within the IMU samples received lie next to one of them (the first samples
+    # of either stream may be lost while its subscription matches, and best-effort drops widen gaps).
+    overlap = [t for t in image_stamps if imu_stamps[0] <= t <= imu_stamps[-1]]
+    assert overlap, (image_stamps, imu_stamps[0], imu_stamps[-1])
+    assert all(min(abs(t - s) for s in imu_stamps) < 0.05 for t in overlap)
 
 
 def test_place_at_rock_moves_the_robot_and_bad_index_is_ignored(ros, start_node):

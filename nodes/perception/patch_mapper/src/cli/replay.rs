@@ -125,7 +125,7 @@ struct Stats {
 /// The recorded input: a dataset directory or a bag, and what the replay loop needs of it.
 enum Input {
     Dataset(Dataset),
-    Bag(BagInput),
+    Bag(Box<BagInput>),
 }
 
 /// A rosbag2 bag: an `.mcap` file or a directory with `metadata.yaml`.
@@ -156,7 +156,7 @@ impl Input {
             groundtruth: bag_topic(&args.groundtruth_topic),
         };
         let bag = BagInput::open(&args.dataset, topics).with_context(|| format!("reading the bag {}", args.dataset.display()))?;
-        Ok(Input::Bag(bag))
+        Ok(Input::Bag(Box::new(bag)))
     }
 
     fn intrinsics(&self) -> Intrinsics {

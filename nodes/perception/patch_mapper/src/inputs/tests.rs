@@ -138,9 +138,10 @@ fn a_bag_in_memory_reads_as_replay_reads_it() {
             (2, 2, 2, 0, false),
             "{compression:?}"
         );
-        // Cut in its data section: nothing usable before the cut, or the frames before it.
+        // Cut in its data section: nothing usable before the cut, or the frames before it, and the
+        // bag reported broken (its summary and footer are gone).
         match bag(&bytes[..bytes.len() / 2]) {
-            Ok(summary) => assert!(summary.broken && summary.frames < 2, "{summary:?}"),
+            Ok(summary) => assert!(summary.broken && summary.frames <= 2, "{summary:?}"),
             Err(e) => assert!(e.to_string().contains("input.mcap"), "{e}"),
         }
     }

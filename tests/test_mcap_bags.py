@@ -141,10 +141,12 @@ def test_rosbags_tum_bag_replays_like_the_folder(tum_bag, tmp_path):
     folder_poses = numeric_rows(tmp_path / "folder" / "trajectory.txt")
     bag_poses = numeric_rows(tmp_path / "bag" / "trajectory.txt")
     assert len(folder_poses) == len(bag_poses) == 37
-    # trajectory.txt holds 6 decimals: rounding on both sides plus the bag's nanosecond stamps (the
-    # folder's are decimal seconds) move a value by a few units of the last digit.
+    # The tracker's constant-velocity prediction scales the last step by the ratio of the frame
+    # intervals, taken from the stamps: the bag holds them in nanoseconds, the folder in decimal
+    # seconds, so ICP starts from predictions that differ by that rounding and ends within 0.1 mm
+    # (identical with tracker.motion_prior.constant_velocity=false).
     for folder_row, bag_row in zip(folder_poses, bag_poses):
-        assert max(abs(a - b) for a, b in zip(folder_row, bag_row)) < 5e-6, (folder_row, bag_row)
+        assert max(abs(a - b) for a, b in zip(folder_row, bag_row)) < 1e-4, (folder_row, bag_row)
     folder_stats, bag_stats = stats(tmp_path / "folder"), stats(tmp_path / "bag")
     # The bag's ground truth comes from its /groundtruth topic, the folder's from groundtruth.txt.
     assert bag_stats["ate_frames"] == folder_stats["ate_frames"] == 37

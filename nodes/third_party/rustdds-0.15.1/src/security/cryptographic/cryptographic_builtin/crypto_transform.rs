@@ -770,11 +770,11 @@ impl CryptoTransform for CryptographicBuiltin {
     // or
     // CryptoHeader + CryptoContent + CryptoFooter
     //
-    // We can detect which one it is from CryptoHeader contents.
-    // splitting to the three parts has to be done by byte offset, because
-    // SerializedPayload does not have a length marker, but both header and footer
-    // have a fixed length. Footer is not allowed to have receiver specific MACs
-    // here, which makes its size fixed.
+    // We can detect which one it is from CryptoHeader contents. The header has a
+    // fixed length, and so has the footer (receiver-specific MACs are not allowed
+    // here). The buffer is the serializedPayload element of a DATA or DATA_FRAG
+    // submessage, which the sender pads to a multiple of 4 octets: up to 3
+    // octets may follow the footer (see `split_encoded_payload`).
 
     let head_len = BuiltinCryptoHeader::serialized_len();
     let foot_len = BuiltinCryptoFooter::minimal_serialized_len();
@@ -785,10 +785,8 @@ impl CryptoTransform for CryptographicBuiltin {
       return Err(security_error("Encoded payload smaller than minimum size"));
     }
     let (header_bytes, content_and_footer_bytes) = encoded_buffer.split_at(head_len);
-    let (content_bytes, footer_bytes) =
-      content_and_footer_bytes.split_at(content_and_footer_bytes.len() - foot_len);
 
-    // Deserialize crypto header and footer
+    // Deserialize crypto header
 
     // .read_from_buffer() does not need endianness, because BuiltinCryptoHeader
     // only contains byte-oriented data, which is insensitive to endianness.
@@ -802,8 +800,6 @@ impl CryptoTransform for CryptographicBuiltin {
         },
       builtin_crypto_header_extra: BuiltinCryptoHeaderExtra(initialization_vector),
     } = crypto_header.try_into()?;
-
-    let BuiltinCryptoFooter { common_mac, .. } = BuiltinCryptoFooter::try_from(footer_bytes)?;
 
     // Get the payload decode key material
     let decode_key_material = self.session_decode_crypto_materials(
@@ -835,15 +831,80 @@ impl CryptoTransform for CryptographicBuiltin {
       }
       BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GMAC
       | BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC => {
-        validate_mac(decode_key, initialization_vector, content_bytes, common_mac)
-          // if validate_mac succeeds, then map result to content bytes
-          .map(|()| Vec::from(content_bytes))
+        // The signed SerializedPayload has no length of its own, so the amount of
+        // padding after the footer is not known: the MAC decides. Fewest padding
+        // octets first; the first candidate whose MAC validates is the payload.
+        let mut last_error = None;
+        for padding in 0..=MAX_PAYLOAD_PADDING {
+          let Some((content_bytes, footer_bytes)) =
+            split_signed_payload(content_and_footer_bytes, foot_len, padding)
+          else {
+            break;
+          };
+          let validated = BuiltinCryptoFooter::try_from(footer_bytes).and_then(
+            |BuiltinCryptoFooter { common_mac, .. }| {
+              validate_mac(decode_key, initialization_vector, content_bytes, common_mac)
+            },
+          );
+          match validated {
+            Ok(()) => return Ok(Vec::from(content_bytes)),
+            Err(e) => last_error = Some(e),
+          }
+        }
+        Err(last_error.unwrap_or_else(|| security_error("Encoded payload smaller than minimum size")))
       }
       BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GCM
       | BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM => {
-        let ciphertext = CryptoContent::read_from_buffer(content_bytes)?.data;
+        // CryptoContent carries its length: the footer follows it directly.
+        let (ciphertext, footer_bytes) =
+          split_encrypted_payload(content_and_footer_bytes, foot_len)?;
+        let BuiltinCryptoFooter { common_mac, .. } = BuiltinCryptoFooter::try_from(footer_bytes)?;
         decrypt(decode_key, initialization_vector, &ciphertext, common_mac)
       }
     }
   }
+}
+
+/// At most this many octets follow the CryptoFooter of an encoded payload: the
+/// DATA / DATA_FRAG submessage pads its serializedPayload to a multiple of 4
+/// octets, and the receiver gets the padding as part of the payload.
+const MAX_PAYLOAD_PADDING: usize = 3;
+
+/// Split `content_and_footer` (an encoded payload without its CryptoHeader) of
+/// a GCM-encrypted payload into the ciphertext of its CryptoContent and the
+/// CryptoFooter that follows it. At most [`MAX_PAYLOAD_PADDING`] octets may
+/// follow the footer.
+fn split_encrypted_payload(
+  content_and_footer: &[u8],
+  foot_len: usize,
+) -> SecurityResult<(Vec<u8>, &[u8])> {
+  let (content, content_len) = CryptoContent::read_with_length_from_buffer(content_and_footer);
+  let content = content?;
+  let footer = content_and_footer
+    .get(content_len..content_len + foot_len)
+    .ok_or_else(|| security_error("Encoded payload: CryptoFooter missing after CryptoContent"))?;
+  let trailing = content_and_footer.len() - content_len - foot_len;
+  if trailing > MAX_PAYLOAD_PADDING {
+    return Err(security_error(&format!(
+      "Encoded payload: {trailing} octets after the CryptoFooter (at most \
+       {MAX_PAYLOAD_PADDING} octets of padding are allowed)"
+    )));
+  }
+  Ok((content.data, footer))
+}
+
+/// Split `content_and_footer` (an encoded payload without its CryptoHeader) of
+/// a GMAC-signed payload into the SerializedPayload and the CryptoFooter,
+/// assuming `padding` octets follow the footer. `None` if it is too short.
+fn split_signed_payload(
+  content_and_footer: &[u8],
+  foot_len: usize,
+  padding: usize,
+) -> Option<(&[u8], &[u8])> {
+  let end = content_and_footer.len().checked_sub(padding)?;
+  let content_len = end.checked_sub(foot_len)?;
+  Some((
+    &content_and_footer[..content_len],
+    &content_and_footer[content_len..end],
+  ))
 }

@@ -851,7 +851,9 @@ impl CryptoTransform for CryptographicBuiltin {
             Err(e) => last_error = Some(e),
           }
         }
-        Err(last_error.unwrap_or_else(|| security_error("Encoded payload smaller than minimum size")))
+        Err(
+          last_error.unwrap_or_else(|| security_error("Encoded payload smaller than minimum size")),
+        )
       }
       BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GCM
       | BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM => {
@@ -907,4 +909,135 @@ fn split_signed_payload(
     &content_and_footer[..content_len],
     &content_and_footer[content_len..end],
   ))
+}
+
+#[cfg(test)]
+mod tests {
+  use bytes::Bytes;
+  use enumflags2::BitFlags;
+  use speedy::{Endianness, Writable};
+
+  use super::*;
+  use crate::{
+    messages::submessages::{data::Data, submessages::DATA_Flags},
+    security::cryptographic::cryptographic_builtin::builtin_key::BuiltinKey,
+    structure::{guid::EntityId, sequence_number::SequenceNumber},
+  };
+
+  // A plugin with a local writer (`.1`) and the same writer as a reader sees it
+  // (`.2`, the handle under which the writer's crypto tokens are stored).
+  fn writer_and_its_remote_handle(
+    transformation_kind: BuiltinCryptoTransformationKind,
+  ) -> (CryptographicBuiltin, CryptoHandle, CryptoHandle) {
+    let key_length = KeyLength::from(transformation_kind);
+    let key_material = KeyMaterial_AES_GCM_GMAC {
+      transformation_kind,
+      master_salt: BuiltinKey::generate_random(key_length),
+      sender_key_id: CryptoTransformKeyId::random(),
+      master_sender_key: BuiltinKey::generate_random(key_length),
+      receiver_specific_key_id: CryptoTransformKeyId::ZERO,
+      master_receiver_specific_key: BuiltinKey::None,
+    };
+    let mut crypto = CryptographicBuiltin::new();
+    let (local_writer, remote_writer) = (1, 2);
+    crypto
+      .insert_common_encode_key_materials(
+        local_writer,
+        CommonEncodeKeyMaterials::Some(KeyMaterial_AES_GCM_GMAC_seq::One(key_material.clone())),
+      )
+      .unwrap();
+    crypto
+      .insert_decode_key_materials(
+        remote_writer,
+        KeyMaterial_AES_GCM_GMAC_seq::One(key_material),
+      )
+      .unwrap();
+    (crypto, local_writer, remote_writer)
+  }
+
+  // The serializedPayload of a DATA submessage as the receiver gets it: the
+  // sender pads the submessage to a multiple of 4 octets, and the reader takes
+  // the rest of the submessage, padding included.
+  fn through_a_data_submessage(encoded_payload: Vec<u8>) -> Bytes {
+    let flags = BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Endianness) | DATA_Flags::Data;
+    let data = Data {
+      reader_id: EntityId::UNKNOWN,
+      writer_id: EntityId::UNKNOWN,
+      writer_sn: SequenceNumber::new(1),
+      inline_qos: None,
+      serialized_payload: Some(Bytes::from(encoded_payload)),
+    };
+    let bytes = data
+      .write_to_vec_with_ctx(Endianness::LittleEndian)
+      .unwrap();
+    assert_eq!(bytes.len(), data.len_serialized());
+    Data::deserialize_data(&Bytes::from(bytes), flags)
+      .unwrap()
+      .serialized_payload
+      .unwrap()
+  }
+
+  #[test]
+  fn encoded_payloads_of_every_length_survive_the_data_submessage_padding() {
+    for transformation_kind in [
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GCM,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GMAC,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC,
+    ] {
+      let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(transformation_kind);
+      // A SerializedPayload of n octets: 4-octet encapsulation header and data,
+      // e.g. 5 for a CDR std_srvs/SetBool request. Trailing zeros included, so
+      // that a signed payload ending like the padding is covered too.
+      for n in 4..=12 {
+        let plaintext: Vec<u8> = (0..n)
+          .map(|i| if i + 2 >= n { 0 } else { i as u8 + 1 })
+          .collect();
+        let (encoded, extra_inline_qos) = crypto
+          .encode_serialized_payload(plaintext.clone(), local_writer)
+          .unwrap();
+        assert!(extra_inline_qos.is_empty());
+        let received = through_a_data_submessage(encoded);
+        assert_eq!(received.len() % 4, 0);
+        let decoded = crypto
+          .decode_serialized_payload(Vec::from(received), ParameterList::new(), 3, remote_writer)
+          .unwrap_or_else(|e| panic!("{transformation_kind:?}, {n} octets: {e:?}"));
+        assert_eq!(decoded, plaintext, "{transformation_kind:?}, {n} octets");
+      }
+    }
+  }
+
+  #[test]
+  fn an_encrypted_payload_with_more_than_padding_after_its_footer_is_refused() {
+    let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM,
+    );
+    let (mut encoded, _) = crypto
+      .encode_serialized_payload(vec![0, 1, 0, 0, 7, 7, 7, 7], local_writer)
+      .unwrap();
+    encoded.extend_from_slice(&[0; 3]);
+    assert!(crypto
+      .decode_serialized_payload(encoded.clone(), ParameterList::new(), 3, remote_writer)
+      .is_ok());
+    encoded.push(0);
+    assert!(crypto
+      .decode_serialized_payload(encoded, ParameterList::new(), 3, remote_writer)
+      .is_err());
+  }
+
+  #[test]
+  fn a_tampered_signed_payload_is_refused_whatever_the_padding() {
+    let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC,
+    );
+    let (encoded, _) = crypto
+      .encode_serialized_payload(vec![0, 1, 0, 0, 1], local_writer)
+      .unwrap();
+    let mut received = Vec::from(through_a_data_submessage(encoded));
+    let content_start = BuiltinCryptoHeader::serialized_len();
+    received[content_start + 4] ^= 1;
+    assert!(crypto
+      .decode_serialized_payload(received, ParameterList::new(), 3, remote_writer)
+      .is_err());
+  }
 }

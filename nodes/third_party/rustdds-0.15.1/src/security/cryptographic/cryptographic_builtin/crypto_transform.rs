@@ -770,11 +770,11 @@ impl CryptoTransform for CryptographicBuiltin {
     // or
     // CryptoHeader + CryptoContent + CryptoFooter
     //
-    // We can detect which one it is from CryptoHeader contents.
-    // splitting to the three parts has to be done by byte offset, because
-    // SerializedPayload does not have a length marker, but both header and footer
-    // have a fixed length. Footer is not allowed to have receiver specific MACs
-    // here, which makes its size fixed.
+    // We can detect which one it is from CryptoHeader contents. The header has a
+    // fixed length, and so has the footer (receiver-specific MACs are not allowed
+    // here). The buffer is the serializedPayload element of a DATA or DATA_FRAG
+    // submessage, which the sender pads to a multiple of 4 octets: up to 3
+    // octets may follow the footer (see `split_encoded_payload`).
 
     let head_len = BuiltinCryptoHeader::serialized_len();
     let foot_len = BuiltinCryptoFooter::minimal_serialized_len();
@@ -785,10 +785,8 @@ impl CryptoTransform for CryptographicBuiltin {
       return Err(security_error("Encoded payload smaller than minimum size"));
     }
     let (header_bytes, content_and_footer_bytes) = encoded_buffer.split_at(head_len);
-    let (content_bytes, footer_bytes) =
-      content_and_footer_bytes.split_at(content_and_footer_bytes.len() - foot_len);
 
-    // Deserialize crypto header and footer
+    // Deserialize crypto header
 
     // .read_from_buffer() does not need endianness, because BuiltinCryptoHeader
     // only contains byte-oriented data, which is insensitive to endianness.
@@ -802,8 +800,6 @@ impl CryptoTransform for CryptographicBuiltin {
         },
       builtin_crypto_header_extra: BuiltinCryptoHeaderExtra(initialization_vector),
     } = crypto_header.try_into()?;
-
-    let BuiltinCryptoFooter { common_mac, .. } = BuiltinCryptoFooter::try_from(footer_bytes)?;
 
     // Get the payload decode key material
     let decode_key_material = self.session_decode_crypto_materials(
@@ -835,15 +831,213 @@ impl CryptoTransform for CryptographicBuiltin {
       }
       BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GMAC
       | BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC => {
-        validate_mac(decode_key, initialization_vector, content_bytes, common_mac)
-          // if validate_mac succeeds, then map result to content bytes
-          .map(|()| Vec::from(content_bytes))
+        // The signed SerializedPayload has no length of its own, so the amount of
+        // padding after the footer is not known: the MAC decides. Fewest padding
+        // octets first; the first candidate whose MAC validates is the payload.
+        let mut last_error = None;
+        for padding in 0..=MAX_PAYLOAD_PADDING {
+          let Some((content_bytes, footer_bytes)) =
+            split_signed_payload(content_and_footer_bytes, foot_len, padding)
+          else {
+            break;
+          };
+          let validated = BuiltinCryptoFooter::try_from(footer_bytes).and_then(
+            |BuiltinCryptoFooter { common_mac, .. }| {
+              validate_mac(decode_key, initialization_vector, content_bytes, common_mac)
+            },
+          );
+          match validated {
+            Ok(()) => return Ok(Vec::from(content_bytes)),
+            Err(e) => last_error = Some(e),
+          }
+        }
+        Err(
+          last_error.unwrap_or_else(|| security_error("Encoded payload smaller than minimum size")),
+        )
       }
       BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GCM
       | BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM => {
-        let ciphertext = CryptoContent::read_from_buffer(content_bytes)?.data;
+        // CryptoContent carries its length: the footer follows it directly.
+        let (ciphertext, footer_bytes) =
+          split_encrypted_payload(content_and_footer_bytes, foot_len)?;
+        let BuiltinCryptoFooter { common_mac, .. } = BuiltinCryptoFooter::try_from(footer_bytes)?;
         decrypt(decode_key, initialization_vector, &ciphertext, common_mac)
       }
     }
+  }
+}
+
+/// At most this many octets follow the CryptoFooter of an encoded payload: the
+/// DATA / DATA_FRAG submessage pads its serializedPayload to a multiple of 4
+/// octets, and the receiver gets the padding as part of the payload.
+const MAX_PAYLOAD_PADDING: usize = 3;
+
+/// Split `content_and_footer` (an encoded payload without its CryptoHeader) of
+/// a GCM-encrypted payload into the ciphertext of its CryptoContent and the
+/// CryptoFooter that follows it. At most [`MAX_PAYLOAD_PADDING`] octets may
+/// follow the footer.
+fn split_encrypted_payload(
+  content_and_footer: &[u8],
+  foot_len: usize,
+) -> SecurityResult<(Vec<u8>, &[u8])> {
+  let (content, content_len) = CryptoContent::read_with_length_from_buffer(content_and_footer);
+  let content = content?;
+  let footer = content_and_footer
+    .get(content_len..content_len + foot_len)
+    .ok_or_else(|| security_error("Encoded payload: CryptoFooter missing after CryptoContent"))?;
+  let trailing = content_and_footer.len() - content_len - foot_len;
+  if trailing > MAX_PAYLOAD_PADDING {
+    return Err(security_error(&format!(
+      "Encoded payload: {trailing} octets after the CryptoFooter (at most \
+       {MAX_PAYLOAD_PADDING} octets of padding are allowed)"
+    )));
+  }
+  Ok((content.data, footer))
+}
+
+/// Split `content_and_footer` (an encoded payload without its CryptoHeader) of
+/// a GMAC-signed payload into the SerializedPayload and the CryptoFooter,
+/// assuming `padding` octets follow the footer. `None` if it is too short.
+fn split_signed_payload(
+  content_and_footer: &[u8],
+  foot_len: usize,
+  padding: usize,
+) -> Option<(&[u8], &[u8])> {
+  let end = content_and_footer.len().checked_sub(padding)?;
+  let content_len = end.checked_sub(foot_len)?;
+  Some((
+    &content_and_footer[..content_len],
+    &content_and_footer[content_len..end],
+  ))
+}
+
+#[cfg(test)]
+mod tests {
+  use bytes::Bytes;
+  use enumflags2::BitFlags;
+  use speedy::{Endianness, Writable};
+
+  use super::*;
+  use crate::{
+    messages::submessages::{data::Data, submessages::DATA_Flags},
+    security::cryptographic::cryptographic_builtin::builtin_key::BuiltinKey,
+    structure::{guid::EntityId, sequence_number::SequenceNumber},
+  };
+
+  // A plugin with a local writer (`.1`) and the same writer as a reader sees it
+  // (`.2`, the handle under which the writer's crypto tokens are stored).
+  fn writer_and_its_remote_handle(
+    transformation_kind: BuiltinCryptoTransformationKind,
+  ) -> (CryptographicBuiltin, CryptoHandle, CryptoHandle) {
+    let key_length = KeyLength::from(transformation_kind);
+    let key_material = KeyMaterial_AES_GCM_GMAC {
+      transformation_kind,
+      master_salt: BuiltinKey::generate_random(key_length),
+      sender_key_id: CryptoTransformKeyId::random(),
+      master_sender_key: BuiltinKey::generate_random(key_length),
+      receiver_specific_key_id: CryptoTransformKeyId::ZERO,
+      master_receiver_specific_key: BuiltinKey::None,
+    };
+    let mut crypto = CryptographicBuiltin::new();
+    let (local_writer, remote_writer) = (1, 2);
+    crypto
+      .insert_common_encode_key_materials(
+        local_writer,
+        CommonEncodeKeyMaterials::Some(KeyMaterial_AES_GCM_GMAC_seq::One(key_material.clone())),
+      )
+      .unwrap();
+    crypto
+      .insert_decode_key_materials(
+        remote_writer,
+        KeyMaterial_AES_GCM_GMAC_seq::One(key_material),
+      )
+      .unwrap();
+    (crypto, local_writer, remote_writer)
+  }
+
+  // The serializedPayload of a DATA submessage as the receiver gets it: the
+  // sender pads the submessage to a multiple of 4 octets, and the reader takes
+  // the rest of the submessage, padding included.
+  fn through_a_data_submessage(encoded_payload: Vec<u8>) -> Bytes {
+    let flags = BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Endianness) | DATA_Flags::Data;
+    let data = Data {
+      reader_id: EntityId::UNKNOWN,
+      writer_id: EntityId::UNKNOWN,
+      writer_sn: SequenceNumber::new(1),
+      inline_qos: None,
+      serialized_payload: Some(Bytes::from(encoded_payload)),
+    };
+    let bytes = data
+      .write_to_vec_with_ctx(Endianness::LittleEndian)
+      .unwrap();
+    assert_eq!(bytes.len(), data.len_serialized());
+    Data::deserialize_data(&Bytes::from(bytes), flags)
+      .unwrap()
+      .serialized_payload
+      .unwrap()
+  }
+
+  #[test]
+  fn encoded_payloads_of_every_length_survive_the_data_submessage_padding() {
+    for transformation_kind in [
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GCM,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES128_GMAC,
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC,
+    ] {
+      let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(transformation_kind);
+      // A SerializedPayload of n octets: 4-octet encapsulation header and data,
+      // e.g. 5 for a CDR std_srvs/SetBool request. Trailing zeros included, so
+      // that a signed payload ending like the padding is covered too.
+      for n in 4..=12 {
+        let plaintext: Vec<u8> = (0..n)
+          .map(|i| if i + 2 >= n { 0 } else { i as u8 + 1 })
+          .collect();
+        let (encoded, extra_inline_qos) = crypto
+          .encode_serialized_payload(plaintext.clone(), local_writer)
+          .unwrap();
+        assert!(extra_inline_qos.is_empty());
+        let received = through_a_data_submessage(encoded);
+        assert_eq!(received.len() % 4, 0);
+        let decoded = crypto
+          .decode_serialized_payload(Vec::from(received), ParameterList::new(), 3, remote_writer)
+          .unwrap_or_else(|e| panic!("{transformation_kind:?}, {n} octets: {e:?}"));
+        assert_eq!(decoded, plaintext, "{transformation_kind:?}, {n} octets");
+      }
+    }
+  }
+
+  #[test]
+  fn an_encrypted_payload_with_more_than_padding_after_its_footer_is_refused() {
+    let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GCM,
+    );
+    let (mut encoded, _) = crypto
+      .encode_serialized_payload(vec![0, 1, 0, 0, 7, 7, 7, 7], local_writer)
+      .unwrap();
+    encoded.extend_from_slice(&[0; 3]);
+    assert!(crypto
+      .decode_serialized_payload(encoded.clone(), ParameterList::new(), 3, remote_writer)
+      .is_ok());
+    encoded.push(0);
+    assert!(crypto
+      .decode_serialized_payload(encoded, ParameterList::new(), 3, remote_writer)
+      .is_err());
+  }
+
+  #[test]
+  fn a_tampered_signed_payload_is_refused_whatever_the_padding() {
+    let (crypto, local_writer, remote_writer) = writer_and_its_remote_handle(
+      BuiltinCryptoTransformationKind::CRYPTO_TRANSFORMATION_KIND_AES256_GMAC,
+    );
+    let (encoded, _) = crypto
+      .encode_serialized_payload(vec![0, 1, 0, 0, 1], local_writer)
+      .unwrap();
+    let mut received = Vec::from(through_a_data_submessage(encoded));
+    let content_start = BuiltinCryptoHeader::serialized_len();
+    received[content_start + 4] ^= 1;
+    assert!(crypto
+      .decode_serialized_payload(received, ParameterList::new(), 3, remote_writer)
+      .is_err());
   }
 }

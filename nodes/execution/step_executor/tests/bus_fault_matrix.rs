@@ -119,7 +119,7 @@ fn rig_with_budget(budget: Duration) -> Rig {
     let link = dir.path().join("servo-bus");
     point_link(&link, &chain.device_path());
     let mut bus = DynamixelBus::open(&link, 1_000_000).unwrap().with_response_timeout(budget);
-    let player = Player::new(PlayerConfig::default(), joint_specs());
+    let player = Player::new(PlayerConfig::default(), joint_specs()).unwrap();
     initialise_bus(&mut bus, &player, &BusConfig::default()).unwrap();
     let executor = Executor::spawn(Box::new(bus), player, LoopSettings::new(CYCLE)).unwrap();
     let rig = Rig { chain, link, executor, _dir: dir };

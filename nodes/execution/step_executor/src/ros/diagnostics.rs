@@ -231,6 +231,7 @@ fn safety_status(s: &Snapshot<'_>) -> DiagnosticStatus {
 
 #[cfg(test)]
 mod tests {
+    use patchwalk_dynamixel::servo_bus::ServoArray;
     use super::*;
     use step_executor::player::PlayerState;
 
@@ -259,7 +260,7 @@ mod tests {
             busy: Duration::from_millis(2),
             cycle_index: 0,
             keyframe_index: 0,
-            positions,
+            positions: ServoArray::try_from_slice(&positions).unwrap(),
             goal: None,
             state: PlayerState::Idle,
             torque: true,

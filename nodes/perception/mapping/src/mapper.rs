@@ -412,14 +412,15 @@ impl Mapper {
             .iter()
             .filter_map(|r| Some(Seed { pixel: r.pixel, point_in_camera: r.anchor_in_camera, cell: self.map.get(r.id)?.cell? }))
             .collect();
+        let up_in_camera = -gravity_in_camera.into_inner();
         let (revisit_outcomes, _, _) =
-            fit_seeds(&revisit_seeds, &cloud, input.intrinsics, config, usize::MAX, deadline, self.frames ^ REVISIT_RNG_SALT);
+            fit_seeds(&revisit_seeds, &cloud, input.intrinsics, &up_in_camera, config, usize::MAX, deadline, self.frames ^ REVISIT_RNG_SALT);
         let t_revisit = Instant::now();
         // Stages iv–v until tm, ns or ν (J eq 19).
         let target_patches =
             (config.coverage_fraction * saliency.salient_area_m2 / (std::f64::consts::PI * config.foot_radius_m.powi(2))).ceil() as usize;
         let (mut outcomes, stop, [neighbourhood_cpu_ms, fit_validate_cpu_ms, validate_cpu_ms]) =
-            fit_seeds(&seeds, &cloud, input.intrinsics, &(-gravity_in_camera.into_inner()), config, target_patches, deadline, self.frames);
+            fit_seeds(&seeds, &cloud, input.intrinsics, &up_in_camera, config, target_patches, deadline, self.frames);
         let t_fit = Instant::now();
         // Into the map, in seed order.
         for outcome in &mut outcomes {

@@ -142,6 +142,13 @@ fn play_and_stop(player: &mut Player, bus: &mut dyn ServoBus, n: usize) {
 }
 
 #[test]
+fn the_counter_sees_allocations() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let (allocations, _) = allocations_in(|| std::hint::black_box(vec![1u8; 16]));
+    assert_eq!(allocations, 1);
+}
+
+#[test]
 fn player_cycles_on_the_mock_allocate_nothing() {
     let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
     let mut bus = MockBus::new(&(1..=12).collect::<Vec<_>>());
@@ -208,4 +215,8 @@ fn bus_thread_cycles_allocate_nothing() {
     let after_stop = seen.iter().skip_while(|t| t.event != Some(PlayerEvent::EStopped)).count();
     assert!(motion_cycles > 50 && stopped && after_stop > 20, "{motion_cycles} motion cycles, stopped {stopped}, {after_stop} after");
     assert_eq!(allocations, 0, "allocations on the bus thread in {} cycles (a motion, an e-stop, holding)", seen.len());
+    // The bus thread is counted: a command (its reply, the torque-off id list) allocates.
+    let before = TRACKED_ALLOCATIONS.load(Ordering::SeqCst);
+    executor.set_torque(false).unwrap();
+    assert!(TRACKED_ALLOCATIONS.load(Ordering::SeqCst) > before, "the bus thread's allocations are not seen");
 }

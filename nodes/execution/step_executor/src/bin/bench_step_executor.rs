@@ -4,7 +4,8 @@
 //!    jitter ≤ 1 ms), at load 0 and with 4 busy-loop processes started by the bench (killed after),
 //!    with the host's load average printed before and after each run;
 //! 3. time of one 12-servo sync write + sync read round trip through dynamixel2 on the pty bus;
-//! 4. e-stop → hold time on a slow bus (200 ms answers inside a 500 ms budget, slow-bus fault off
+//! 4. e-stop → hold time (the stop's cycle as the node sees it) on the pty bus at each load (within
+//!    one 8 ms cycle), and on a slow bus (200 ms answers inside a 500 ms budget, slow-bus fault off
 //!    so that the motion keeps playing): a stop never waits behind more than one transaction.
 //!
 //! Run: `cargo run --release -p step_executor --bin bench_step_executor` (from the repository root);
@@ -273,7 +274,9 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
     Ok(())
 }
 
-fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyhow::Result<()> {
+/// E-stop → hold (the EStopped cycle as the node sees it) at random points of the cycle, `tries`
+/// times, with the chain answering after `latency` and `load` busy-loop processes running.
+fn bench_estop(config: &StepExecutorConfig, specs: &[JointSpec], latency: Duration, load: usize, tries: usize, args: &Args) -> anyhow::Result<()> {
     let (chain, bus) = sim_bus()?;
     let mut bus = bus.with_response_timeout(Duration::from_millis(500));
     let player = Player::new(config.player.clone(), specs.to_vec())?;
@@ -281,9 +284,13 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
     let mut settings = LoopSettings::from_config(config);
     settings.slow_bus.consecutive_misses = 0;
     settings.slow_bus.min_rate_percent = 0.0;
+    if let Some(priority) = args.realtime_priority {
+        settings.realtime_priority = priority;
+    }
+    let _load = Load::start(load, args.load_nice)?;
     let executor = Executor::spawn(Box::new(bus), player, settings)?;
     std::thread::sleep(Duration::from_millis(100));
-    chain.set_faults(|f| f.latency = Duration::from_millis(200));
+    chain.set_faults(|f| f.latency = latency);
     let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 20.0, pause_s: 0.0 };
     let motion = Motion {
         name: "slow".into(),
@@ -299,7 +306,8 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
     };
     let mut rng = Rng(0x5EED_0000_E570_0001);
     let mut times = Vec::new();
-    for _ in 0..8 {
+    let cycle_s = config.player.cycle_ms / 1000.0;
+    for _ in 0..tries {
         executor.play(motion.clone())?;
         // Into the motion, then a stop at a random point of a cycle.
         let mut playing = 0;
@@ -308,7 +316,7 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
                 playing += 1;
             }
         }
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, 0.2)));
+        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, latency.as_secs_f64().max(cycle_s))));
         while executor.telemetry().try_recv().is_ok() {}
         let asked = Instant::now();
         executor.estop();
@@ -320,7 +328,12 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
             }
         }
     }
-    summary("e-stop -> hold on a slow bus (200 ms answers, one transaction = one sync read)", " ms", times);
+    let ms = latency.as_secs_f64() * 1e3;
+    if latency.is_zero() {
+        summary(&format!("e-stop -> hold ({load} busy-loop processes, load average {})", load_average()), " ms", times);
+    } else {
+        summary(&format!("e-stop -> hold on a slow bus ({ms:.0} ms answers, one transaction = one sync read)"), " ms", times);
+    }
     Ok(())
 }
 
@@ -344,7 +357,10 @@ fn main() -> anyhow::Result<()> {
         bench_control_cycle(&config, &specs, load, &args)?;
     }
     if !args.cycle_only {
-        bench_estop_on_slow_bus(&config, &specs)?;
+        for &load in &args.loads {
+            bench_estop(&config, &specs, Duration::ZERO, load, 50, &args)?;
+        }
+        bench_estop(&config, &specs, Duration::from_millis(200), 0, 8, &args)?;
     }
     Ok(())
 }

@@ -66,6 +66,9 @@ enum Command {
 pub struct Telemetry {
     /// When the cycle started (deadline-scheduled every `cycle`).
     pub started: Instant,
+    /// How long after its deadline the cycle started (the bus thread's wake-up latency, or how
+    /// far the previous cycle overran).
+    pub wake_late: Duration,
     /// Time the cycle's bus traffic took.
     pub busy: Duration,
     pub cycle_index: u64,
@@ -294,6 +297,7 @@ impl BusLoop {
         let mut previous_start: Option<Instant> = None;
         while !self.shutdown.load(Ordering::SeqCst) {
             let started = Instant::now();
+            let wake_late = clock.lateness();
             let estop = self.estop.swap(false, Ordering::SeqCst);
             let flag = &self.estop;
             let mut report = self.player.cycle_with_stop(self.bus.as_mut(), estop, &mut || flag.swap(false, Ordering::SeqCst));
@@ -334,6 +338,7 @@ impl BusLoop {
             }
             let telemetry = Telemetry {
                 started,
+                wake_late,
                 busy,
                 cycle_index,
                 keyframe_index: self.player.keyframe_index(),

@@ -257,6 +257,7 @@ mod tests {
     fn telemetry(positions: Vec<Option<f64>>) -> Telemetry {
         Telemetry {
             started: Instant::now(),
+            wake_late: Duration::ZERO,
             busy: Duration::from_millis(2),
             cycle_index: 0,
             keyframe_index: 0,

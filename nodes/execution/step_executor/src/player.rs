@@ -224,7 +224,8 @@ impl Player {
     /// A player for `joints` (at most [`MAX_SERVOS`]: one chain).
     pub fn new(config: PlayerConfig, joints: Vec<JointSpec>) -> Result<Self, PlayerError> {
         let n = joints.len();
-        let ids = ServoArray::try_from_slice(&joints.iter().map(|j| j.servo.id).collect::<Vec<_>>()).map_err(|_| PlayerError::TooManyJoints(n))?;
+        let ids = ServoArray::try_from_slice(&joints.iter().map(|j| j.servo.id).collect::<Vec<_>>())
+            .map_err(|_| PlayerError::TooManyJoints(n))?;
         Ok(Self {
             config,
             joints,
@@ -346,8 +347,9 @@ impl Player {
 
     /// Hold: command the last measured position of every servo that has one (best effort).
     fn hold(&mut self, bus: &mut dyn ServoBus) -> Option<ServoArray<f64>> {
-        let targets =
-            ServoArray::collect_from(self.joints.iter().zip(&self.last_present).filter_map(|(j, p)| p.map(|q| (j.servo.id, goal_ticks(j, q)))));
+        let targets = ServoArray::collect_from(
+            self.joints.iter().zip(&self.last_present).filter_map(|(j, p)| p.map(|q| (j.servo.id, goal_ticks(j, q)))),
+        );
         if targets.is_empty() {
             return None;
         }

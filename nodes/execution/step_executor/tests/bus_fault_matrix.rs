@@ -200,7 +200,7 @@ fn run_row(row: &Row) {
         assert!(matches!(t.state, PlayerState::Faulted(_)), "{cell}: {:?}", t.state);
         if phase == Phase::Motion {
             // Held in the fault's cycle: the goal sent is the measured pose, not the trajectory's.
-            let goal = t.goal.clone().unwrap_or_default();
+            let goal = t.goal.unwrap_or_default();
             if row.recovery != Recovery::Reconnect {
                 assert_eq!(goal.len(), 12, "{cell}: a hold in the fault's cycle");
                 for (g, p) in goal.iter().zip(&t.positions) {

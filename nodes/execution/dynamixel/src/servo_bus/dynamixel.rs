@@ -128,7 +128,14 @@ impl DynamixelBus {
     /// One instruction to one servo (`encode` writes its `param_len` parameter bytes in place) and
     /// its status packet, whose parameters (exactly `out.len()` bytes) go into `out`. Returns the
     /// alert bit.
-    fn transfer(&mut self, id: u8, instruction: u8, param_len: usize, encode: impl FnOnce(&mut [u8]), out: &mut [u8]) -> Result<bool, BusError> {
+    fn transfer(
+        &mut self,
+        id: u8,
+        instruction: u8,
+        param_len: usize,
+        encode: impl FnOnce(&mut [u8]),
+        out: &mut [u8],
+    ) -> Result<bool, BusError> {
         let expected = out.len();
         let budget = self.deadline(expected).saturating_duration_since(Instant::now());
         let result = self.guarded(|bus| {
@@ -216,7 +223,9 @@ impl ServoBus for DynamixelBus {
             tail.copy_from_slice(ids);
         };
         let per_answer = self.deadline(usize::from(count)).saturating_duration_since(Instant::now());
-        self.guarded(|bus| bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, 4 + ids.len(), encode).map_err(write_error))?;
+        self.guarded(|bus| {
+            bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, 4 + ids.len(), encode).map_err(write_error)
+        })?;
         while let Some(&id) = ids.get(out.len()) {
             let rest = ids.get(out.len()..).unwrap_or(&[]);
             // Each answer is read under its own guard: a frame that panics the parser is that

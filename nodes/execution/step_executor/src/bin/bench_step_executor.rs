@@ -184,7 +184,9 @@ struct Args {
 
 /// The host's load average (1, 5, 15 min) as `/proc/loadavg` shows it.
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg").map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" ")).unwrap_or_else(|_| "?".into())
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
 }
 
 /// `n` busy-loop processes (this binary with `--busy-loop`, under `nice -n nice`), killed when dropped.
@@ -301,7 +303,14 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
 
 /// E-stop → hold (the EStopped cycle as the node sees it) at random points of the cycle, `tries`
 /// times, with the chain answering after `latency` and `load` busy-loop processes running.
-fn bench_estop(config: &StepExecutorConfig, specs: &[JointSpec], latency: Duration, load: usize, tries: usize, args: &Args) -> anyhow::Result<()> {
+fn bench_estop(
+    config: &StepExecutorConfig,
+    specs: &[JointSpec],
+    latency: Duration,
+    load: usize,
+    tries: usize,
+    args: &Args,
+) -> anyhow::Result<()> {
     let (chain, bus) = sim_bus()?;
     let mut bus = bus.with_response_timeout(Duration::from_millis(500));
     let player = Player::new(config.player.clone(), specs.to_vec())?;

@@ -231,8 +231,8 @@ fn safety_status(s: &Snapshot<'_>) -> DiagnosticStatus {
 
 #[cfg(test)]
 mod tests {
-    use patchwalk_dynamixel::servo_bus::ServoArray;
     use super::*;
+    use patchwalk_dynamixel::servo_bus::ServoArray;
     use step_executor::player::PlayerState;
 
     fn runtime_status(state: RunState) -> RuntimeStatus {

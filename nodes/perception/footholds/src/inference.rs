@@ -156,14 +156,17 @@ fn im2col(conv: &Conv, input: &[f32], regions: usize, columns: &mut Vec<f32>) {
     let (k, c, s_in, s_out, stride) = (conv.kernel, conv.in_channels, conv.in_side, conv.out_side, conv.stride);
     let row_len = k * c;
     let plane = s_in * s_in * c;
-    columns.clear();
-    columns.reserve(regions * conv.pixels() * conv.patch_len());
+    columns.resize(regions * conv.pixels() * conv.patch_len(), 0.0);
+    let mut rows = columns.chunks_exact_mut(row_len);
     for region in input.chunks_exact(plane).take(regions) {
         for y in 0..s_out {
             for x in 0..s_out {
-                for ky in 0..k {
+                for (ky, row) in (0..k).zip(rows.by_ref()) {
                     let start = ((y * stride + ky) * s_in + x * stride) * c;
-                    columns.extend_from_slice(&region[start..start + row_len]);
+                    // Element by element: the rows of the first layer are only a few values long.
+                    for (to, from) in row.iter_mut().zip(&region[start..start + row_len]) {
+                        *to = *from;
+                    }
                 }
             }
         }

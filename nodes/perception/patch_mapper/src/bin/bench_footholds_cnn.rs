@@ -59,9 +59,31 @@ fn load_average() -> String {
         .unwrap_or_else(|| "?".into())
 }
 
-/// Per frame: total, region proposal and network times (ms) of `runs` predictions.
-fn time_cnn(model: &FootholdModel, depth: &DepthImage, k: &Intrinsics, tilt: Tilt, path: Inference, runs: usize) -> Result<[Vec<f64>; 3]> {
+/// CPU time of the process so far (user + system, all threads; ms), from `/proc/self/stat` (ticks of
+/// 10 ms), or NaN elsewhere.
+fn cpu_ms() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // The fields after the command name (which is in parentheses): utime and stime are the 12th and
+    // 13th of them.
+    let fields: Vec<&str> = stat.rsplit_once(')').map(|(_, rest)| rest.split_whitespace().collect()).unwrap_or_default();
+    match (fields.get(11).and_then(|v| v.parse::<f64>().ok()), fields.get(12).and_then(|v| v.parse::<f64>().ok())) {
+        (Some(user), Some(system)) => (user + system) * 10.0,
+        _ => f64::NAN,
+    }
+}
+
+/// Per frame: total, region proposal and network times (ms) of `runs` predictions, and the mean CPU
+/// time per frame (ms, all threads).
+fn time_cnn(
+    model: &FootholdModel,
+    depth: &DepthImage,
+    k: &Intrinsics,
+    tilt: Tilt,
+    path: Inference,
+    runs: usize,
+) -> Result<([Vec<f64>; 3], f64)> {
     let mut times: [Vec<f64>; 3] = Default::default();
+    let cpu_start = cpu_ms();
     for _ in 0..runs {
         let started = Instant::now();
         let frame = model.predict_frame_with(depth, k, tilt, path)?;
@@ -69,7 +91,7 @@ fn time_cnn(model: &FootholdModel, depth: &DepthImage, k: &Intrinsics, tilt: Til
         times[1].push(frame.regions_ms);
         times[2].push(frame.network_ms);
     }
-    Ok(times)
+    Ok((times, (cpu_ms() - cpu_start) / runs as f64))
 }
 
 fn main() -> Result<()> {
@@ -105,6 +127,7 @@ fn main() -> Result<()> {
     let len = model.regions.input_len();
     let mut positives = 0;
     let mut inputs = Vec::new();
+    let cpu_start = cpu_ms();
     for _ in 0..runs {
         let started = Instant::now();
         let regions = propose(&depth, &k, &model.regions, &mut inputs)?;
@@ -113,24 +136,27 @@ fn main() -> Result<()> {
             .count();
         svm_total.push(started.elapsed().as_secs_f64() * 1e3);
     }
+    let svm_cpu = (cpu_ms() - cpu_start) / runs as f64;
     println!(
         "{} regions ({:.2} G multiply-adds); CNN predicts {} footholds, the SVM {positives}",
         warm.regions.len(),
         (warm.regions.len() * model.net.config.multiply_adds()) as f64 * 1e-9,
         warm.footholds(0.5).len()
     );
-    println!("{:<40} {:>10} {:>10}", "per frame", "median ms", "p90 ms");
-    for (name, times) in [("CNN, fast path", &fast), ("CNN, candle forward", &candle)] {
-        let row = |label: &str, v: &Vec<f64>| {
+    println!("{:<40} {:>10} {:>10} {:>10}", "per frame", "median ms", "p90 ms", "CPU ms");
+    for (name, (times, cpu)) in [("CNN, fast path", &fast), ("CNN, candle forward", &candle)] {
+        let row = |label: &str, v: &Vec<f64>, cpu: Option<f64>| {
             let (m, p) = percentiles(v.clone());
-            println!("{label:<40} {m:>10.1} {p:>10.1}");
+            let cpu = cpu.map(|c| format!("{c:.1}")).unwrap_or_default();
+            println!("{label:<40} {m:>10.1} {p:>10.1} {cpu:>10}");
         };
-        row(&format!("{name}: regions + network"), &times[0]);
-        row("  of which region proposal", &times[1]);
-        row("  of which network", &times[2]);
+        row(&format!("{name}: regions + network"), &times[0], Some(*cpu));
+        row("  of which region proposal", &times[1], None);
+        row("  of which network", &times[2], None);
     }
     let (s50, s90) = percentiles(svm_total);
-    println!("{:<40} {:>10.1} {:>10.1}", "SVM: regions + features + decision", s50, s90);
+    println!("{:<40} {:>10.1} {:>10.1} {:>10.1}", "SVM: regions + features + decision", s50, s90, svm_cpu);
+    println!("(CPU ms: mean CPU time per frame over all threads, from /proc/self/stat in 10 ms ticks)");
     println!("load average {} at the end", load_average());
     Ok(())
 }

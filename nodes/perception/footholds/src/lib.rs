@@ -10,6 +10,8 @@
 //!   valid, foot-sized, walkable patches are (in place of CNN III-C's painting).
 //! - [`samples`], [`train`], [`model`]: labelled sets with augmentation, deterministic training,
 //!   weights as safetensors, whole-frame prediction.
+//! - [`inference`]: the network's forward pass without candle (im2col + gemm, fused bias, ReLU and
+//!   pooling, regions in parallel), what whole-frame prediction uses.
 //! - [`svm`]: the hand-feature linear SVM of CNN III-E; [`eval`]: the errors of CNN Tables I–II;
 //!   [`evaluation`]: the comparison table; [`render`]: pictures like CNN Fig. 6; [`sequence`]: a
 //!   dataset with its IMU mount, labelled.
@@ -34,6 +36,7 @@
 pub mod error;
 pub mod eval;
 pub mod evaluation;
+pub mod inference;
 pub mod labels;
 pub mod model;
 pub mod network;

@@ -1,6 +1,6 @@
 //! A trained foothold model: the network with the region proposal it was trained on, saved as one
 //! safetensors file (the tensors plus JSON metadata: network and region configuration, how it was
-//! trained), and the whole-frame prediction.
+//! trained), and the whole-frame prediction (through [`crate::inference`]).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -9,6 +9,7 @@ use candle_core::DType;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 
 use crate::error::FootholdError;
+use crate::inference::FastNet;
 use crate::network::{FootholdNet, NetConfig};
 use crate::regions::{propose, Region, RegionConfig};
 use crate::tensors_io;
@@ -17,10 +18,23 @@ use crate::train::{predict, Prediction};
 
 /// The network, its region proposal, and free-form training notes.
 pub struct FootholdModel {
+    /// The network (candle variables, for training). Prediction uses a snapshot of its weights taken
+    /// by [`FootholdModel::new`] and [`FootholdModel::load`]; after training `net` in place, call
+    /// [`FootholdModel::refresh_inference`].
     pub net: FootholdNet,
     pub regions: RegionConfig,
     /// Training provenance (set sizes, seeds, epochs, losses), stored with the weights.
     pub notes: serde_json::Value,
+    fast: FastNet,
+}
+
+/// Which forward pass computes the network's outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Inference {
+    /// [`crate::inference::FastNet`] (the default).
+    Fast,
+    /// [`FootholdNet::forward`] on candle tensors, in batches (the training code's forward pass).
+    Candle,
 }
 
 /// The regions of a frame and their predictions.
@@ -62,7 +76,15 @@ impl FootholdModel {
                 net.input_px
             )));
         }
-        Ok(Self { net: FootholdNet::new(net, seed, DType::F32)?, regions, notes: serde_json::Value::Null })
+        let net = FootholdNet::new(net, seed, DType::F32)?;
+        let fast = FastNet::from_net(&net)?;
+        Ok(Self { net, regions, notes: serde_json::Value::Null, fast })
+    }
+
+    /// Takes a new snapshot of the network's weights for prediction (after training `net` in place).
+    pub fn refresh_inference(&mut self) -> Result<(), FootholdError> {
+        self.fast = FastNet::from_net(&self.net)?;
+        Ok(())
     }
 
     /// Writes the weights and configuration.
@@ -81,27 +103,47 @@ impl FootholdModel {
         let net: NetConfig = tensors_io::meta_json(path, &metadata, "network")?;
         let regions: RegionConfig = tensors_io::meta_json(path, &metadata, "regions")?;
         let notes = tensors_io::meta_json(path, &metadata, "notes").unwrap_or(serde_json::Value::Null);
-        let mut model =
-            Self::new(net, regions, 0).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
-        model.net.load_tensors(&tensors).map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })?;
+        let bad = |e: FootholdError| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() };
+        let mut model = Self::new(net, regions, 0).map_err(bad)?;
+        model.net.load_tensors(&tensors).map_err(bad)?;
+        model.refresh_inference().map_err(bad)?;
         model.notes = notes;
         Ok(model)
     }
 
     /// Predictions for region inputs of this model's region configuration.
     pub fn predict_inputs(&self, inputs: &[f32], side: &[[f32; 3]]) -> Result<Vec<Vec<Prediction>>, FootholdError> {
-        predict(&self.net, inputs, side, 128)
+        self.predict_inputs_with(inputs, side, Inference::Fast)
+    }
+
+    /// [`FootholdModel::predict_inputs`] through the chosen forward pass.
+    pub fn predict_inputs_with(&self, inputs: &[f32], side: &[[f32; 3]], path: Inference) -> Result<Vec<Vec<Prediction>>, FootholdError> {
+        match path {
+            Inference::Fast => self.fast.predict(inputs, side),
+            Inference::Candle => predict(&self.net, inputs, side, 128),
+        }
     }
 
     /// Regions and predictions of one depth frame at camera tilt `tilt`.
     pub fn predict_frame(&self, depth: &DepthImage, intrinsics: &Intrinsics, tilt: Tilt) -> Result<FramePrediction, FootholdError> {
+        self.predict_frame_with(depth, intrinsics, tilt, Inference::Fast)
+    }
+
+    /// [`FootholdModel::predict_frame`] through the chosen forward pass.
+    pub fn predict_frame_with(
+        &self,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        tilt: Tilt,
+        path: Inference,
+    ) -> Result<FramePrediction, FootholdError> {
         let start = std::time::Instant::now();
         let mut inputs = Vec::new();
         let regions = propose(depth, intrinsics, &self.regions, &mut inputs)?;
         let regions_ms = start.elapsed().as_secs_f64() * 1e3;
         let side = vec![tilt.channels(); regions.len()];
         let start = std::time::Instant::now();
-        let predictions = self.predict_inputs(&inputs, &side)?;
+        let predictions = self.predict_inputs_with(&inputs, &side, path)?;
         let network_ms = start.elapsed().as_secs_f64() * 1e3;
         Ok(FramePrediction { regions, predictions, regions_ms, network_ms })
     }
@@ -115,7 +157,7 @@ mod tests {
     fn save_load_gives_the_same_predictions() {
         let model = FootholdModel::new(NetConfig::default(), RegionConfig::default(), 3).unwrap();
         let k = Intrinsics::new(640, 480, 525.0, 525.0, 319.5, 239.5).unwrap();
-        let depth: Vec<f32> = (0..640 * 480).map(|i| 0.6 + 0.0002 * ((i % 640) as f32) + 0.01 * ((i / 640 % 37) as f32 / 37.0)).collect();
+        let depth: Vec<f32> = (0..640 * 480).map(|i| 1.0 + 0.0002 * ((i % 640) as f32) + 0.01 * ((i / 640 % 37) as f32 / 37.0)).collect();
         let depth = DepthImage::new(640, 480, depth).unwrap();
         let tilt = Tilt::from_degrees(45.0).unwrap();
         let before = model.predict_frame(&depth, &k, tilt).unwrap();
@@ -128,5 +170,22 @@ mod tests {
         assert_eq!(before.regions.len(), 266);
         let err = FootholdModel::new(NetConfig::default(), RegionConfig { normals: true, ..RegionConfig::default() }, 1).err().unwrap();
         assert!(err.to_string().contains("3 channels"), "{err}");
+    }
+
+    /// The whole-frame prediction gives the candle forward's answers on a recorded frame.
+    #[test]
+    fn fast_and_candle_paths_agree_on_a_recorded_frame() {
+        let model = FootholdModel::load(&crate::shipped_weights_path(false)).unwrap();
+        let dataset = patchwalk_fusion::dataset::Dataset::open(&patchwalk_fusion::dataset::test_data_dir().join("tum_fr1_xyz")).unwrap();
+        let depth = dataset.load_depth(0).unwrap();
+        let tilt = Tilt::from_degrees(45.0).unwrap();
+        let fast = model.predict_frame(&depth, &dataset.intrinsics, tilt).unwrap();
+        let candle = model.predict_frame_with(&depth, &dataset.intrinsics, tilt, Inference::Candle).unwrap();
+        assert_eq!(fast.regions, candle.regions);
+        assert!(fast.regions.len() > 100, "{}", fast.regions.len());
+        for (a, b) in fast.predictions.iter().flatten().zip(candle.predictions.iter().flatten()) {
+            assert!((a.p - b.p).abs() < 1e-4 && (a.x - b.x).abs() < 1e-4 && (a.y - b.y).abs() < 1e-4, "{a:?} vs {b:?}");
+        }
+        assert_eq!(fast.predictions.len(), candle.predictions.len());
     }
 }

@@ -276,7 +276,9 @@ mod tests {
     fn tiny() -> NetConfig {
         NetConfig {
             in_channels: 1,
-            input_px: 16,
+            // 20 → 18 → pool 9 → 8 → pool 4 → 3 → 2 → pool 1: even sides before every pooling
+            // (candle's max-pool gradient assumes the pooled side divides the input's).
+            input_px: 20,
             kernels: [2, 2, 3, 3],
             kernel_sizes: [3, 2, 2, 2],
             first_stride: 1,
@@ -321,8 +323,8 @@ mod tests {
         let net = FootholdNet::new(tiny(), 3, DType::F64).unwrap();
         let dev = Device::Cpu;
         let n = 4;
-        let x: Vec<f64> = (0..n * 256).map(|i| ((i * 37 % 101) as f64 / 101.0) - 0.5).collect();
-        let x = Tensor::from_vec(x, (n, 1, 16, 16), &dev).unwrap();
+        let x: Vec<f64> = (0..n * 20 * 20).map(|i| ((i * 37 % 101) as f64 / 101.0) - 0.5).collect();
+        let x = Tensor::from_vec(x, (n, 1, 20, 20), &dev).unwrap();
         let side = Tensor::from_vec(vec![0.6, 0.8, 0.6, 0.7, 0.7, 0.5, 0.9, 0.4, 0.3, 1.0, 0.0, 0.0], (n, 3), &dev).unwrap();
         let labels = Tensor::from_vec(vec![1u32, 0, 1, 0], (n, 1), &dev).unwrap();
         let positive = labels.to_dtype(DType::F64).unwrap();
@@ -334,6 +336,7 @@ mod tests {
         let grads = loss_of(&net).backward().unwrap();
         let eps = 1e-6;
         let mut checked = 0;
+        let mut wrong = Vec::new();
         for (name, var) in &net.params {
             let grad = grads.get(var).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap();
             let values = var.as_tensor().flatten_all().unwrap().to_vec1::<f64>().unwrap();
@@ -349,14 +352,13 @@ mod tests {
                 let lm = loss_of(&net).to_scalar::<f64>().unwrap();
                 var.set(&Tensor::from_vec(values.clone(), var.dims(), &dev).unwrap()).unwrap();
                 let numeric = (lp - lm) / (2.0 * eps);
-                assert!(
-                    (numeric - grad[i]).abs() <= 1e-5 * (1.0 + numeric.abs()),
-                    "{name}[{i}]: backprop {} vs numeric {numeric}",
-                    grad[i]
-                );
+                if (numeric - grad[i]).abs() > 1e-5 * (1.0 + numeric.abs()) {
+                    wrong.push(format!("{name}[{i}]: backprop {} vs numeric {numeric}", grad[i]));
+                }
                 checked += 1;
             }
         }
+        assert!(wrong.is_empty(), "{}", wrong.join("\n"));
         assert!(checked >= 14);
     }
 

@@ -270,48 +270,79 @@ pub fn propose(
         candidates.push(Region { row, col, u, v, depth_m, size_px: config.region_size_px(focal, depth_m) });
     }
     let len = config.input_len();
-    let resampled: Vec<Option<Vec<f32>>> = {
-        use rayon::prelude::*;
-        candidates.par_iter().map(|region| region_input(&integral, region, focal, config)).collect()
-    };
+    // Every candidate's input in place, in parallel; then the regions with too few valid cells are
+    // squeezed out.
     inputs.clear();
+    inputs.resize(candidates.len() * len, 0.0);
+    let valid: Vec<bool> = {
+        use rayon::prelude::*;
+        inputs
+            .par_chunks_mut(len)
+            .zip(&candidates)
+            .map_init(Vec::new, |metres, (out, region)| region_input(&integral, region, focal, config, out, metres))
+            .collect()
+    };
     let mut regions = Vec::with_capacity(candidates.len());
-    for (region, input) in candidates.into_iter().zip(resampled) {
-        if let Some(input) = input {
-            debug_assert_eq!(input.len(), len);
-            inputs.extend_from_slice(&input);
+    for (i, (region, valid)) in candidates.into_iter().zip(valid).enumerate() {
+        if valid {
+            let to = regions.len() * len;
+            if to != i * len {
+                inputs.copy_within(i * len..(i + 1) * len, to);
+            }
             regions.push(region);
         }
     }
+    inputs.truncate(regions.len() * len);
     Ok(regions)
 }
 
-/// The resampled, normalised input of one region; `None` when too few cells are valid.
-fn region_input(integral: &Integral, region: &Region, focal: f64, config: &RegionConfig) -> Option<Vec<f32>> {
+/// The pixel span `[start, end)` of each of the `n` cells along one axis of a region starting at
+/// `origin` with cells `step` pixels wide (at least one pixel), clamped to `[0, limit]`.
+fn cell_spans(origin: f64, step: f64, n: usize, limit: usize) -> impl Iterator<Item = (usize, usize)> {
+    let clamp = move |p: i64| p.clamp(0, limit as i64) as usize;
+    (0..n).map(move |a| {
+        let p0 = (origin + a as f64 * step).floor() as i64;
+        let p1 = ((origin + (a + 1) as f64 * step).floor() as i64).max(p0 + 1);
+        (clamp(p0), clamp(p1))
+    })
+}
+
+/// Writes the resampled, normalised input of one region into `out` (`config.input_len()` values);
+/// false when too few cells are valid. `metres` is a work buffer.
+fn region_input(integral: &Integral, region: &Region, focal: f64, config: &RegionConfig, out: &mut [f32], metres: &mut Vec<f64>) -> bool {
     let n = config.out_px;
     let s = region.size_px as f64;
     let (u0, v0) = region.origin();
     let step = s / n as f64;
-    let mut metres = vec![f64::NAN; n * n];
+    let columns: Vec<(usize, usize)> = cell_spans(u0, step, n, integral.width).collect();
+    metres.clear();
+    metres.resize(n * n, f64::NAN);
     let mut valid = 0usize;
-    for b in 0..n {
-        let y0 = (v0 + b as f64 * step).floor() as i64;
-        let y1 = ((v0 + (b + 1) as f64 * step).floor() as i64).max(y0 + 1);
-        for a in 0..n {
-            let x0 = (u0 + a as f64 * step).floor() as i64;
-            let x1 = ((u0 + (a + 1) as f64 * step).floor() as i64).max(x0 + 1);
-            if let Some(mean) = integral.box_mean(x0, y0, x1, y1) {
-                metres[b * n + a] = mean;
+    let stride = integral.width + 1;
+    for ((y0, y1), row) in cell_spans(v0, step, n, integral.height).zip(metres.chunks_exact_mut(n)) {
+        if y1 <= y0 {
+            continue;
+        }
+        let (top, bottom) = (y0 * stride, y1 * stride);
+        for (&(x0, x1), cell) in columns.iter().zip(row) {
+            if x1 <= x0 {
+                continue;
+            }
+            // The box's valid count and depth sum from the integral images (Integral::box_sum).
+            let count = integral.count[bottom + x1] + integral.count[top + x0] - integral.count[top + x1] - integral.count[bottom + x0];
+            if count > 0 {
+                let sum = integral.sum[bottom + x1] - integral.sum[top + x1] - integral.sum[bottom + x0] + integral.sum[top + x0];
+                *cell = sum / f64::from(count);
                 valid += 1;
             }
         }
     }
     if (valid as f64) < config.min_valid_fraction * (n * n) as f64 || valid == 0 {
-        return None;
+        return false;
     }
     let mean = metres.iter().filter(|d| d.is_finite()).sum::<f64>() / valid as f64;
-    let mut out = vec![0.0f32; config.input_len()];
-    for (o, d) in out.iter_mut().zip(&metres) {
+    out.fill(0.0);
+    for (o, d) in out.iter_mut().zip(metres.iter()) {
         if d.is_finite() {
             *o = (((d - mean) / config.depth_range_m) * f64::from(config.depth_gain)) as f32;
         }
@@ -336,7 +367,7 @@ fn region_input(integral: &Integral, region: &Region, focal: f64, config: &Regio
             }
         }
     }
-    Some(out)
+    true
 }
 
 /// Mirrors one region input horizontally (CNN III-C augmentation); the normal's x flips sign.
@@ -423,6 +454,48 @@ mod tests {
         // Left cells are 0.05 m below the mean: (-0.05 / 2.0) · 10 = -0.25; right +0.25.
         let (left, right) = (input[30 * 60 + 2], input[30 * 60 + 57]);
         assert!((left + 0.25).abs() < 0.02 && (right - 0.25).abs() < 0.02, "{left} {right}");
+    }
+
+    /// Each cell is the mean of the valid pixels under it (Integral::box_mean), normalised, for
+    /// regions larger and smaller than 60 px, with holes and partly outside the image.
+    #[test]
+    fn cells_are_the_means_of_the_valid_pixels_under_them() {
+        let (mut depth, k) = flat(640, 480, 1.0);
+        for v in 0..480 {
+            for u in 0..640 {
+                depth.depth_m[v * 640 + u] =
+                    if (u * 7 + v * 13) % 11 == 0 { f32::NAN } else { 0.5 + 0.002 * u as f32 + 0.1 * (v as f32 * 0.05).sin() };
+            }
+        }
+        let config = RegionConfig::default();
+        let mut inputs = Vec::new();
+        let regions = propose(&depth, &k, &config, &mut inputs).unwrap();
+        let n = config.out_px;
+        assert!(regions.iter().any(|r| r.size_px < n) && regions.iter().any(|r| r.size_px > n));
+        assert!(regions.len() > 200 && inputs.len() == regions.len() * config.input_len());
+        let integral = Integral::new(&depth);
+        let mut outside = 0;
+        for (region, input) in regions.iter().zip(inputs.chunks_exact(config.input_len())) {
+            let (u0, v0) = region.origin();
+            let step = region.size_px as f64 / n as f64;
+            let span = |origin: f64, a: usize| {
+                let p0 = (origin + a as f64 * step).floor() as i64;
+                (p0, ((origin + (a + 1) as f64 * step).floor() as i64).max(p0 + 1))
+            };
+            let means: Vec<Option<f64>> = (0..n * n)
+                .map(|i| {
+                    let ((x0, x1), (y0, y1)) = (span(u0, i % n), span(v0, i / n));
+                    integral.box_mean(x0, y0, x1, y1)
+                })
+                .collect();
+            let valid: Vec<f64> = means.iter().flatten().copied().collect();
+            outside += usize::from(valid.len() < n * n);
+            let mean = valid.iter().sum::<f64>() / valid.len() as f64;
+            for (value, cell) in input.iter().zip(&means) {
+                assert_eq!(*value, cell.map_or(0.0, |d| (((d - mean) / 2.0) * 10.0) as f32));
+            }
+        }
+        assert!(outside > 0);
     }
 
     #[test]

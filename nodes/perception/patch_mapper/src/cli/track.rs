@@ -379,6 +379,7 @@ mod tests {
             gravity: GravitySource::Auto,
             camera_from_imu: None,
             birds_eye_every: 0,
+            every: 1,
             max_frames: None,
             config: None,
         };

@@ -215,10 +215,17 @@ mod tests {
         let last = path.poses.last().unwrap();
         assert_eq!((first.position.x, first.position.y), (route.body_path[0][0], route.body_path[0][1]));
         assert!(last.pose.position.x > first.position.x + 0.5, "from the start to the goal");
-        // Heading along +x (the goal is straight ahead): yaw within 90° of it at the first pose.
-        let q = &first.orientation;
-        let yaw = (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z));
-        assert!(yaw.abs() < std::f64::consts::FRAC_PI_2, "{yaw}");
+        // Each pose heads toward the next vertex, z up.
+        for (pose, pair) in path.poses.iter().zip(route.body_path.windows(2)) {
+            let q = &pose.pose.orientation;
+            let yaw = (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z));
+            let (dx, dy) = (pair[1][0] - pair[0][0], pair[1][1] - pair[0][1]);
+            if dx.hypot(dy) > 1e-9 {
+                let off = (yaw - dy.atan2(dx) + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+                assert!(off.abs() < 1e-9, "{yaw} vs {}", dy.atan2(dx));
+            }
+            assert!(q.x.abs() < 1e-12 && q.y.abs() < 1e-12, "z up");
+        }
         let markers = route_markers(&route, &stamp, "odom");
         assert_eq!(markers.markers.len(), 5);
         assert_eq!(markers.markers[1].points.len(), route.body_path.len());

@@ -15,6 +15,6 @@ pub mod msg;
 pub mod srv;
 
 pub use ros2_interfaces_jazzy_serde::{
-    builtin_interfaces, diagnostic_msgs, geometry_msgs, nav_msgs, rcl_interfaces, rosgraph_msgs, sensor_msgs, std_msgs, std_srvs,
-    tf2_msgs, visualization_msgs,
+    builtin_interfaces, diagnostic_msgs, geometry_msgs, nav_msgs, rcl_interfaces, rosgraph_msgs, sensor_msgs, std_msgs, std_srvs, tf2_msgs,
+    visualization_msgs,
 };

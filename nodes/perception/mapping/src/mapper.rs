@@ -432,17 +432,16 @@ impl Mapper {
             .iter()
             .filter_map(|r| Some(Seed { pixel: r.pixel, point_in_camera: r.anchor_in_camera, cell: self.map.get(r.id)?.cell? }))
             .collect();
-        let (revisit_outcomes, _, _) =
-            fit_seeds(
-                &revisit_seeds,
-                &cloud,
-                input.intrinsics,
-                &(-gravity_in_camera.into_inner()),
-                config,
-                usize::MAX,
-                deadline,
-                self.frames ^ REVISIT_RNG_SALT,
-            );
+        let (revisit_outcomes, _, _) = fit_seeds(
+            &revisit_seeds,
+            &cloud,
+            input.intrinsics,
+            &(-gravity_in_camera.into_inner()),
+            config,
+            usize::MAX,
+            deadline,
+            self.frames ^ REVISIT_RNG_SALT,
+        );
         let t_revisit = Instant::now();
         // Stages iv–v until tm, ns or ν (J eq 19).
         let target_patches =

@@ -284,8 +284,16 @@ mod tests {
     fn seeds_respect_caps_order_and_saliency() {
         let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let seeds =
-            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &[], &config, 0);
+        let seeds = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &[],
+            &[],
+            &config,
+            0,
+        );
         assert!(seeds.len() >= 10, "{} seeds", seeds.len());
         // ng = 1: every cell at most once, every seed salient and inside its cell.
         let mut cells: Vec<_> = seeds.iter().map(|s| s.cell).collect();
@@ -331,11 +339,27 @@ mod tests {
         );
         assert!(three.len() > 2 * seeds.len());
         // Deterministic for the same frame, different for another frame.
-        let again =
-            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &[], &config, 0);
+        let again = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &[],
+            &[],
+            &config,
+            0,
+        );
         assert_eq!(again, seeds);
-        let other =
-            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &[], &config, 1);
+        let other = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &[],
+            &[],
+            &config,
+            1,
+        );
         assert_ne!(other, seeds);
     }
 
@@ -343,8 +367,16 @@ mod tests {
     fn occupied_cells_take_no_new_seeds() {
         let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let all =
-            select_seeds(&saliency, AuxiliaryImage { depth: &depth, intrinsics: &intrinsics }, &grid, &volume_from_camera, &[], &[], &config, 0);
+        let all = select_seeds(
+            &saliency,
+            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
+            &grid,
+            &volume_from_camera,
+            &[],
+            &[],
+            &config,
+            0,
+        );
         let mut occupied = vec![0; 64];
         let full = all[0].cell;
         occupied[grid.flat(full)] = 1;
@@ -363,7 +395,13 @@ mod tests {
     }
 
     /// A prediction on the surface under the salient pixel `index` of the setup, in the volume.
-    fn prior_at(depth: &DepthImage, intrinsics: &Intrinsics, volume_from_camera: &Isometry3<f64>, pixel: (usize, usize), score: f64) -> SeedPrior {
+    fn prior_at(
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        volume_from_camera: &Isometry3<f64>,
+        pixel: (usize, usize),
+        score: f64,
+    ) -> SeedPrior {
         let z = depth.get(pixel.0, pixel.1).unwrap();
         let point = intrinsics.back_project(pixel.0 as f64, pixel.1 as f64, f64::from(z));
         SeedPrior { point_in_volume: (volume_from_camera * Point3::from(point)).coords, score }
@@ -396,7 +434,8 @@ mod tests {
         };
         assert!(seeds[2..].windows(2).all(|w| distance(w[0].cell) <= distance(w[1].cell)));
         // ns keeps the predicted cells.
-        let capped = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &SeedConfig { max_seeds: 1, ..learned.clone() }, 0);
+        let capped =
+            select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &SeedConfig { max_seeds: 1, ..learned.clone() }, 0);
         assert_eq!(capped.iter().map(|s| s.cell).collect::<Vec<_>>(), vec![far.cell]);
         // Without predictions (or with non-finite ones) it is J's order.
         assert_eq!(select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &learned, 0), plain);
@@ -410,7 +449,16 @@ mod tests {
         let aux = AuxiliaryImage { depth: &depth, intrinsics: &intrinsics };
         let config = SeedConfig { max_seeds: 1000, order: SeedOrder::LearnedOnly, ..Default::default() };
         assert!(select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &config, 0).is_empty(), "no predictions, no seeds");
-        let plain = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &SeedConfig { order: SeedOrder::Saliency, ..config.clone() }, 0);
+        let plain = select_seeds(
+            &saliency,
+            aux,
+            &grid,
+            &volume_from_camera,
+            &[],
+            &[],
+            &SeedConfig { order: SeedOrder::Saliency, ..config.clone() },
+            0,
+        );
         let (a, b) = (plain[0], plain[plain.len() / 2]);
         // A third prediction in a's cell scored below it: ng = 1 keeps only the better one.
         let mut beside = a.pixel;

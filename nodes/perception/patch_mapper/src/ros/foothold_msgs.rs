@@ -151,8 +151,22 @@ pub fn route_markers(route: &Route, stamp: &Time, frame_id: &str) -> MarkerArray
     };
     let mut markers = vec![Marker { header: header.clone(), action: Marker::DELETEALL, ..Default::default() }];
     markers.push(marker("route_body", 0, Marker::LINE_STRIP, 0.006, PATH_COLOUR, route.body_path.iter().map(point_of).collect()));
-    markers.push(marker("route_left", 1, Marker::SPHERE_LIST, 0.03, LEFT_COLOUR, route.stances.iter().map(|s| point_of(&s.left)).collect()));
-    markers.push(marker("route_right", 2, Marker::SPHERE_LIST, 0.03, RIGHT_COLOUR, route.stances.iter().map(|s| point_of(&s.right)).collect()));
+    markers.push(marker(
+        "route_left",
+        1,
+        Marker::SPHERE_LIST,
+        0.03,
+        LEFT_COLOUR,
+        route.stances.iter().map(|s| point_of(&s.left)).collect(),
+    ));
+    markers.push(marker(
+        "route_right",
+        2,
+        Marker::SPHERE_LIST,
+        0.03,
+        RIGHT_COLOUR,
+        route.stances.iter().map(|s| point_of(&s.right)).collect(),
+    ));
     let pairs = route.stances.iter().flat_map(|s| [point_of(&s.left), point_of(&s.right)]).collect();
     markers.push(marker("route_stances", 3, Marker::LINE_LIST, 0.003, ColorRGBA { r: 1.0, g: 1.0, b: 1.0, a: 1.0 }, pairs));
     MarkerArray { markers }
@@ -204,7 +218,12 @@ mod tests {
         let terrain = synthetic::Terrain::trench(Some(0.15));
         let route = Planner::rpbp()
             .unwrap()
-            .plan(&terrain.grid(), &terrain.holds(0.03, 1), Some(Target { x: 0.15, y: -0.2, z: None }), Target { x: 1.05, y: -0.2, z: None })
+            .plan(
+                &terrain.grid(),
+                &terrain.holds(0.03, 1),
+                Some(Target { x: 0.15, y: -0.2, z: None }),
+                Target { x: 1.05, y: -0.2, z: None },
+            )
             .unwrap();
         let stamp = Time { sec: 1, nanosec: 0 };
         let path = route_path(&route, &stamp, "odom");

@@ -138,8 +138,7 @@ mod tests {
         let right = Vector3::new(0.0, -1.0, 0.0);
         let down = forward.cross(&right);
         let rotation = nalgebra::Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[right, down, forward]));
-        let fixed_from_camera =
-            Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.5), UnitQuaternion::from_rotation_matrix(&rotation));
+        let fixed_from_camera = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.5), UnitQuaternion::from_rotation_matrix(&rotation));
         let up_in_camera = fixed_from_camera.inverse_transform_vector(&Vector3::z());
         let camera_height = 0.5;
         let depth: Vec<f32> = (0..k.width * k.height)

@@ -33,8 +33,8 @@ use ros2_client::Publisher;
 use serde::{Deserialize, Serialize};
 
 use super::foothold_msgs;
-use patch_mapper::foothold_points::{lift, ScoredHold};
 use super::latest::{Latest, Taken};
+use patch_mapper::foothold_points::{lift, ScoredHold};
 
 /// Output and input names of the stage (root namespace; created relative to the node).
 pub const FOOTHOLDS_TOPIC: &str = "/patch_mapper/footholds";
@@ -158,11 +158,7 @@ pub struct FootholdFrame {
 /// The patch map's patches no steeper than `max_slope_deg` as holds of score 1 (map = fixed frame).
 pub fn patch_holds(map: &PatchMap, max_slope_deg: f64) -> Vec<Hold> {
     let min_cos = max_slope_deg.to_radians().cos();
-    map.patches()
-        .iter()
-        .filter(|m| m.patch.normal().normalize().z.abs() >= min_cos)
-        .map(|m| Hold::new(m.patch.center, 1.0))
-        .collect()
+    map.patches().iter().filter(|m| m.patch.normal().normalize().z.abs() >= min_cos).map(|m| Hold::new(m.patch.center, 1.0)).collect()
 }
 
 /// What the stage reports for `/diagnostics`.
@@ -366,8 +362,18 @@ impl StageWorker {
         };
         if let Some(holds) = &holds {
             let frame_id = self.fixed_frame.as_str();
-            node::publish(&self.outputs.footholds, FOOTHOLDS_TOPIC, foothold_msgs::pose_array(holds, &frame.stamp, frame_id), &mut self.log);
-            node::publish(&self.outputs.scores, FOOTHOLD_SCORES_TOPIC, foothold_msgs::scored_cloud(holds, &frame.stamp, frame_id), &mut self.log);
+            node::publish(
+                &self.outputs.footholds,
+                FOOTHOLDS_TOPIC,
+                foothold_msgs::pose_array(holds, &frame.stamp, frame_id),
+                &mut self.log,
+            );
+            node::publish(
+                &self.outputs.scores,
+                FOOTHOLD_SCORES_TOPIC,
+                foothold_msgs::scored_cloud(holds, &frame.stamp, frame_id),
+                &mut self.log,
+            );
             if let Some(markers) = &self.outputs.markers {
                 node::publish(markers, FOOTHOLD_MARKERS_TOPIC, foothold_msgs::hold_markers(holds, &frame.stamp, frame_id), &mut self.log);
             }
@@ -388,9 +394,15 @@ impl StageWorker {
                     if let Some((path, markers)) = &self.outputs.route {
                         let frame_id = self.fixed_frame.as_str();
                         node::publish(path, ROUTE_TOPIC, foothold_msgs::route_path(&route, &frame.stamp, frame_id), &mut self.log);
-                        node::publish(markers, ROUTE_MARKERS_TOPIC, foothold_msgs::route_markers(&route, &frame.stamp, frame_id), &mut self.log);
+                        node::publish(
+                            markers,
+                            ROUTE_MARKERS_TOPIC,
+                            foothold_msgs::route_markers(&route, &frame.stamp, frame_id),
+                            &mut self.log,
+                        );
                     }
-                    let summary = format!("{} stances over {:.2} m toward ({:.2}, {:.2})", route.stances.len(), route.length_m, goal.x, goal.y);
+                    let summary =
+                        format!("{} stances over {:.2} m toward ({:.2}, {:.2})", route.stances.len(), route.length_m, goal.x, goal.y);
                     self.stage.update(|h| {
                         h.routes += 1;
                         h.last_route = summary;

@@ -120,10 +120,12 @@ def test_footholds_land_on_the_table_in_odom_and_a_goal_gets_a_route(ros, start_
     assert mapper.alive()
 
 
-def test_the_stage_is_off_by_default_and_its_topics_do_not_exist(ros, patch_mapper):
-    def topics() -> dict:
-        return dict(ros.node.get_topic_names_and_types())
+def test_the_stage_is_off_by_default_and_its_endpoints_do_not_exist(ros, patch_mapper):
+    def endpoints() -> set[str]:
+        publishers = ros.node.get_publisher_names_and_types_by_node("patch_mapper", "/")
+        subscriptions = ros.node.get_subscriber_names_and_types_by_node("patch_mapper", "/")
+        return {name for name, _ in publishers + subscriptions}
 
-    pw.wait_until(lambda: "/patch_mapper/status" in topics(), "the mapper's topics are discovered")
+    pw.wait_until(lambda: "/patch_mapper/status" in endpoints(), "the mapper's endpoints are discovered")
     for name in ("/patch_mapper/footholds", "/patch_mapper/footholds/scored", "/patch_mapper/route", "/patch_mapper/route_goal"):
-        assert name not in topics(), name
+        assert name not in endpoints(), name

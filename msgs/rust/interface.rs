@@ -5,7 +5,8 @@
 use ros2_client::{ActionTypeName, Message, MessageTypeName, ServiceTypeName};
 
 use crate::{
-    action, diagnostic_msgs, msg, rcl_interfaces, rosgraph_msgs, sensor_msgs, srv, std_msgs, std_srvs, tf2_msgs, visualization_msgs,
+    action, diagnostic_msgs, geometry_msgs, msg, nav_msgs, rcl_interfaces, rosgraph_msgs, sensor_msgs, srv, std_msgs, std_srvs, tf2_msgs,
+    visualization_msgs,
 };
 
 /// A message type with its ROS 2 name `package/msg/Name`.
@@ -123,6 +124,15 @@ ros_message!("diagnostic_msgs",
 
 ros_message!("visualization_msgs",
     visualization_msgs::msg::MarkerArray => "MarkerArray",
+);
+
+ros_message!("geometry_msgs",
+    geometry_msgs::msg::PoseArray => "PoseArray",
+    geometry_msgs::msg::PoseStamped => "PoseStamped",
+);
+
+ros_message!("nav_msgs",
+    nav_msgs::msg::Path => "Path",
 );
 
 ros_message!("std_msgs",

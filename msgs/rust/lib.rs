@@ -5,7 +5,8 @@
 //!   `rust/tests/interface_files.rs` parses the files and checks every struct against them.
 //! - [`builtin_interfaces`], [`std_msgs`], [`geometry_msgs`], [`sensor_msgs`], [`std_srvs`],
 //!   [`visualization_msgs`], [`diagnostic_msgs`], [`tf2_msgs`] (`/tf`, `/tf_static`), [`rosgraph_msgs`]
-//!   (`/clock`): the standard ROS 2 Jazzy types, re-exported from `ros2-interfaces-jazzy-serde`.
+//!   (`/clock`), [`nav_msgs`] (`Path`): the standard ROS 2 Jazzy types, re-exported from
+//!   `ros2-interfaces-jazzy-serde`.
 //! - [`interface`]: ROS 2 type names of every type (`RosMessage`, `RosService`, `RosAction`).
 
 pub mod action;
@@ -14,6 +15,6 @@ pub mod msg;
 pub mod srv;
 
 pub use ros2_interfaces_jazzy_serde::{
-    builtin_interfaces, diagnostic_msgs, geometry_msgs, rcl_interfaces, rosgraph_msgs, sensor_msgs, std_msgs, std_srvs, tf2_msgs,
+    builtin_interfaces, diagnostic_msgs, geometry_msgs, nav_msgs, rcl_interfaces, rosgraph_msgs, sensor_msgs, std_msgs, std_srvs, tf2_msgs,
     visualization_msgs,
 };

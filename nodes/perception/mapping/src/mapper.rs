@@ -22,7 +22,7 @@ use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobs
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
 use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
-use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig};
+use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig, SeedPrior};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
 use patchwalk_spl::fit::FitConfig;
@@ -336,6 +336,8 @@ pub struct Mapper {
     pub config: MapperConfig,
     pub map: PatchMap,
     frames: u64,
+    /// Predicted footholds in the map frame (point, score) for the learned seed orders.
+    seed_priors_in_map: Vec<(Vector3<f64>, f64)>,
 }
 
 /// The single-frame volume: y along gravity, z along the camera's horizontal forward direction,
@@ -358,7 +360,18 @@ impl Mapper {
     pub fn new(config: MapperConfig, frame_id: &str, volume_from_map: Isometry3<f64>) -> Result<Self, MapperError> {
         check_config(&config)?;
         let grid = VolumeGrid { volume_from_map, edge_m: config.volume_edge_m, cells_per_side: config.seeds.cells_per_side };
-        Ok(Self { map: PatchMap::new(frame_id, grid), config, frames: 0 })
+        Ok(Self { map: PatchMap::new(frame_id, grid), config, frames: 0, seed_priors_in_map: Vec::new() })
+    }
+
+    /// Predicted footholds (points in the map frame, scores in [0, 1]) for the learned seed orders
+    /// (`seeds.order`), used from the next frame on until replaced; an empty list clears them.
+    pub fn set_seed_priors(&mut self, priors_in_map: Vec<(Vector3<f64>, f64)>) {
+        self.seed_priors_in_map = priors_in_map;
+    }
+
+    /// The predicted footholds the learned seed orders use (map frame).
+    pub fn seed_priors(&self) -> &[(Vector3<f64>, f64)] {
+        &self.seed_priors_in_map
     }
 
     /// New parameters from the next frame on (a node's parameter set). The map's grid (volume edge,
@@ -391,12 +404,19 @@ impl Mapper {
         );
         let t_sal = Instant::now();
         // Stage iii.
+        let volume_from_map = self.map.grid().volume_from_map;
+        let priors: Vec<SeedPrior> = self
+            .seed_priors_in_map
+            .iter()
+            .map(|(point, score)| SeedPrior { point_in_volume: (volume_from_map * nalgebra::Point3::from(*point)).coords, score: *score })
+            .collect();
         let seeds = select_seeds(
             &saliency,
             AuxiliaryImage { depth: &preprocessed.auxiliary, intrinsics: &preprocessed.auxiliary_intrinsics },
             self.map.grid(),
             &input.volume_from_camera,
             &self.map.cell_counts(),
+            &priors,
             &config.seeds,
             self.frames,
         );

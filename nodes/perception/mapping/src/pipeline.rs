@@ -291,6 +291,13 @@ impl Pipeline {
         Ok(self.mapper.set_config(mapper)?)
     }
 
+    /// Predicted footholds (points in the `map` frame, scores in [0, 1]) for the learned seed orders
+    /// (`mapper.seeds.order`), from the next frame on until replaced; a map reset clears them (they
+    /// belong to the map frame of the map they were made for).
+    pub fn set_seed_priors(&mut self, priors_in_map: Vec<(Vector3<f64>, f64)>) {
+        self.mapper.set_seed_priors(priors_in_map);
+    }
+
     /// The patch map (patches in the `map` frame).
     pub fn map(&self) -> &PatchMap {
         &self.mapper.map
@@ -340,6 +347,7 @@ impl Pipeline {
     pub fn reset(&mut self) {
         self.tracker.reset();
         self.mapper.map.retain(|_| false);
+        self.mapper.set_seed_priors(Vec::new());
         self.last_stamp = None;
         self.imu.clear();
     }
@@ -464,6 +472,7 @@ impl Pipeline {
         let before = self.mapper.map.len();
         if matches!(report.status, TrackingStatus::Lost(_)) || (report.status == TrackingStatus::Initialized && before > 0) {
             self.mapper.map.retain(|_| false);
+            self.mapper.set_seed_priors(Vec::new());
         }
         let volume_from_map = self.tracker.map_from_volume().inverse();
         if self.mapper.map.grid().volume_from_map != volume_from_map {

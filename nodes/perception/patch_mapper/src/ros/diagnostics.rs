@@ -12,6 +12,11 @@
 //! The numbers come from the node's `MapperStatus` counters, sampled by the loop on every pass. The
 //! latency is the one of the latest mapped frame at each pass: when two frames finish between two
 //! passes only the later one is sampled.
+//!
+//! With the foothold stage on (`ros.footholds.enabled`), `footholds` reports its prediction rate,
+//! the frames it dropped for newer ones (network busy or rate limit), the last prediction's time and
+//! footholds, and the last route: OK, WARN when frames are offered but none was predicted, or the
+//! last prediction failed.
 
 use std::time::Instant;
 
@@ -20,6 +25,8 @@ use patchwalk_msgs::diagnostic_msgs::msg::{DiagnosticArray, DiagnosticStatus, Ke
 use patchwalk_msgs::msg::MapperStatus;
 
 use patchwalk_ros::diagnostics::kv;
+
+use super::footholds::FootholdHealth;
 pub use patchwalk_ros::diagnostics::{DIAGNOSTICS_PERIOD, DIAGNOSTICS_TOPIC};
 pub const HARDWARE_ID: &str = "patch_mapper";
 /// The timing entry that holds the end-to-end latency (`MapperStatus.timing_names`).
@@ -198,6 +205,50 @@ fn tracking_status(s: &MapperStatus, r: &Rates, t: &TrackingHealth, before: &Tra
     status(OK, "tracking", format!("mapping {:.0} frames/s", r.processed_hz), values)
 }
 
+/// The foothold stage's counters at the start of the window.
+#[derive(Debug, Default)]
+pub struct FootholdWindow {
+    start: Option<(Instant, FootholdHealth)>,
+}
+
+impl FootholdWindow {
+    /// The `footholds` status for the window ending at `now` (then a new window starts).
+    pub fn status(&mut self, health: &FootholdHealth, now: Instant) -> DiagnosticStatus {
+        let (since, before) = self.start.take().unwrap_or_else(|| (now, health.clone()));
+        self.start = Some((now, health.clone()));
+        let seconds = now.duration_since(since).as_secs_f64();
+        let predicted = health.predicted.saturating_sub(before.predicted);
+        let offered = health.offered.saturating_sub(before.offered);
+        let dropped = health.dropped.saturating_sub(before.dropped);
+        let hz = if seconds > 0.0 { predicted as f64 / seconds } else { 0.0 };
+        let limit = if health.max_rate_hz > 0.0 { format!("limit {:.1} Hz", health.max_rate_hz) } else { "no rate limit".to_string() };
+        let values = vec![
+            kv("predicted_hz", format!("{hz:.2}")),
+            kv("offered_last_window", offered),
+            kv("dropped_last_window", dropped),
+            kv("predicted_total", health.predicted),
+            kv("dropped_total", health.dropped),
+            kv("last_regions_ms", format!("{:.1}", health.last_regions_ms)),
+            kv("last_network_ms", format!("{:.1}", health.last_network_ms)),
+            kv("last_footholds", health.last_holds),
+            kv("routes_total", health.routes),
+            kv("last_route", &health.last_route),
+            kv("last_error", &health.last_error),
+        ];
+        if !health.last_error.is_empty() {
+            return status(WARN, "footholds", format!("last prediction failed: {}", health.last_error), values);
+        }
+        if offered > 0 && predicted == 0 && health.predicted == 0 {
+            return status(WARN, "footholds", format!("{offered} frames offered, none predicted yet"), values);
+        }
+        let message = format!(
+            "predicting {hz:.1} frames/s ({limit}), {dropped} of {offered} frames dropped for newer ones; last: {} footholds, network {:.0} ms",
+            health.last_holds, health.last_network_ms
+        );
+        status(OK, "footholds", message, values)
+    }
+}
+
 fn map_status(s: &MapperStatus) -> DiagnosticStatus {
     status(OK, "map", format!("{} patches", s.patches_in_map), vec![kv("patches", s.patches_in_map)])
 }
@@ -300,6 +351,34 @@ mod tests {
         assert!(reset.message.starts_with("tracking lost: map reset (1 in the last second)"), "{}", reset.message);
         let value = |key: &str| reset.values.iter().find(|v| v.key == key).map(|v| v.value.clone());
         assert_eq!((value("relocalisations_total"), value("map_resets_total")), (Some("1".into()), Some("1".into())));
+    }
+
+    #[test]
+    fn the_foothold_stage_reports_its_rate_drops_and_failures() {
+        let t0 = Instant::now();
+        let mut window = FootholdWindow::default();
+        let mut health = FootholdHealth { max_rate_hz: 2.0, ..Default::default() };
+        window.status(&health, t0);
+        // Offered at 30 Hz, none predicted yet (the network is still on its first frame).
+        health.offered = 30;
+        health.dropped = 29;
+        let waiting = window.status(&health, t0 + Duration::from_secs(1));
+        assert_eq!(waiting.level, WARN);
+        assert!(waiting.message.contains("none predicted yet"), "{}", waiting.message);
+        health.offered = 60;
+        health.dropped = 57;
+        health.predicted = 2;
+        health.last_holds = 12;
+        health.last_network_ms = 480.0;
+        let ok = window.status(&health, t0 + Duration::from_secs(2));
+        assert_eq!(ok.level, OK);
+        assert!(ok.message.contains("predicting 2.0 frames/s (limit 2.0 Hz), 28 of 30 frames dropped"), "{}", ok.message);
+        assert!(ok.message.contains("12 footholds"), "{}", ok.message);
+        health.last_error = "camera tilt: gravity is zero or not finite".into();
+        let failed = window.status(&health, t0 + Duration::from_secs(3));
+        assert_eq!(failed.level, WARN);
+        assert!(failed.message.contains("camera tilt"), "{}", failed.message);
+        assert_eq!(failed.name, format!("{HARDWARE_ID}: footholds"));
     }
 
     #[test]

@@ -14,9 +14,16 @@
 //! Time and frames: stamps come from the inputs or the node clock (`use_sim_time`: `/clock`); the
 //! tracked pose is published on `/tf` and the IMU mount read from `/tf_static` (see [`tf`]); each depth
 //! image is paired with its CameraInfo (see [`camera_info`]).
+//!
+//! Optional third thread, the foothold stage ([`footholds`]): learned footholds of the mapped frames
+//! and the coarse route, off the PatchArray path (the pipeline thread hands it each mapped frame
+//! keep-latest after publishing, and takes its predictions for the learned seed orders).
 
 mod camera_info;
 mod diagnostics;
+mod foothold_msgs;
+mod footholds;
+mod latest;
 mod publish;
 mod tf;
 
@@ -42,6 +49,7 @@ use patchwalk_fusion::tracking::TrackingStatus;
 use patchwalk_mapping::mapper::MapperConfig;
 use patchwalk_mapping::pipeline::{birds_eye_points_in_map, default_mapper_config, Pipeline, PipelineConfig, PipelineError, StampWindow};
 use patchwalk_msgs::builtin_interfaces::msg::Time;
+use patchwalk_msgs::geometry_msgs::msg::PoseStamped;
 use patchwalk_msgs::msg::{MapperStatus, PatchArray};
 use patchwalk_msgs::sensor_msgs::msg::{CameraInfo, Image, Imu, PointCloud2};
 use patchwalk_msgs::std_srvs::srv::{Trigger, TriggerResponse};
@@ -135,6 +143,10 @@ pub struct MapperRosParams {
     pub max_stamp_skew_s: StampWindow,
     /// Frames and `/tf`: the fixed frame's name, what is published, the IMU mount from TF.
     pub tf: tf::TfParams,
+    /// The learned foothold stage (`~/footholds`, off by default).
+    pub footholds: footholds::FootholdParams,
+    /// The coarse route toward `~/route_goal` (`~/route`, off by default).
+    pub route: footholds::RouteParams,
 }
 
 impl Default for MapperRosParams {
@@ -150,6 +162,8 @@ impl Default for MapperRosParams {
             publish_markers: true,
             max_stamp_skew_s: StampWindow::default(),
             tf: tf::TfParams::default(),
+            footholds: footholds::FootholdParams::default(),
+            route: footholds::RouteParams::default(),
         }
     }
 }
@@ -189,9 +203,16 @@ enum WorkerInput {
 /// The parameters of the node that change while it runs (the rest are read at start): the loop's
 /// periods and stamp window at the next pass, the mapper's at the next frame, except its grid.
 pub const PARAMETERS: node_params::ParameterSpec<PatchMapperConfig> = node_params::ParameterSpec {
-    runtime: &["ros.status_period_s", "ros.log_period_s", "ros.max_stamp_skew_s", "mapper"],
+    runtime: &[
+        "ros.status_period_s",
+        "ros.log_period_s",
+        "ros.max_stamp_skew_s",
+        "ros.footholds.threshold",
+        "ros.footholds.max_rate_hz",
+        "mapper",
+    ],
     restart: &["mapper.volume_edge_m", "mapper.seeds.cells_per_side"],
-    applied: "at the next frame (ros.*: at the next loop pass)",
+    applied: "at the next frame (ros.*: at the next loop pass; ros.footholds.*: at the next prediction)",
     validate: validate_config,
 };
 
@@ -205,6 +226,7 @@ fn validate_config(config: &PatchMapperConfig) -> Result<(), String> {
     }
     ros.max_stamp_skew_s.validate().map_err(|e| format!("ros.max_stamp_skew_s: {e}"))?;
     config.ros.tf.validate()?;
+    footholds::validate(&ros.footholds, &ros.route)?;
     patchwalk_mapping::mapper::check_config(&config.mapper).map_err(|e| format!("mapper: {e}"))
 }
 
@@ -365,6 +387,8 @@ struct Worker {
     imu_frame: Option<String>,
     /// When the parameter set now waiting for its first frame was accepted.
     parameters_since: Option<Instant>,
+    /// The foothold stage, when on: mapped frames go to it, its predictions come back as seed priors.
+    footholds: Option<Arc<footholds::FootholdStage>>,
 }
 
 /// When `/patch_mapper/reset` was served: a frame taken from DDS before it, or stamped up to
@@ -476,6 +500,9 @@ impl Worker {
             }
         }
         let Some(pipeline) = self.pipeline.as_mut() else { return };
+        if let Some(priors) = self.footholds.as_ref().filter(|stage| stage.seed_priors).and_then(|stage| stage.take_priors()) {
+            pipeline.set_seed_priors(priors);
+        }
         match self.extrinsics.camera_from_imu(&self.tf, &job.frame_id, self.imu_frame.as_deref(), Instant::now()) {
             tf::MountChoice::FromTf(camera_from_imu) => pipeline.set_camera_from_imu(&camera_from_imu),
             tf::MountChoice::Config => {
@@ -560,6 +587,17 @@ impl Worker {
         }
         let publish_ms = started.elapsed().as_secs_f64() * 1e3;
         let patches = map.len();
+        if let Some(stage) = &self.footholds {
+            // After the PatchArray: the stage takes the frame when it is free (keep-latest, never waits).
+            let patch_holds = if stage.wants_patch_holds { footholds::patch_holds(map, stage.max_slope_deg) } else { Vec::new() };
+            stage.offer(footholds::FootholdFrame {
+                depth: job.depth,
+                intrinsics: job.intrinsics,
+                stamp: job.stamp.clone(),
+                fixed_from_camera: output.map_from_camera,
+                patch_holds,
+            });
+        }
         with_status(&self.status, |s| {
             s.frames_processed += 1;
             s.patches_in_map = u32::try_from(patches).unwrap_or(u32::MAX);
@@ -597,6 +635,52 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut reset_srv = ros.server::<Trigger>(&ros.relative(RESET_SERVICE))?;
     let diagnostics_pub =
         ros.publisher::<patchwalk_msgs::diagnostic_msgs::msg::DiagnosticArray>(diagnostics::DIAGNOSTICS_TOPIC, node::reliable_qos())?;
+    // The foothold stage (learned footholds, the coarse route): its endpoints exist only when it is on.
+    footholds::validate(&params.footholds, &params.route).map_err(anyhow::Error::msg)?;
+    let stage_parts = if params.footholds.enabled || params.route.enabled {
+        let model = if params.footholds.enabled {
+            let path = footholds::find_weights(&params.footholds.weights_path)
+                .with_context(|| format!("ros.footholds.weights_path: {} not found", params.footholds.weights_path))?;
+            let model = patchwalk_footholds::model::FootholdModel::load(&path)
+                .with_context(|| format!("ros.footholds.weights_path: cannot load {}", path.display()))?;
+            tracing::info!("foothold stage: weights {}", path.display());
+            Some(model)
+        } else {
+            None
+        };
+        let planner = footholds::route_planner(&params.route).context("ros.route")?;
+        let outputs = footholds::StageOutputs {
+            footholds: ros.publisher(&ros.relative(footholds::FOOTHOLDS_TOPIC), node::reliable_qos())?,
+            markers: if params.footholds.publish_markers {
+                Some(ros.publisher(&ros.relative(footholds::FOOTHOLD_MARKERS_TOPIC), node::reliable_qos())?)
+            } else {
+                None
+            },
+            scores: ros.publisher(&ros.relative(footholds::FOOTHOLD_SCORES_TOPIC), node::reliable_qos())?,
+            route: if params.route.enabled {
+                Some((
+                    ros.publisher(&ros.relative(footholds::ROUTE_TOPIC), node::reliable_qos())?,
+                    ros.publisher(&ros.relative(footholds::ROUTE_MARKERS_TOPIC), node::reliable_qos())?,
+                ))
+            } else {
+                None
+            },
+        };
+        let goal_sub = if params.route.enabled {
+            // Best effort: matches reliable (RViz) and best-effort publishers alike.
+            Some(ros.subscription::<PoseStamped>(&ros.relative(footholds::ROUTE_GOAL_TOPIC), node::sensor_data_qos())?)
+        } else {
+            None
+        };
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(params.footholds.threads)
+            .thread_name(|i| format!("footholds-{i}"))
+            .build()
+            .context("the foothold stage's thread pool")?;
+        Some((model, planner, outputs, goal_sub, pool))
+    } else {
+        None
+    };
     let tf_tree = SharedTf::default();
     let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
     let tf_broadcaster = if params.tf.publish == tf::TfPublish::Off { None } else { Some(TfBroadcaster::new(&mut ros)?) };
@@ -633,6 +717,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let reset: Arc<Mutex<Option<ResetMark>>> = Arc::default();
     let stop = Arc::new(AtomicBool::new(false));
     let extrinsics = tf::Extrinsics::new(config.ros.tf.clone());
+    let foot_radius_m = config.mapper.foot_radius_m;
+    let (stage, stage_thread, mut goal_sub) = match stage_parts {
+        Some((model, planner, outputs, goal_sub, pool)) => {
+            let stage = Arc::new(footholds::FootholdStage::new(&params.footholds, &params.route));
+            let worker = footholds::StageWorker {
+                stage: stage.clone(),
+                model,
+                planner,
+                outputs,
+                fixed_frame: params.tf.fixed_frame.clone(),
+                foot_radius_m,
+                pool,
+                log: RateLimitedLog::new(log_period),
+            };
+            let thread = std::thread::Builder::new().name("footholds".into()).spawn(move || worker.run())?;
+            (Some(stage), Some(thread), goal_sub)
+        }
+        None => (None, None, None),
+    };
+    if let Some(sub) = goal_sub.as_mut() {
+        wakeup.watch(sub)?;
+    }
     let worker = Worker {
         config,
         pipeline: None,
@@ -649,10 +755,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         dds_log: RateLimitedLog::new(log_period),
         last_reset: None,
         reset_request: reset.clone(),
-        tf: tf_tree,
+        tf: tf_tree.clone(),
         extrinsics,
         imu_frame: None,
         parameters_since: None,
+        footholds: stage.clone(),
     };
     let worker_thread = {
         let (jobs, stop) = (job_rx.clone(), stop.clone());
@@ -665,6 +772,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut state = State::new(status.clone(), job_tx, job_rx, input_tx.clone(), params.max_stamp_skew_s, clock.clone());
     let mut next_status = Instant::now();
     let mut diagnostics_window = diagnostics::MapperWindow::default();
+    let mut foothold_window = diagnostics::FootholdWindow::default();
     let mut next_diagnostics = Instant::now() + diagnostics::DIAGNOSTICS_PERIOD;
     tracing::info!(
         depth = %ros.resolve_text(&params.depth_topic)?,
@@ -688,6 +796,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 (log, dds_log) = (RateLimitedLog::new(period), RateLimitedLog::new(period));
             }
             state.stamp_window = new.max_stamp_skew_s;
+            if let Some(stage) = &stage {
+                stage.set_settings(footholds::StageSettings { threshold: new.footholds.threshold, max_rate_hz: new.footholds.max_rate_hz });
+            }
             if update.changed("mapper") {
                 let _ =
                     input_tx.send(WorkerInput::Mapper { config: Box::new(update.config.mapper.clone()), accepted_at: update.accepted_at });
@@ -699,6 +810,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= node::drain(&info_sub, &params.camera_info_topic, 16, &mut dds_log, |msg, _| state.on_camera_info(&msg, &mut log)) >= 16;
         more |= node::drain(&imu_sub, &params.imu_topic, 256, &mut dds_log, |msg, _| state.on_imu(&msg, &mut log)) >= 256;
         more |= node::drain(&depth_sub, &params.depth_topic, 8, &mut dds_log, |msg, _| state.on_depth(&msg, &mut log)) >= 8;
+        if let (Some(sub), Some(stage)) = (goal_sub.as_ref(), stage.as_ref()) {
+            node::drain(sub, footholds::ROUTE_GOAL_TOPIC, 8, &mut dds_log, |msg, _| {
+                match footholds::goal_in_fixed(&msg, &params.tf.fixed_frame, &tf_tree.lock()) {
+                    Ok(goal) => {
+                        tracing::info!("route goal ({:.2}, {:.2}) in {}", goal.x, goal.y, params.tf.fixed_frame);
+                        stage.set_goal(Some(goal));
+                    }
+                    Err(e) => {
+                        log.warn("route_goal", format_args!("route goal ignored: {e}"));
+                    }
+                }
+            });
+        }
         more |= node::serve(&reset_srv, RESET_SERVICE, &mut dds_log, |_| {
             if let Ok(mut mark) = reset.lock() {
                 *mark = Some(ResetMark::now(&clock));
@@ -723,7 +847,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             diagnostics_window.sample(&s, now);
             if now >= next_diagnostics {
                 let health = tracking.lock().map(|t| t.clone()).unwrap_or_default();
-                let array = diagnostics_window.diagnostics(&s, &health, now, clock.now());
+                let mut array = diagnostics_window.diagnostics(&s, &health, now, clock.now());
+                if let Some(stage) = stage.as_ref().filter(|_| params.footholds.enabled) {
+                    array.status.push(foothold_window.status(&stage.health(), now));
+                }
                 node::publish(&diagnostics_pub, diagnostics::DIAGNOSTICS_TOPIC, array, &mut dds_log);
                 next_diagnostics = now + diagnostics::DIAGNOSTICS_PERIOD;
             }
@@ -739,8 +866,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         wakeup.wait(timeout);
     }
     stop.store(true, Ordering::Relaxed);
+    if let Some(stage) = &stage {
+        stage.close();
+    }
     if worker_thread.join().is_err() {
         tracing::error!("the pipeline thread panicked");
+    }
+    if stage_thread.is_some_and(|thread| thread.join().is_err()) {
+        tracing::error!("the foothold thread panicked");
     }
     tracing::info!("patch_mapper: shutting down");
     Ok(())

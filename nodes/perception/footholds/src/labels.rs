@@ -7,7 +7,10 @@
 //!    ([`labelling_mapper_config`]). The footholds are the final map's patches that are valid (the
 //!    validator kept them), foot-sized (the boundary's smaller half-extent at least
 //!    [`LabelConfig::min_half_extent_m`]) and walkable (normal within [`LabelConfig::max_slope_deg`] of
-//!    up, in the gravity-aligned map frame).
+//!    up, in the gravity-aligned map frame). The moving volume adapts to the recording as
+//!    `patch_mapper replay` does ([`labelling_configs`]): when more than half of the first frame's
+//!    valid depth lies outside the configured cube, the cube is fitted to the first frames' depth
+//!    (e.g. a desk 1–2 m in front of a hand-held camera), with the seed cells kept at 4 cm.
 //! 2. [`label_frame`] projects them into each single frame. A foothold counts in a frame when it is
 //!    visible there (the frame's depth at its pixel agrees with its depth within
 //!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
@@ -20,6 +23,8 @@ use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::Dataset;
 use patchwalk_fusion::tracking::TrackerConfig;
+use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
+use patchwalk_mapping::acquire::gravity_from_accelerometer;
 use patchwalk_mapping::mapper::MapperConfig;
 use patchwalk_mapping::patch_map::VolumeGrid;
 use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfig};
@@ -85,6 +90,63 @@ pub fn labelling_mapper_config() -> MapperConfig {
     config
 }
 
+/// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
+pub const SEED_CELL_M: f64 = 0.04;
+/// Frames whose depth a fitted volume is sized from (as `patch_mapper replay`).
+pub const FIT_FRAMES: usize = 5;
+/// Seeds per frame of the labelling run at most, whatever the volume.
+pub const MAX_SEEDS: usize = 4096;
+
+/// The tracker and mapper of a dataset's labelling run and the volume edge fitted to it, if any.
+#[derive(Debug, Clone)]
+pub struct LabellingConfigs {
+    pub tracker: TrackerConfig,
+    pub mapper: MapperConfig,
+    /// The fitted cube edge (m) when the configured one missed most of the first frame's depth.
+    pub fitted_edge_m: Option<f64>,
+}
+
+/// The labelling run's configurations for `dataset`: [`labelling_mapper_config`] and the node's
+/// tracker, with the moving volume fitted to the first [`FIT_FRAMES`] frames' depth (95 % of the
+/// valid depth per axis, 1.28–4 m, `patchwalk_fusion::volume::size_volume_to_depth`) when more than
+/// half of the first frame's valid depth lies outside the configured cube; the seed grid then keeps
+/// [`SEED_CELL_M`] cells and scales its seed budget with the area (at most [`MAX_SEEDS`]).
+pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64>) -> Result<LabellingConfigs, FootholdError> {
+    let mut tracker = TrackerConfig::default();
+    let mut mapper = labelling_mapper_config();
+    let mut fitted_edge_m = None;
+    let Some(first) = dataset.frames.first() else {
+        return Ok(LabellingConfigs { tracker, mapper, fitted_edge_m });
+    };
+    let depth = dataset.load_depth(0)?;
+    let rotation = camera_from_imu.to_rotation_matrix();
+    let gravity = dataset
+        .mean_acceleration_near(first.timestamp, mapper.acquire.accel_half_window_s)
+        .and_then(|a| gravity_from_accelerometer(&a, &rotation).ok())
+        .map(nalgebra::Unit::into_inner);
+    let (min_depth, max_depth) = (f64::from(tracker.tsdf.min_depth_m), f64::from(tracker.tsdf.max_depth_m));
+    let mut points = depth_points(&depth, &dataset.intrinsics, min_depth, max_depth, 8);
+    let edge = f64::from(tracker.tsdf.size_m);
+    let outside = 1.0 - share_inside(&points, &initial_volume_from_camera(gravity, edge, &tracker.moving_volume), edge);
+    if outside > 0.5 {
+        for index in 1..FIT_FRAMES.min(dataset.frames.len()) {
+            points.extend(depth_points(&dataset.load_depth(index)?, &dataset.intrinsics, min_depth, max_depth, 8));
+        }
+        let block = f64::from(tracker.tsdf.voxel_size_m) * 8.0;
+        if let Some(fit) = size_volume_to_depth(&points, gravity, block, &VolumeSizing::default()) {
+            tracker.tsdf.size_m = fit.edge_m as f32;
+            tracker.moving_volume.nominal_position_fraction = fit.nominal_position_fraction;
+            mapper.volume_edge_m = fit.edge_m;
+            let cells = (fit.edge_m / SEED_CELL_M).round().max(1.0) as usize;
+            let base = mapper.seeds.cells_per_side;
+            mapper.seeds.max_seeds = (mapper.seeds.max_seeds * cells * cells / (base * base).max(1)).clamp(1, MAX_SEEDS);
+            mapper.seeds.cells_per_side = cells;
+            fitted_edge_m = Some(fit.edge_m);
+        }
+    }
+    Ok(LabellingConfigs { tracker, mapper, fitted_edge_m })
+}
+
 /// Where the camera was and which way was down in one frame of a fused sequence.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FramePose {
@@ -107,6 +169,8 @@ pub struct FusedSequence {
     pub grid: VolumeGrid,
     /// Wall time of the pipeline per frame (ms).
     pub pipeline_ms: Vec<f64>,
+    /// The fitted cube edge (m), when the volume adapted to the recording.
+    pub fitted_edge_m: Option<f64>,
 }
 
 /// Whether a map patch is a foothold: foot-sized and walkable (it is in the map, so it is valid).
@@ -146,12 +210,12 @@ pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternio
     }
 }
 
-/// A pipeline for `intrinsics` with the given mapper, IMU mount and the node's other defaults.
-pub fn pipeline(intrinsics: Intrinsics, mapper: MapperConfig, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
+/// A pipeline for `intrinsics` with the given tracker, mapper and IMU mount.
+pub fn pipeline(intrinsics: Intrinsics, configs: &LabellingConfigs, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
     let mut pipeline = Pipeline::new(
         PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() },
-        TrackerConfig::default(),
-        mapper,
+        configs.tracker.clone(),
+        configs.mapper.clone(),
         intrinsics,
     )?;
     pipeline.set_camera_from_imu(&camera_from_imu.to_rotation_matrix());
@@ -168,16 +232,17 @@ fn feed_imu(pipeline: &mut Pipeline, dataset: &Dataset, mut next: usize, until: 
     next
 }
 
-/// Runs the pipeline over the frames `frames` of `dataset` (all when `None`) and returns its footholds.
+/// Runs the pipeline (`configs`, e.g. from [`labelling_configs`]) over the frames `frames` of `dataset`
+/// (all when `None`) and returns its footholds.
 pub fn fuse_sequence(
     dataset: &Dataset,
     camera_from_imu: &UnitQuaternion<f64>,
+    configs: &LabellingConfigs,
     frames: Option<&[usize]>,
     label: &LabelConfig,
 ) -> Result<FusedSequence, FootholdError> {
-    let mapper = labelling_mapper_config();
-    let half_window = mapper.acquire.accel_half_window_s;
-    let mut pipeline = pipeline(dataset.intrinsics, mapper, camera_from_imu)?;
+    let half_window = configs.mapper.acquire.accel_half_window_s;
+    let mut pipeline = pipeline(dataset.intrinsics, configs, camera_from_imu)?;
     let all: Vec<usize> = (0..dataset.frames.len()).collect();
     let frames = frames.unwrap_or(&all);
     let mut next_imu = 0;
@@ -205,7 +270,7 @@ pub fn fuse_sequence(
     }
     let map = pipeline.map();
     let footholds_in_map = map.patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
-    Ok(FusedSequence { footholds_in_map, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms })
+    Ok(FusedSequence { footholds_in_map, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms, fitted_edge_m: configs.fitted_edge_m })
 }
 
 /// The regions of one frame with their labels and inputs.

@@ -11,13 +11,18 @@
 //!    `patch_mapper replay` does ([`labelling_configs`]): when more than half of the first frame's
 //!    valid depth lies outside the configured cube, the cube is fitted to the first frames' depth
 //!    (e.g. a desk 1–2 m in front of a hand-held camera), with the seed cells kept at 4 cm.
-//! 2. [`label_frame`] projects them into each single frame. A foothold counts in a frame when it is
+//!    The places the pipeline tried and found no foothold are kept too: the seed points whose fit the
+//!    validation rejected (residual, coverage, curvature, tilt, edge, too few points) and the map's
+//!    patches that are not footholds (too steep or too small).
+//! 2. [`label_frame`] projects them into each single frame. A point counts in a frame when it is
 //!    visible there (the frame's depth at its pixel agrees with its depth within
 //!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
 //!    lies in its central 80 % (CNN III-C ignores holds at the border), with (x, y) the centre of the
-//!    foothold nearest the region centre in region coordinates; negative when none does; unknown
-//!    (left out of training and scoring) when the region's centre point lies outside the area the map
-//!    covered (the final volume's footprint) or outside the volume's height range.
+//!    foothold nearest the region centre in region coordinates; negative when none does but a visible
+//!    tried-and-rejected point does; unknown (left out of training and scoring) when the pipeline
+//!    tried nothing there (e.g. flat ground without salient points: no evidence either way), or when
+//!    the region's centre point lies outside the area the map covered (the final volume's footprint)
+//!    or outside the volume's height range.
 
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
@@ -25,7 +30,7 @@ use patchwalk_fusion::dataset::Dataset;
 use patchwalk_fusion::tracking::TrackerConfig;
 use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
 use patchwalk_mapping::acquire::gravity_from_accelerometer;
-use patchwalk_mapping::mapper::MapperConfig;
+use patchwalk_mapping::mapper::{MapperConfig, Verdict};
 use patchwalk_mapping::patch_map::VolumeGrid;
 use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfig};
 use patchwalk_spl::patch::{BoundaryType, Patch};
@@ -162,6 +167,8 @@ pub struct FramePose {
 pub struct FusedSequence {
     /// Foothold centres in the map frame (gravity aligned, z up).
     pub footholds_in_map: Vec<Vector3<f64>>,
+    /// Places tried without a foothold (map frame): rejected seed points and non-foothold patches.
+    pub rejected_in_map: Vec<Vector3<f64>>,
     /// All patches of the final map (valid ones), for counts.
     pub map_patches: usize,
     pub frames: Vec<FramePose>,
@@ -188,6 +195,11 @@ pub fn is_foothold(patch: &Patch, config: &LabelConfig) -> bool {
         }
     };
     walkable && half_extent.is_some_and(|h| h >= config.min_half_extent_m)
+}
+
+/// Whether a seed's verdict says the surface there is no foothold (not: skipped or a failed fit).
+pub fn is_rejection(verdict: &Verdict) -> bool {
+    matches!(verdict, Verdict::Residual | Verdict::Coverage | Verdict::Curvature | Verdict::Tilt | Verdict::Edge | Verdict::TooFewPoints)
 }
 
 /// The IMU mount of a dataset written by `terrain_sim record` (`intrinsics.json`'s
@@ -248,6 +260,7 @@ pub fn fuse_sequence(
     let mut next_imu = 0;
     let mut poses = Vec::new();
     let mut pipeline_ms = Vec::new();
+    let mut rejected = Vec::new();
     for &index in frames {
         let timestamp =
             dataset.frames.get(index).map(|f| f.timestamp).ok_or_else(|| FootholdError::Config(format!("frame {index} out of range")))?;
@@ -263,14 +276,17 @@ pub fn fuse_sequence(
         };
         let tilt = Tilt::from_gravity_in_camera(&gravity.into_inner())?;
         if matches!(output.tracking, patchwalk_fusion::tracking::TrackingStatus::Lost(_)) {
-            // The map was reset: the poses before do not share its frame.
+            // The map was reset: the poses and points before do not share its frame.
             poses.clear();
+            rejected.clear();
         }
+        rejected.extend(output.seeds.iter().filter(|o| is_rejection(&o.verdict)).map(|o| (output.map_from_birds_eye * Point3::from(o.seed.point_in_camera)).coords));
         poses.push(FramePose { index, timestamp, map_from_camera: output.map_from_camera, tilt });
     }
     let map = pipeline.map();
     let footholds_in_map = map.patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
-    Ok(FusedSequence { footholds_in_map, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms, fitted_edge_m: configs.fitted_edge_m })
+    rejected.extend(map.patches().iter().filter(|m| !is_foothold(&m.patch, label)).map(|m| m.patch.center));
+    Ok(FusedSequence { footholds_in_map, rejected_in_map: rejected, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms, fitted_edge_m: configs.fitted_edge_m })
 }
 
 /// The regions of one frame with their labels and inputs.
@@ -301,7 +317,7 @@ fn depth_near(depth: &DepthImage, u: f64, v: f64) -> Option<f64> {
     values.get(values.len() / 2).map(|d| f64::from(*d))
 }
 
-/// Footholds of the map visible in a frame, as image pixels (u, v).
+/// Points of the map (footholds or rejected places) visible in a frame, as image pixels (u, v).
 pub fn visible_footholds(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
@@ -335,6 +351,14 @@ pub fn region_label(region: &Region, footholds_px: &[(f64, f64)], centre_fractio
         .map_or(Label::Negative, |(x, y)| Label::Positive { x, y })
 }
 
+/// Whether one of the pixels lies in the region's central fraction.
+pub fn tried(region: &Region, pixels: &[(f64, f64)], centre_fraction: f64) -> bool {
+    pixels.iter().any(|&(u, v)| {
+        let (x, y) = region.to_region(u, v);
+        Region::in_centre(x, y, centre_fraction)
+    })
+}
+
 /// Whether the region's centre point (back-projected at its depth) lies in the covered area.
 fn covered(region: &Region, intrinsics: &Intrinsics, map_from_camera: &Isometry3<f64>, grid: &VolumeGrid, margin: f64) -> bool {
     let p = intrinsics.back_project(region.u, region.v, region.depth_m);
@@ -350,6 +374,7 @@ pub fn label_frame(
     intrinsics: &Intrinsics,
     pose: &FramePose,
     footholds_in_map: &[Vector3<f64>],
+    rejected_in_map: &[Vector3<f64>],
     grid: &VolumeGrid,
     regions_config: &RegionConfig,
     config: &LabelConfig,
@@ -357,13 +382,16 @@ pub fn label_frame(
     let mut inputs = Vec::new();
     let regions = propose(depth, intrinsics, regions_config, &mut inputs)?;
     let footholds_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
+    let rejected_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, rejected_in_map, config);
     let labels = regions
         .iter()
         .map(|r| {
-            if covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
-                region_label(r, &footholds_px, config.centre_fraction)
-            } else {
-                Label::Unknown
+            if !covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
+                return Label::Unknown;
+            }
+            match region_label(r, &footholds_px, config.centre_fraction) {
+                Label::Negative if !tried(r, &rejected_px, config.centre_fraction) => Label::Unknown,
+                label => label,
             }
         })
         .collect();
@@ -387,6 +415,16 @@ mod tests {
         assert_eq!(region_label(&r, &[], 0.8), Label::Negative);
         assert_eq!(region_label(&r, &[(55.0, 100.0)], 0.8), Label::Negative);
         assert_eq!(region_label(&r, &[(55.0, 100.0), (120.0, 90.0), (105.0, 100.0)], 0.8), Label::Positive { x: 0.55, y: 0.5 });
+    }
+
+    #[test]
+    fn negatives_need_a_rejected_point_in_the_centre() {
+        let r = region();
+        assert!(tried(&r, &[(70.0, 130.0)], 0.8));
+        assert!(!tried(&r, &[(55.0, 100.0)], 0.8));
+        assert!(is_rejection(&Verdict::Edge) && is_rejection(&Verdict::Tilt));
+        assert!(!is_rejection(&Verdict::Skipped) && !is_rejection(&Verdict::Valid { id: 1 }));
+        assert!(!is_rejection(&Verdict::FitFailed("x".into())));
     }
 
     #[test]

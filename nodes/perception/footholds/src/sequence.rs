@@ -63,7 +63,7 @@ impl Sequence {
             let depth = self.dataset.load_depth(pose.index)?;
             frames.push((
                 pose.index,
-                label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.grid, regions, label)?,
+                label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.rejected_in_map, &fused.grid, regions, label)?,
             ));
         }
         Ok((fused, frames))

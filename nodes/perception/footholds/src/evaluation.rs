@@ -47,7 +47,8 @@ fn median(values: &[f64]) -> f64 {
 
 impl GroupResult {
     fn from_scores(group: &str, scores: &[Scores], frame_ms: Vec<Vec<f64>>) -> Self {
-        let rows = METHODS.iter().zip(scores).zip(&frame_ms).map(|((name, s), m)| (name.to_string(), *s, s.classification_error(), median(m)));
+        let rows =
+            METHODS.iter().zip(scores).zip(&frame_ms).map(|((name, s), m)| (name.to_string(), *s, s.classification_error(), median(m)));
         GroupResult { group: group.to_string(), scores: rows.collect(), frame_ms, ..GroupResult::default() }
     }
 

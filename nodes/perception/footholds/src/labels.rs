@@ -12,15 +12,18 @@
 //!    valid depth lies outside the configured cube, the cube is fitted to the first frames' depth
 //!    (e.g. a desk 1–2 m in front of a hand-held camera), with the seed cells kept at 4 cm.
 //!    The places the pipeline tried and found no foothold are kept too: the seed points whose fit the
-//!    validation rejected (residual, coverage, curvature, tilt, edge, too few points) and the map's
-//!    patches that are not footholds (too steep or too small).
+//!    validation rejected for the terrain's shape (residual, curvature, tilt, edge; not coverage or
+//!    too few points, which say the data there was incomplete, e.g. at the birds-eye view's border)
+//!    and the map's patches that are not footholds (too steep or too small).
 //! 2. [`label_frame`] projects them into each single frame. A point counts in a frame when it is
 //!    visible there (the frame's depth at its pixel agrees with its depth within
 //!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
 //!    lies in its central 80 % (CNN III-C ignores holds at the border), with (x, y) the centre of the
 //!    foothold nearest the region centre in region coordinates; negative when none does but a visible
 //!    tried-and-rejected point does; unknown (left out of training and scoring) when the pipeline
-//!    tried nothing there (e.g. flat ground without salient points: no evidence either way), or when
+//!    tried nothing there (e.g. flat ground without salient points: no evidence either way), when
+//!    the sequence's map holds no foothold at all (on the simulated scenes a failed labelling run —
+//!    the map's patches all too small or steep — rather than a scene without any walkable place), or when
 //!    the region's centre point lies outside the area the map covered (the final volume's footprint)
 //!    or outside the volume's height range.
 
@@ -197,9 +200,10 @@ pub fn is_foothold(patch: &Patch, config: &LabelConfig) -> bool {
     walkable && half_extent.is_some_and(|h| h >= config.min_half_extent_m)
 }
 
-/// Whether a seed's verdict says the surface there is no foothold (not: skipped or a failed fit).
+/// Whether a seed's verdict says the surface's shape there is no foothold (not: skipped, a failed
+/// fit, or too little data under the foot, which says nothing about the terrain).
 pub fn is_rejection(verdict: &Verdict) -> bool {
-    matches!(verdict, Verdict::Residual | Verdict::Coverage | Verdict::Curvature | Verdict::Tilt | Verdict::Edge | Verdict::TooFewPoints)
+    matches!(verdict, Verdict::Residual | Verdict::Curvature | Verdict::Tilt | Verdict::Edge)
 }
 
 /// The IMU mount of a dataset written by `terrain_sim record` (`intrinsics.json`'s
@@ -223,7 +227,11 @@ pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternio
 }
 
 /// A pipeline for `intrinsics` with the given tracker, mapper and IMU mount.
-pub fn pipeline(intrinsics: Intrinsics, configs: &LabellingConfigs, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
+pub fn pipeline(
+    intrinsics: Intrinsics,
+    configs: &LabellingConfigs,
+    camera_from_imu: &UnitQuaternion<f64>,
+) -> Result<Pipeline, FootholdError> {
     let mut pipeline = Pipeline::new(
         PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() },
         configs.tracker.clone(),
@@ -280,13 +288,27 @@ pub fn fuse_sequence(
             poses.clear();
             rejected.clear();
         }
-        rejected.extend(output.seeds.iter().filter(|o| is_rejection(&o.verdict)).map(|o| (output.map_from_birds_eye * Point3::from(o.seed.point_in_camera)).coords));
+        rejected.extend(
+            output
+                .seeds
+                .iter()
+                .filter(|o| is_rejection(&o.verdict))
+                .map(|o| (output.map_from_birds_eye * Point3::from(o.seed.point_in_camera)).coords),
+        );
         poses.push(FramePose { index, timestamp, map_from_camera: output.map_from_camera, tilt });
     }
     let map = pipeline.map();
     let footholds_in_map = map.patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
     rejected.extend(map.patches().iter().filter(|m| !is_foothold(&m.patch, label)).map(|m| m.patch.center));
-    Ok(FusedSequence { footholds_in_map, rejected_in_map: rejected, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms, fitted_edge_m: configs.fitted_edge_m })
+    Ok(FusedSequence {
+        footholds_in_map,
+        rejected_in_map: rejected,
+        map_patches: map.len(),
+        frames: poses,
+        grid: *map.grid(),
+        pipeline_ms,
+        fitted_edge_m: configs.fitted_edge_m,
+    })
 }
 
 /// The regions of one frame with their labels and inputs.
@@ -386,7 +408,7 @@ pub fn label_frame(
     let labels = regions
         .iter()
         .map(|r| {
-            if !covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
+            if footholds_in_map.is_empty() || !covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
                 return Label::Unknown;
             }
             match region_label(r, &footholds_px, config.centre_fraction) {
@@ -424,7 +446,7 @@ mod tests {
         assert!(!tried(&r, &[(55.0, 100.0)], 0.8));
         assert!(is_rejection(&Verdict::Edge) && is_rejection(&Verdict::Tilt));
         assert!(!is_rejection(&Verdict::Skipped) && !is_rejection(&Verdict::Valid { id: 1 }));
-        assert!(!is_rejection(&Verdict::FitFailed("x".into())));
+        assert!(!is_rejection(&Verdict::FitFailed("x".into())) && !is_rejection(&Verdict::Coverage));
     }
 
     #[test]

@@ -7,7 +7,9 @@ use patchwalk_fusion::calibration::{calibrate_dataset, CalibrationConfig};
 use patchwalk_fusion::dataset::Dataset;
 
 use crate::error::FootholdError;
-use crate::labels::{dataset_camera_from_imu, fuse_sequence, label_frame, labelling_configs, FusedSequence, LabelConfig, LabelledFrame, LabellingConfigs};
+use crate::labels::{
+    dataset_camera_from_imu, fuse_sequence, label_frame, labelling_configs, FusedSequence, LabelConfig, LabelledFrame, LabellingConfigs,
+};
 use crate::regions::RegionConfig;
 
 /// A dataset and the rotation of its IMU into the camera frame: `intrinsics.json`'s mount
@@ -63,7 +65,16 @@ impl Sequence {
             let depth = self.dataset.load_depth(pose.index)?;
             frames.push((
                 pose.index,
-                label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.rejected_in_map, &fused.grid, regions, label)?,
+                label_frame(
+                    &depth,
+                    &self.dataset.intrinsics,
+                    pose,
+                    &fused.footholds_in_map,
+                    &fused.rejected_in_map,
+                    &fused.grid,
+                    regions,
+                    label,
+                )?,
             ));
         }
         Ok((fused, frames))

@@ -6,10 +6,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use patchwalk_footholds::labels::{Label, LabelConfig, LabelledFrame};
-use patchwalk_footholds::render::{Mark, Picture};
-use patchwalk_fusion::camera::DepthImage;
 use patchwalk_footholds::regions::RegionConfig;
+use patchwalk_footholds::render::{Mark, Picture};
 use patchwalk_footholds::samples::{Augment, SampleSet};
+use patchwalk_fusion::camera::DepthImage;
 use rand::SeedableRng;
 
 use patchwalk_footholds::sequence::Sequence;

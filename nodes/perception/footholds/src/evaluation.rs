@@ -262,3 +262,31 @@ pub fn format_table(results: &[GroupResult]) -> String {
     let _ = writeln!(out, "(regression error in pixels of the 60 x 60 region over the true positives, as CNN Tables I-II; ms: CNN region proposal + inference, SVM features + decision, pipeline single-frame total; the last row answers \"foothold at the centre\" everywhere)");
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn group(name: &str, frames: usize, hit: bool, ms: f64) -> GroupResult {
+        let mut scores = [Scores::default(); METHODS.len()];
+        for s in &mut scores {
+            s.add(hit.then_some((0.5, 0.5)), Some((0.5, 0.6)), 60.0);
+            s.add(None, None, 60.0);
+        }
+        let mut g = GroupResult::from_scores(name, &scores, vec![vec![ms; frames]; METHODS.len()]);
+        (g.datasets, g.frames, g.regions, g.positives) = (1, frames, 2, 1);
+        g
+    }
+
+    #[test]
+    fn merged_groups_sum_counts_and_rescore() {
+        let total = GroupResult::merged("all", &[group("a", 1, true, 10.0), group("b", 2, false, 30.0)]);
+        assert_eq!((total.datasets, total.frames, total.regions, total.positives), (2, 3, 4, 2));
+        let (name, scores, error, ms) = &total.scores[0];
+        assert_eq!(name, METHODS[0]);
+        assert_eq!((scores.samples, scores.true_positives, scores.false_negatives), (4, 1, 1));
+        assert!((error - 0.25).abs() < 1e-12 && (scores.regression_px() - 6.0).abs() < 1e-9);
+        assert_eq!(*ms, 30.0);
+        assert!(format_table(&[total]).contains("all (2 datasets, 3 frames, 4 regions, 50.0 % positive)"));
+    }
+}

@@ -241,7 +241,7 @@ mod tests {
             in_channels: 1,
             input_px: 16,
             kernels: [4, 4, 6, 6],
-            kernel_sizes: [3, 3, 2, 2],
+            kernel_sizes: [3, 2, 2, 1],
             first_stride: 1,
             hidden: 16,
             side_channels: true,

@@ -20,6 +20,8 @@
 #   nodes/perception/footholds/scripts/make_weights.sh            # everything
 #   STAGE=eval nodes/perception/footholds/scripts/make_weights.sh # only the evaluation
 #   STAGE=label ...                                               # record and label only
+# After new weights: PATCHWALK_WRITE_REFERENCE=1 cargo nextest run --release -p patchwalk_footholds
+# --test shipped_weights rewrites weights/reference_predictions.json.
 # Environment: CARGO_TARGET_DIR (binaries), WORK (scratch, default build/footholds), ROCK_TRAIN,
 # ROCK_TEST, COURSE_TRAIN, COURSE_TEST, STAIRS_TRAIN, STAIRS_TEST (seed lists), FRAMES, EPOCHS,
 # MAX_SAMPLES (0: all), LR_DECAY, POSITIVE_SHARE (empty: the set's own shares), REAL.
@@ -121,5 +123,6 @@ if [[ $STAGE == all ]]; then
   cat "$WORK/train.log" "$WORK/train_noangle.log"
 fi
 if [[ $STAGE == all || $STAGE == eval ]]; then
-  "$BIN/patch_mapper" footholds eval --test "${test_dirs[@]}" --real "$REAL" --out "$WORK/eval" | tee "$WORK/eval.log"
+  tests=(); for d in "${test_dirs[@]}"; do tests+=(--test "$d"); done
+  "$BIN/patch_mapper" footholds eval "${tests[@]}" --real "$REAL" --out "$WORK/eval" | tee "$WORK/eval.log"
 fi

@@ -240,7 +240,7 @@ mod tests {
         NetConfig {
             in_channels: 1,
             input_px: 16,
-            kernels: [4, 4, 6, 6],
+            kernels: [8, 8, 12, 12],
             kernel_sizes: [3, 2, 2, 1],
             first_stride: 1,
             hidden: 16,
@@ -252,7 +252,7 @@ mod tests {
     #[test]
     fn training_reduces_the_loss_deterministically() {
         let set = synthetic(48);
-        let config = TrainConfig { epochs: 8, batch: 8, learning_rate: 3e-3, lr_decay: 0.9, ..TrainConfig::default() };
+        let config = TrainConfig { epochs: 12, batch: 8, learning_rate: 5e-3, lr_decay: 0.95, ..TrainConfig::default() };
         let run = || {
             let net = FootholdNet::new(tiny(), 5, DType::F32).unwrap();
             let before = mean_loss(&net, &set, &config).unwrap();

@@ -25,26 +25,24 @@ fn reference_path() -> PathBuf {
     crate_dir().join("weights").join("reference_predictions.json")
 }
 
-fn predict_all() -> Reference {
-    let dataset = Dataset::open(&crate_dir().join("../../../tests/data/tum_fr1_xyz")).unwrap();
-    let depth = dataset.load_depth(0).unwrap();
-    let tilt = Tilt::from_degrees(49.0).unwrap();
-    let networks = [false, true]
-        .into_iter()
-        .map(|no_angle| {
-            let path = patchwalk_footholds::shipped_weights_path(no_angle);
-            let model = FootholdModel::load(&path).unwrap();
-            let frame = model.predict_frame(&depth, &dataset.intrinsics, tilt).unwrap();
-            let name = path.file_name().unwrap().to_string_lossy().into_owned();
-            (name, frame.predictions.iter().map(|p| [p[0].p, p[0].x, p[0].y]).collect())
-        })
-        .collect();
-    Reference { tilt_deg: 49.0, networks }
+fn predict_all() -> Result<Reference, Box<dyn std::error::Error>> {
+    let dataset = Dataset::open(&crate_dir().join("../../../tests/data/tum_fr1_xyz"))?;
+    let depth = dataset.load_depth(0)?;
+    let tilt = Tilt::from_degrees(49.0)?;
+    let mut networks = Vec::new();
+    for no_angle in [false, true] {
+        let path = patchwalk_footholds::shipped_weights_path(no_angle);
+        let model = FootholdModel::load(&path)?;
+        let frame = model.predict_frame(&depth, &dataset.intrinsics, tilt)?;
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        networks.push((name, frame.predictions.iter().map(|p| [p[0].p, p[0].x, p[0].y]).collect()));
+    }
+    Ok(Reference { tilt_deg: 49.0, networks })
 }
 
 #[test]
 fn shipped_weights_give_the_stored_output_on_a_fixed_frame() {
-    let now = predict_all();
+    let now = predict_all().unwrap();
     if std::env::var_os("PATCHWALK_WRITE_REFERENCE").is_some() {
         std::fs::write(reference_path(), serde_json::to_string(&now).unwrap()).unwrap();
     }

@@ -1,7 +1,9 @@
 //! The comparison of CNN III-D/E on datasets held apart from training: classification and
 //! regression error of the CNN, the CNN without tilt ("No angle"), the linear SVM on hand features,
-//! and the patch pipeline itself on each single frame (the geometric baseline), with the time per
-//! frame of each; and the picture like CNN Fig. 6. Labels come from each sequence's fused map
+//! the patch pipeline itself on each single frame (the geometric baseline), and the trivial answer
+//! "a foothold at the centre of every region" (its classification error is the share of negatives,
+//! its regression error the mean distance of the footholds from the region centre), with the time
+//! per frame of each; and the picture like CNN Fig. 6. Labels come from each sequence's fused map
 //! ([`crate::labels`]).
 
 use std::path::{Path, PathBuf};
@@ -12,7 +14,7 @@ use serde::Serialize;
 
 use crate::error::FootholdError;
 use crate::eval::Scores;
-use crate::labels::{is_foothold, labelling_mapper_config, pipeline, region_label, visible_footholds, Label, LabelConfig, LabelledFrame};
+use crate::labels::{is_foothold, pipeline, region_label, visible_footholds, Label, LabelConfig, LabelledFrame};
 use crate::model::FootholdModel;
 use crate::render::{Mark, Picture};
 use crate::sequence::Sequence;
@@ -20,7 +22,8 @@ use crate::svm::{features, LinearSvm};
 use crate::train::Prediction;
 
 /// The methods of the table, in order.
-pub const METHODS: [&str; 4] = ["CNN (depth + tilt)", "CNN, no angle", "linear SVM (22 features)", "patch pipeline, single frame"];
+pub const METHODS: [&str; 5] =
+    ["CNN (depth + tilt)", "CNN, no angle", "linear SVM (22 features)", "patch pipeline, single frame", "all positive, region centre"];
 
 /// One group's table rows: (method, scores, classification error, median ms per frame).
 #[derive(Default, Serialize)]
@@ -31,6 +34,43 @@ pub struct GroupResult {
     pub regions: usize,
     pub positives: usize,
     pub scores: Vec<(String, Scores, f64, f64)>,
+    /// Per method the time of every frame (ms), for merging groups.
+    #[serde(skip)]
+    pub frame_ms: Vec<Vec<f64>>,
+}
+
+fn median(values: &[f64]) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+impl GroupResult {
+    fn from_scores(group: &str, scores: &[Scores], frame_ms: Vec<Vec<f64>>) -> Self {
+        let rows =
+            METHODS.iter().zip(scores).zip(&frame_ms).map(|((name, s), m)| (name.to_string(), *s, s.classification_error(), median(m)));
+        GroupResult { group: group.to_string(), scores: rows.collect(), frame_ms, ..GroupResult::default() }
+    }
+
+    /// The groups together under a new name (counts and scores summed, medians over all frames).
+    pub fn merged(group: &str, parts: &[GroupResult]) -> GroupResult {
+        let mut scores = [Scores::default(); METHODS.len()];
+        let mut frame_ms = vec![Vec::new(); METHODS.len()];
+        for part in parts {
+            for (m, (_, s, _, _)) in part.scores.iter().enumerate().take(METHODS.len()) {
+                scores[m].merge(s);
+            }
+            for (all, ms) in frame_ms.iter_mut().zip(&part.frame_ms) {
+                all.extend_from_slice(ms);
+            }
+        }
+        let mut out = Self::from_scores(group, &scores, frame_ms);
+        out.datasets = parts.iter().map(|p| p.datasets).sum();
+        out.frames = parts.iter().map(|p| p.frames).sum();
+        out.regions = parts.iter().map(|p| p.regions).sum();
+        out.positives = parts.iter().map(|p| p.positives).sum();
+        out
+    }
 }
 
 /// The compared predictors.
@@ -40,7 +80,7 @@ pub struct Methods {
     pub svm: LinearSvm,
 }
 
-/// Scores the four methods on the labelled frames of `paths`; draws the first frame's CNN predictions to `picture`.
+/// Scores the methods on the labelled frames of `paths`; draws the first frame's CNN predictions to `picture`.
 pub fn evaluate_group(
     group: &str,
     paths: &[PathBuf],
@@ -51,9 +91,9 @@ pub fn evaluate_group(
     let regions = &methods.cnn.regions;
     let label = LabelConfig::default();
     let region_px = regions.out_px as f64;
-    let mut scores = [Scores::default(); 4];
-    let mut ms = [Vec::new(), Vec::new(), Vec::new(), Vec::new()];
-    let mut result = GroupResult { group: group.to_string(), datasets: paths.len(), ..GroupResult::default() };
+    let mut scores = [Scores::default(); METHODS.len()];
+    let mut ms = vec![Vec::new(); METHODS.len()];
+    let (mut frames, mut region_count, mut positives) = (0, 0, 0);
     let mut drawn = false;
     for path in paths {
         let sequence = Sequence::open(path)?;
@@ -63,9 +103,9 @@ pub fn evaluate_group(
             if known.is_empty() {
                 continue;
             }
-            result.frames += 1;
-            result.regions += known.len();
-            result.positives += known.iter().filter(|&&i| matches!(frame.labels[i], Label::Positive { .. })).count();
+            frames += 1;
+            region_count += known.len();
+            positives += known.iter().filter(|&&i| matches!(frame.labels[i], Label::Positive { .. })).count();
             let targets: Vec<Option<(f32, f32)>> = known
                 .iter()
                 .map(|&i| match frame.labels[i] {
@@ -103,22 +143,21 @@ pub fn evaluate_group(
             ms[3].push(pipeline_ms);
             let geometric: Vec<Prediction> = known.iter().map(|&i| geometric[i]).collect();
             scores[3] = add(scores[3], Scores::of(&geometric, &targets, region_px));
+            // The trivial answer.
+            let everywhere = vec![Prediction { p: 1.0, x: 0.5, y: 0.5 }; known.len()];
+            ms[4].push(0.0);
+            scores[4] = add(scores[4], Scores::of(&everywhere, &targets, region_px));
             if !drawn {
                 draw(&depth, frame, &known, &nets[0], &targets, picture)?;
                 drawn = true;
             }
         }
     }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
-    result.scores = METHODS
-        .iter()
-        .zip(scores)
-        .zip(ms.iter_mut())
-        .map(|((name, s), m)| (name.to_string(), s, s.classification_error(), median(m)))
-        .collect();
+    let mut result = GroupResult::from_scores(group, &scores, ms);
+    result.datasets = paths.len();
+    result.frames = frames;
+    result.regions = region_count;
+    result.positives = positives;
     Ok(result)
 }
 
@@ -138,9 +177,8 @@ fn single_frame_footholds(
     frame: &LabelledFrame,
     label: &LabelConfig,
 ) -> Result<(Vec<Prediction>, f64), FootholdError> {
-    let mapper = labelling_mapper_config();
-    let half_window = mapper.acquire.accel_half_window_s;
-    let mut single = pipeline(sequence.dataset.intrinsics, mapper, &sequence.camera_from_imu)?;
+    let half_window = sequence.configs.mapper.acquire.accel_half_window_s;
+    let mut single = pipeline(sequence.dataset.intrinsics, &sequence.configs, &sequence.camera_from_imu)?;
     let timestamp = sequence.dataset.frames[index].timestamp;
     for sample in sequence.dataset.accelerometer.iter().filter(|s| (s.timestamp - timestamp).abs() <= half_window) {
         let _ = single.push_imu(sample.timestamp, sample.acceleration_in_imu);
@@ -221,6 +259,34 @@ pub fn format_table(results: &[GroupResult]) -> String {
             );
         }
     }
-    let _ = writeln!(out, "(regression error in pixels of the 60 x 60 region over the true positives, as CNN Tables I-II; ms: CNN region proposal + inference, SVM features + decision, pipeline single-frame total)");
+    let _ = writeln!(out, "(regression error in pixels of the 60 x 60 region over the true positives, as CNN Tables I-II; ms: CNN region proposal + inference, SVM features + decision, pipeline single-frame total; the last row answers \"foothold at the centre\" everywhere)");
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn group(name: &str, frames: usize, hit: bool, ms: f64) -> GroupResult {
+        let mut scores = [Scores::default(); METHODS.len()];
+        for s in &mut scores {
+            s.add(hit.then_some((0.5, 0.5)), Some((0.5, 0.6)), 60.0);
+            s.add(None, None, 60.0);
+        }
+        let mut g = GroupResult::from_scores(name, &scores, vec![vec![ms; frames]; METHODS.len()]);
+        (g.datasets, g.frames, g.regions, g.positives) = (1, frames, 2, 1);
+        g
+    }
+
+    #[test]
+    fn merged_groups_sum_counts_and_rescore() {
+        let total = GroupResult::merged("all", &[group("a", 1, true, 10.0), group("b", 2, false, 30.0)]);
+        assert_eq!((total.datasets, total.frames, total.regions, total.positives), (2, 3, 4, 2));
+        let (name, scores, error, ms) = &total.scores[0];
+        assert_eq!(name, METHODS[0]);
+        assert_eq!((scores.samples, scores.true_positives, scores.false_negatives), (4, 1, 1));
+        assert!((error - 0.25).abs() < 1e-12 && (scores.regression_px() - 6.0).abs() < 1e-9);
+        assert_eq!(*ms, 30.0);
+        assert!(format_table(&[total]).contains("all (2 datasets, 3 frames, 4 regions, 50.0 % positive)"));
+    }
 }

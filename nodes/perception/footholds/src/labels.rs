@@ -7,20 +7,33 @@
 //!    ([`labelling_mapper_config`]). The footholds are the final map's patches that are valid (the
 //!    validator kept them), foot-sized (the boundary's smaller half-extent at least
 //!    [`LabelConfig::min_half_extent_m`]) and walkable (normal within [`LabelConfig::max_slope_deg`] of
-//!    up, in the gravity-aligned map frame).
-//! 2. [`label_frame`] projects them into each single frame. A foothold counts in a frame when it is
+//!    up, in the gravity-aligned map frame). The moving volume adapts to the recording as
+//!    `patch_mapper replay` does ([`labelling_configs`]): when more than half of the first frame's
+//!    valid depth lies outside the configured cube, the cube is fitted to the first frames' depth
+//!    (e.g. a desk 1–2 m in front of a hand-held camera), with the seed cells kept at 4 cm.
+//!    The places the pipeline tried and found no foothold are kept too: the seed points whose fit the
+//!    validation rejected for the terrain's shape (residual, curvature, tilt, edge; not coverage or
+//!    too few points, which say the data there was incomplete, e.g. at the birds-eye view's border)
+//!    and the map's patches that are not footholds (too steep or too small).
+//! 2. [`label_frame`] projects them into each single frame. A point counts in a frame when it is
 //!    visible there (the frame's depth at its pixel agrees with its depth within
 //!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
 //!    lies in its central 80 % (CNN III-C ignores holds at the border), with (x, y) the centre of the
-//!    foothold nearest the region centre in region coordinates; negative when none does; unknown
-//!    (left out of training and scoring) when the region's centre point lies outside the area the map
-//!    covered (the final volume's footprint) or outside the volume's height range.
+//!    foothold nearest the region centre in region coordinates; negative when none does but a visible
+//!    tried-and-rejected point does; unknown (left out of training and scoring) when the pipeline
+//!    tried nothing there (e.g. flat ground without salient points: no evidence either way), when
+//!    the sequence's map holds no foothold at all (on the simulated scenes a failed labelling run —
+//!    the map's patches all too small or steep — rather than a scene without any walkable place), or when
+//!    the region's centre point lies outside the area the map covered (the final volume's footprint)
+//!    or outside the volume's height range.
 
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::Dataset;
 use patchwalk_fusion::tracking::TrackerConfig;
-use patchwalk_mapping::mapper::MapperConfig;
+use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
+use patchwalk_mapping::acquire::gravity_from_accelerometer;
+use patchwalk_mapping::mapper::{MapperConfig, Verdict};
 use patchwalk_mapping::patch_map::VolumeGrid;
 use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfig};
 use patchwalk_spl::patch::{BoundaryType, Patch};
@@ -85,6 +98,63 @@ pub fn labelling_mapper_config() -> MapperConfig {
     config
 }
 
+/// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
+pub const SEED_CELL_M: f64 = 0.04;
+/// Frames whose depth a fitted volume is sized from (as `patch_mapper replay`).
+pub const FIT_FRAMES: usize = 5;
+/// Seeds per frame of the labelling run at most, whatever the volume.
+pub const MAX_SEEDS: usize = 4096;
+
+/// The tracker and mapper of a dataset's labelling run and the volume edge fitted to it, if any.
+#[derive(Debug, Clone)]
+pub struct LabellingConfigs {
+    pub tracker: TrackerConfig,
+    pub mapper: MapperConfig,
+    /// The fitted cube edge (m) when the configured one missed most of the first frame's depth.
+    pub fitted_edge_m: Option<f64>,
+}
+
+/// The labelling run's configurations for `dataset`: [`labelling_mapper_config`] and the node's
+/// tracker, with the moving volume fitted to the first [`FIT_FRAMES`] frames' depth (95 % of the
+/// valid depth per axis, 1.28–4 m, `patchwalk_fusion::volume::size_volume_to_depth`) when more than
+/// half of the first frame's valid depth lies outside the configured cube; the seed grid then keeps
+/// [`SEED_CELL_M`] cells and scales its seed budget with the area (at most [`MAX_SEEDS`]).
+pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64>) -> Result<LabellingConfigs, FootholdError> {
+    let mut tracker = TrackerConfig::default();
+    let mut mapper = labelling_mapper_config();
+    let mut fitted_edge_m = None;
+    let Some(first) = dataset.frames.first() else {
+        return Ok(LabellingConfigs { tracker, mapper, fitted_edge_m });
+    };
+    let depth = dataset.load_depth(0)?;
+    let rotation = camera_from_imu.to_rotation_matrix();
+    let gravity = dataset
+        .mean_acceleration_near(first.timestamp, mapper.acquire.accel_half_window_s)
+        .and_then(|a| gravity_from_accelerometer(&a, &rotation).ok())
+        .map(nalgebra::Unit::into_inner);
+    let (min_depth, max_depth) = (f64::from(tracker.tsdf.min_depth_m), f64::from(tracker.tsdf.max_depth_m));
+    let mut points = depth_points(&depth, &dataset.intrinsics, min_depth, max_depth, 8);
+    let edge = f64::from(tracker.tsdf.size_m);
+    let outside = 1.0 - share_inside(&points, &initial_volume_from_camera(gravity, edge, &tracker.moving_volume), edge);
+    if outside > 0.5 {
+        for index in 1..FIT_FRAMES.min(dataset.frames.len()) {
+            points.extend(depth_points(&dataset.load_depth(index)?, &dataset.intrinsics, min_depth, max_depth, 8));
+        }
+        let block = f64::from(tracker.tsdf.voxel_size_m) * 8.0;
+        if let Some(fit) = size_volume_to_depth(&points, gravity, block, &VolumeSizing::default()) {
+            tracker.tsdf.size_m = fit.edge_m as f32;
+            tracker.moving_volume.nominal_position_fraction = fit.nominal_position_fraction;
+            mapper.volume_edge_m = fit.edge_m;
+            let cells = (fit.edge_m / SEED_CELL_M).round().max(1.0) as usize;
+            let base = mapper.seeds.cells_per_side;
+            mapper.seeds.max_seeds = (mapper.seeds.max_seeds * cells * cells / (base * base).max(1)).clamp(1, MAX_SEEDS);
+            mapper.seeds.cells_per_side = cells;
+            fitted_edge_m = Some(fit.edge_m);
+        }
+    }
+    Ok(LabellingConfigs { tracker, mapper, fitted_edge_m })
+}
+
 /// Where the camera was and which way was down in one frame of a fused sequence.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FramePose {
@@ -100,6 +170,8 @@ pub struct FramePose {
 pub struct FusedSequence {
     /// Foothold centres in the map frame (gravity aligned, z up).
     pub footholds_in_map: Vec<Vector3<f64>>,
+    /// Places tried without a foothold (map frame): rejected seed points and non-foothold patches.
+    pub rejected_in_map: Vec<Vector3<f64>>,
     /// All patches of the final map (valid ones), for counts.
     pub map_patches: usize,
     pub frames: Vec<FramePose>,
@@ -107,6 +179,8 @@ pub struct FusedSequence {
     pub grid: VolumeGrid,
     /// Wall time of the pipeline per frame (ms).
     pub pipeline_ms: Vec<f64>,
+    /// The fitted cube edge (m), when the volume adapted to the recording.
+    pub fitted_edge_m: Option<f64>,
 }
 
 /// Whether a map patch is a foothold: foot-sized and walkable (it is in the map, so it is valid).
@@ -124,6 +198,12 @@ pub fn is_foothold(patch: &Patch, config: &LabelConfig) -> bool {
         }
     };
     walkable && half_extent.is_some_and(|h| h >= config.min_half_extent_m)
+}
+
+/// Whether a seed's verdict says the surface's shape there is no foothold (not: skipped, a failed
+/// fit, or too little data under the foot, which says nothing about the terrain).
+pub fn is_rejection(verdict: &Verdict) -> bool {
+    matches!(verdict, Verdict::Residual | Verdict::Curvature | Verdict::Tilt | Verdict::Edge)
 }
 
 /// The IMU mount of a dataset written by `terrain_sim record` (`intrinsics.json`'s
@@ -146,12 +226,16 @@ pub fn dataset_camera_from_imu(dataset: &Dataset) -> Result<Option<UnitQuaternio
     }
 }
 
-/// A pipeline for `intrinsics` with the given mapper, IMU mount and the node's other defaults.
-pub fn pipeline(intrinsics: Intrinsics, mapper: MapperConfig, camera_from_imu: &UnitQuaternion<f64>) -> Result<Pipeline, FootholdError> {
+/// A pipeline for `intrinsics` with the given tracker, mapper and IMU mount.
+pub fn pipeline(
+    intrinsics: Intrinsics,
+    configs: &LabellingConfigs,
+    camera_from_imu: &UnitQuaternion<f64>,
+) -> Result<Pipeline, FootholdError> {
     let mut pipeline = Pipeline::new(
         PipelineConfig { allow_missing_imu: false, ..PipelineConfig::default() },
-        TrackerConfig::default(),
-        mapper,
+        configs.tracker.clone(),
+        configs.mapper.clone(),
         intrinsics,
     )?;
     pipeline.set_camera_from_imu(&camera_from_imu.to_rotation_matrix());
@@ -168,21 +252,23 @@ fn feed_imu(pipeline: &mut Pipeline, dataset: &Dataset, mut next: usize, until: 
     next
 }
 
-/// Runs the pipeline over the frames `frames` of `dataset` (all when `None`) and returns its footholds.
+/// Runs the pipeline (`configs`, e.g. from [`labelling_configs`]) over the frames `frames` of `dataset`
+/// (all when `None`) and returns its footholds.
 pub fn fuse_sequence(
     dataset: &Dataset,
     camera_from_imu: &UnitQuaternion<f64>,
+    configs: &LabellingConfigs,
     frames: Option<&[usize]>,
     label: &LabelConfig,
 ) -> Result<FusedSequence, FootholdError> {
-    let mapper = labelling_mapper_config();
-    let half_window = mapper.acquire.accel_half_window_s;
-    let mut pipeline = pipeline(dataset.intrinsics, mapper, camera_from_imu)?;
+    let half_window = configs.mapper.acquire.accel_half_window_s;
+    let mut pipeline = pipeline(dataset.intrinsics, configs, camera_from_imu)?;
     let all: Vec<usize> = (0..dataset.frames.len()).collect();
     let frames = frames.unwrap_or(&all);
     let mut next_imu = 0;
     let mut poses = Vec::new();
     let mut pipeline_ms = Vec::new();
+    let mut rejected = Vec::new();
     for &index in frames {
         let timestamp =
             dataset.frames.get(index).map(|f| f.timestamp).ok_or_else(|| FootholdError::Config(format!("frame {index} out of range")))?;
@@ -198,14 +284,31 @@ pub fn fuse_sequence(
         };
         let tilt = Tilt::from_gravity_in_camera(&gravity.into_inner())?;
         if matches!(output.tracking, patchwalk_fusion::tracking::TrackingStatus::Lost(_)) {
-            // The map was reset: the poses before do not share its frame.
+            // The map was reset: the poses and points before do not share its frame.
             poses.clear();
+            rejected.clear();
         }
+        rejected.extend(
+            output
+                .seeds
+                .iter()
+                .filter(|o| is_rejection(&o.verdict))
+                .map(|o| (output.map_from_birds_eye * Point3::from(o.seed.point_in_camera)).coords),
+        );
         poses.push(FramePose { index, timestamp, map_from_camera: output.map_from_camera, tilt });
     }
     let map = pipeline.map();
     let footholds_in_map = map.patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
-    Ok(FusedSequence { footholds_in_map, map_patches: map.len(), frames: poses, grid: *map.grid(), pipeline_ms })
+    rejected.extend(map.patches().iter().filter(|m| !is_foothold(&m.patch, label)).map(|m| m.patch.center));
+    Ok(FusedSequence {
+        footholds_in_map,
+        rejected_in_map: rejected,
+        map_patches: map.len(),
+        frames: poses,
+        grid: *map.grid(),
+        pipeline_ms,
+        fitted_edge_m: configs.fitted_edge_m,
+    })
 }
 
 /// The regions of one frame with their labels and inputs.
@@ -236,7 +339,7 @@ fn depth_near(depth: &DepthImage, u: f64, v: f64) -> Option<f64> {
     values.get(values.len() / 2).map(|d| f64::from(*d))
 }
 
-/// Footholds of the map visible in a frame, as image pixels (u, v).
+/// Points of the map (footholds or rejected places) visible in a frame, as image pixels (u, v).
 pub fn visible_footholds(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
@@ -270,6 +373,14 @@ pub fn region_label(region: &Region, footholds_px: &[(f64, f64)], centre_fractio
         .map_or(Label::Negative, |(x, y)| Label::Positive { x, y })
 }
 
+/// Whether one of the pixels lies in the region's central fraction.
+pub fn tried(region: &Region, pixels: &[(f64, f64)], centre_fraction: f64) -> bool {
+    pixels.iter().any(|&(u, v)| {
+        let (x, y) = region.to_region(u, v);
+        Region::in_centre(x, y, centre_fraction)
+    })
+}
+
 /// Whether the region's centre point (back-projected at its depth) lies in the covered area.
 fn covered(region: &Region, intrinsics: &Intrinsics, map_from_camera: &Isometry3<f64>, grid: &VolumeGrid, margin: f64) -> bool {
     let p = intrinsics.back_project(region.u, region.v, region.depth_m);
@@ -285,6 +396,7 @@ pub fn label_frame(
     intrinsics: &Intrinsics,
     pose: &FramePose,
     footholds_in_map: &[Vector3<f64>],
+    rejected_in_map: &[Vector3<f64>],
     grid: &VolumeGrid,
     regions_config: &RegionConfig,
     config: &LabelConfig,
@@ -292,13 +404,16 @@ pub fn label_frame(
     let mut inputs = Vec::new();
     let regions = propose(depth, intrinsics, regions_config, &mut inputs)?;
     let footholds_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
+    let rejected_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, rejected_in_map, config);
     let labels = regions
         .iter()
         .map(|r| {
-            if covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
-                region_label(r, &footholds_px, config.centre_fraction)
-            } else {
-                Label::Unknown
+            if footholds_in_map.is_empty() || !covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
+                return Label::Unknown;
+            }
+            match region_label(r, &footholds_px, config.centre_fraction) {
+                Label::Negative if !tried(r, &rejected_px, config.centre_fraction) => Label::Unknown,
+                label => label,
             }
         })
         .collect();
@@ -322,6 +437,16 @@ mod tests {
         assert_eq!(region_label(&r, &[], 0.8), Label::Negative);
         assert_eq!(region_label(&r, &[(55.0, 100.0)], 0.8), Label::Negative);
         assert_eq!(region_label(&r, &[(55.0, 100.0), (120.0, 90.0), (105.0, 100.0)], 0.8), Label::Positive { x: 0.55, y: 0.5 });
+    }
+
+    #[test]
+    fn negatives_need_a_rejected_point_in_the_centre() {
+        let r = region();
+        assert!(tried(&r, &[(70.0, 130.0)], 0.8));
+        assert!(!tried(&r, &[(55.0, 100.0)], 0.8));
+        assert!(is_rejection(&Verdict::Edge) && is_rejection(&Verdict::Tilt));
+        assert!(!is_rejection(&Verdict::Skipped) && !is_rejection(&Verdict::Valid { id: 1 }));
+        assert!(!is_rejection(&Verdict::FitFailed("x".into())) && !is_rejection(&Verdict::Coverage));
     }
 
     #[test]

@@ -7,16 +7,19 @@ use patchwalk_fusion::calibration::{calibrate_dataset, CalibrationConfig};
 use patchwalk_fusion::dataset::Dataset;
 
 use crate::error::FootholdError;
-use crate::labels::{dataset_camera_from_imu, fuse_sequence, label_frame, FusedSequence, LabelConfig, LabelledFrame};
+use crate::labels::{
+    dataset_camera_from_imu, fuse_sequence, label_frame, labelling_configs, FusedSequence, LabelConfig, LabelledFrame, LabellingConfigs,
+};
 use crate::regions::RegionConfig;
 
 /// A dataset and the rotation of its IMU into the camera frame: `intrinsics.json`'s mount
 /// (`terrain_sim record`), else calibrated from its dominant horizontal plane (J 2.2, as
-/// `patch_mapper calibrate-imu`).
+/// `patch_mapper calibrate-imu`), and the labelling run's configurations fitted to its depth.
 pub struct Sequence {
     pub name: String,
     pub dataset: Dataset,
     pub camera_from_imu: UnitQuaternion<f64>,
+    pub configs: LabellingConfigs,
 }
 
 impl Sequence {
@@ -38,8 +41,15 @@ impl Sequence {
                     .camera_from_imu
             }
         };
-        let name = path.file_name().map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
-        Ok(Self { name, dataset, camera_from_imu })
+        // `<parent>/<directory>`: several sources may each have a `seed_1`.
+        let file = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
+        let name = match (path.parent().and_then(file), file(path)) {
+            (Some(parent), Some(own)) => format!("{parent}/{own}"),
+            (None, Some(own)) => own,
+            _ => path.display().to_string(),
+        };
+        let configs = labelling_configs(&dataset, &camera_from_imu)?;
+        Ok(Self { name, dataset, camera_from_imu, configs })
     }
 
     /// The fused sequence and every `stride`-th tracked frame labelled from it: (frame index, frame).
@@ -49,13 +59,22 @@ impl Sequence {
         regions: &RegionConfig,
         label: &LabelConfig,
     ) -> Result<(FusedSequence, Vec<(usize, LabelledFrame)>), FootholdError> {
-        let fused = fuse_sequence(&self.dataset, &self.camera_from_imu, None, label)?;
+        let fused = fuse_sequence(&self.dataset, &self.camera_from_imu, &self.configs, None, label)?;
         let mut frames = Vec::new();
         for pose in fused.frames.iter().step_by(stride.max(1)) {
             let depth = self.dataset.load_depth(pose.index)?;
             frames.push((
                 pose.index,
-                label_frame(&depth, &self.dataset.intrinsics, pose, &fused.footholds_in_map, &fused.grid, regions, label)?,
+                label_frame(
+                    &depth,
+                    &self.dataset.intrinsics,
+                    pose,
+                    &fused.footholds_in_map,
+                    &fused.rejected_in_map,
+                    &fused.grid,
+                    regions,
+                    label,
+                )?,
             ));
         }
         Ok((fused, frames))

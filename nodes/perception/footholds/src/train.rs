@@ -1,5 +1,5 @@
-//! Training of the foothold network with CNN eq 1 (Adam, deterministic batches), and batched
-//! inference.
+//! Training of the foothold network with CNN eq 1 (Adam, deterministic batches, optionally
+//! class-balanced and with a decaying learning rate), and batched inference.
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::Optimizer;
@@ -22,12 +22,56 @@ pub struct TrainConfig {
     pub lambda: f64,
     /// Seed of the batch order (the weights have their own seed).
     pub seed: u64,
+    /// The learning rate of epoch e is `learning_rate · lr_decay^e` (1: constant).
+    pub lr_decay: f64,
+    /// Balanced batches: this share of every batch is positive, the smaller class drawn again
+    /// (reshuffled) when it runs out; an epoch ends when the larger class has been seen once.
+    /// `None`: batches follow the set's own class shares.
+    pub positive_share: Option<f64>,
 }
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        Self { epochs: 6, batch: 64, learning_rate: 1e-3, lambda: 1.0, seed: 1 }
+        Self { epochs: 6, batch: 64, learning_rate: 1e-3, lambda: 1.0, seed: 1, lr_decay: 1.0, positive_share: None }
     }
+}
+
+/// The sample order of one epoch: a shuffle of the set, or with `positive_share` batches of that
+/// many positives (rounded, at least one of each class when both exist) and negatives.
+pub fn epoch_order(set: &SampleSet, config: &TrainConfig, rng: &mut impl rand::Rng) -> Vec<usize> {
+    let mut all: Vec<usize> = (0..set.len()).collect();
+    let (mut positives, mut negatives): (Vec<usize>, Vec<usize>) = all.iter().partition(|&&i| set.targets[i].is_some());
+    let Some(share) = config.positive_share.filter(|_| !positives.is_empty() && !negatives.is_empty()) else {
+        all.shuffle(rng);
+        return all;
+    };
+    let batch = config.batch.max(2);
+    let per_batch = ((share.clamp(0.0, 1.0) * batch as f64).round() as usize).clamp(1, batch - 1);
+    positives.shuffle(rng);
+    negatives.shuffle(rng);
+    // Batches until the class that needs more batches has been used once.
+    let batches = positives.len().div_ceil(per_batch).max(negatives.len().div_ceil(batch - per_batch));
+    fn draw(pool: &mut [usize], next: &mut usize, rng: &mut impl rand::Rng) -> usize {
+        if *next == pool.len() {
+            pool.shuffle(rng);
+            *next = 0;
+        }
+        *next += 1;
+        pool[*next - 1]
+    }
+    let (mut p, mut n) = (0, 0);
+    let mut order = Vec::with_capacity(batches * batch);
+    for _ in 0..batches {
+        let start = order.len();
+        for _ in 0..per_batch {
+            order.push(draw(&mut positives, &mut p, rng));
+        }
+        for _ in per_batch..batch {
+            order.push(draw(&mut negatives, &mut n, rng));
+        }
+        order[start..].shuffle(rng);
+    }
+    order
 }
 
 /// One prediction for one region and body part.
@@ -82,7 +126,7 @@ pub fn mean_loss(net: &FootholdNet, set: &SampleSet, config: &TrainConfig) -> Re
 }
 
 /// Trains `net` on `set`; calls `progress(epoch, mean training loss of the epoch)` after each epoch
-/// and returns those losses.
+/// and returns those losses (over the samples the epoch drew, see [`epoch_order`]).
 pub fn train(
     net: &FootholdNet,
     set: &SampleSet,
@@ -105,10 +149,10 @@ pub fn train(
     let params = candle_nn::ParamsAdamW { lr: config.learning_rate, weight_decay: 0.0, ..Default::default() };
     let mut optimiser = candle_nn::AdamW::new(net.vars(), params)?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed);
-    let mut order: Vec<usize> = (0..set.len()).collect();
     let mut losses = Vec::with_capacity(config.epochs);
     for epoch in 0..config.epochs {
-        order.shuffle(&mut rng);
+        optimiser.set_learning_rate(config.learning_rate * config.lr_decay.powi(epoch as i32));
+        let order = epoch_order(set, config, &mut rng);
         let mut total = 0.0;
         for chunk in order.chunks(config.batch.max(1)) {
             let (inputs, side, targets) = batch(set, chunk, dtype)?;
@@ -116,7 +160,7 @@ pub fn train(
             optimiser.backward_step(&loss)?;
             total += loss.to_dtype(DType::F64)?.to_scalar::<f64>()? * chunk.len() as f64;
         }
-        let mean = total / set.len() as f64;
+        let mean = total / order.len().max(1) as f64;
         progress(epoch, mean);
         losses.push(mean);
     }
@@ -196,8 +240,8 @@ mod tests {
         NetConfig {
             in_channels: 1,
             input_px: 16,
-            kernels: [4, 4, 6, 6],
-            kernel_sizes: [3, 3, 2, 2],
+            kernels: [8, 8, 12, 12],
+            kernel_sizes: [3, 2, 2, 1],
             first_stride: 1,
             hidden: 16,
             side_channels: true,
@@ -208,7 +252,7 @@ mod tests {
     #[test]
     fn training_reduces_the_loss_deterministically() {
         let set = synthetic(48);
-        let config = TrainConfig { epochs: 8, batch: 8, learning_rate: 3e-3, ..TrainConfig::default() };
+        let config = TrainConfig { epochs: 12, batch: 8, learning_rate: 5e-3, lr_decay: 0.95, ..TrainConfig::default() };
         let run = || {
             let net = FootholdNet::new(tiny(), 5, DType::F32).unwrap();
             let before = mean_loss(&net, &set, &config).unwrap();
@@ -221,6 +265,34 @@ mod tests {
         assert!(after < 0.7 * before, "loss {before} -> {after}");
         let (before2, after2, weights2) = run();
         assert_eq!((before, after, weights), (before2, after2, weights2));
+    }
+
+    #[test]
+    fn balanced_batches_hold_the_share_and_every_sample_of_the_larger_class() {
+        // 3 positives in 40: 25 % of every batch of 8 positive, each negative once per epoch.
+        let mut set = synthetic(40);
+        for (i, t) in set.targets.iter_mut().enumerate() {
+            if i % 2 == 0 && i >= 6 {
+                *t = None;
+            }
+        }
+        assert_eq!(set.positives(), 3);
+        let config = TrainConfig { batch: 8, positive_share: Some(0.25), ..TrainConfig::default() };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let order = epoch_order(&set, &config, &mut rng);
+        assert_eq!(order.len(), 37usize.div_ceil(6) * 8);
+        for chunk in order.chunks(8) {
+            assert_eq!(chunk.iter().filter(|&&i| set.targets[i].is_some()).count(), 2);
+        }
+        let mut negatives: Vec<usize> = order.iter().copied().filter(|&i| set.targets[i].is_none()).collect();
+        negatives.sort_unstable();
+        negatives.dedup();
+        assert_eq!(negatives.len(), 37);
+        // Without a share: a permutation of the set.
+        let mut plain = epoch_order(&set, &TrainConfig::default(), &mut rng);
+        plain.sort_unstable();
+        assert_eq!(plain, (0..40).collect::<Vec<_>>());
+        assert_eq!(epoch_order(&set, &config, &mut rand::rngs::StdRng::seed_from_u64(3)), order);
     }
 
     #[test]

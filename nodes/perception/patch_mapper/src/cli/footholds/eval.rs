@@ -2,12 +2,14 @@
 //! one table: classification and regression error of the CNN, the CNN without tilt ("No angle"),
 //! the linear SVM on hand features, and the patch pipeline itself on each single frame (the
 //! geometric baseline) with its time per frame. Labels come from each sequence's fused map (see
-//! `patchwalk_footholds::labels`). Also writes pictures like CNN Fig. 6 and the table as JSON.
+//! `patchwalk_footholds::labels`). The held-apart datasets are scored per parent directory (one
+//! source of scenes each, e.g. `sim/rocks/seed_101`, `sim/stairs/seed_101`) and all together. Also
+//! writes pictures like CNN Fig. 6 (one per group) and the table as JSON.
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use patchwalk_footholds::evaluation::{evaluate_group, format_table, Methods};
+use patchwalk_footholds::evaluation::{evaluate_group, format_table, GroupResult, Methods};
 use patchwalk_footholds::model::FootholdModel;
 use patchwalk_footholds::svm::LinearSvm;
 
@@ -51,13 +53,26 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .with_context(|| format!("parsing {}", svm_path.display()))?;
     let methods = Methods { cnn, no_angle, svm };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let mut results = Vec::new();
-    for (group, paths) in [("held-apart sim scenes", &args.test), ("real frames", &args.real)] {
-        if paths.is_empty() {
-            continue;
+    // Held-apart datasets grouped by their parent directory, in the order given.
+    let mut sources: Vec<(String, Vec<PathBuf>)> = Vec::new();
+    for path in &args.test {
+        let source = path.parent().and_then(|p| p.file_name()).map_or_else(|| "sim".to_string(), |n| n.to_string_lossy().into_owned());
+        match sources.iter_mut().find(|(name, _)| *name == source) {
+            Some((_, paths)) => paths.push(path.clone()),
+            None => sources.push((source, vec![path.clone()])),
         }
-        let picture = args.out.join(if results.is_empty() { "fig6_sim.png" } else { "fig6_real.png" });
-        results.push(evaluate_group(group, paths, &methods, args.frame_stride, &picture)?);
+    }
+    let mut results = Vec::new();
+    for (source, paths) in &sources {
+        let picture = args.out.join(format!("fig6_{source}.png"));
+        results.push(evaluate_group(&format!("held-apart {source}"), paths, &methods, args.frame_stride, &picture)?);
+    }
+    if results.len() > 1 {
+        let total = GroupResult::merged("held-apart sim scenes, all", &results);
+        results.push(total);
+    }
+    if !args.real.is_empty() {
+        results.push(evaluate_group("real frames", &args.real, &methods, args.frame_stride, &args.out.join("fig6_real.png"))?);
     }
     print!("{}", format_table(&results));
     let path = args.out.join("eval.json");

@@ -1,13 +1,15 @@
 //! `patch_mapper footholds label`: labelled region samples from datasets (see
 //! `patchwalk_footholds::labels` for how a region becomes positive).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use patchwalk_footholds::labels::{Label, LabelConfig};
+use patchwalk_footholds::labels::{Label, LabelConfig, LabelledFrame};
 use patchwalk_footholds::regions::RegionConfig;
+use patchwalk_footholds::render::{Mark, Picture};
 use patchwalk_footholds::samples::{Augment, SampleSet};
+use patchwalk_fusion::camera::DepthImage;
 use rand::SeedableRng;
 
 use patchwalk_footholds::sequence::Sequence;
@@ -38,6 +40,27 @@ pub struct LabelArgs {
     /// Seed of the augmentation noise.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Write the first labelled frame of every dataset here as `<dataset>.png`: the depth image with
+    /// the positive regions' footholds as red dots and the negative regions' centres as yellow crosses.
+    #[arg(long)]
+    pub pictures: Option<PathBuf>,
+}
+
+/// The labels of one frame drawn on its depth image.
+fn draw_labels(depth: &DepthImage, frame: &LabelledFrame, path: &Path) -> Result<()> {
+    let mut picture = Picture::of_depth(depth);
+    for (region, label) in frame.regions.iter().zip(&frame.labels) {
+        match label {
+            Label::Positive { x, y } => {
+                let (u, v) = region.to_image(*x, *y);
+                picture.mark(u, v, Mark::TruePositive);
+            }
+            Label::Negative => picture.mark(region.u, region.v, Mark::FalsePositive),
+            Label::Unknown => {}
+        }
+    }
+    picture.save_png(path)?;
+    Ok(())
 }
 
 pub fn run(args: LabelArgs) -> Result<()> {
@@ -55,15 +78,20 @@ pub fn run(args: LabelArgs) -> Result<()> {
         let positives: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| matches!(l, Label::Positive { .. })).count()).sum();
         let seq_known: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| l.is_known()).count()).sum();
         let seq_all: usize = labelled.iter().map(|(_, f)| f.labels.len()).sum();
+        let volume = fused.fitted_edge_m.map_or_else(String::new, |e| format!(" ({e:.2} m volume fitted)"));
         println!(
-            "{}: {} frames fused, {} map patches, {} footholds; {} frames labelled: {seq_known} regions known ({positives} positive), {} unknown",
+            "{}: {} frames fused{volume}, {} map patches, {} footholds; {} frames labelled: {seq_known} regions known ({positives} positive, {:.1} %), {} unknown",
             sequence.name,
             fused.frames.len(),
             fused.map_patches,
             fused.footholds_in_map.len(),
             labelled.len(),
+            100.0 * positives as f64 / seq_known.max(1) as f64,
             seq_all - seq_known
         );
+        if let (Some(dir), Some((index, frame))) = (&args.pictures, labelled.first()) {
+            draw_labels(&sequence.dataset.load_depth(*index)?, frame, &dir.join(format!("{}.png", picture_name(path))))?;
+        }
         for (index, frame) in &labelled {
             set.add_frame(frame, &sequence.name, *index, augment, &mut rng)?;
         }
@@ -81,4 +109,14 @@ pub fn run(args: LabelArgs) -> Result<()> {
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// `<parent>_<name>` of a dataset directory (several sources may have a `seed_1`).
+fn picture_name(path: &Path) -> String {
+    let name = |p: Option<&Path>| p.and_then(Path::file_name).map(|n| n.to_string_lossy().into_owned());
+    match (name(path.parent()), name(Some(path))) {
+        (Some(parent), Some(own)) => format!("{parent}_{own}"),
+        (None, Some(own)) => own,
+        _ => "dataset".to_string(),
+    }
 }

@@ -11,6 +11,7 @@ use patchwalk_footholds::network::NetConfig;
 use patchwalk_footholds::samples::SampleSet;
 use patchwalk_footholds::svm::{LinearSvm, SvmConfig};
 use patchwalk_footholds::train::{train, TrainConfig};
+use rand::SeedableRng;
 
 /// Arguments of `patch_mapper footholds train`.
 #[derive(clap::Args, Debug)]
@@ -30,6 +31,12 @@ pub struct TrainArgs {
     pub batch: usize,
     #[arg(long, default_value_t = TrainConfig::default().learning_rate)]
     pub learning_rate: f64,
+    /// Learning rate of epoch e: `learning_rate · lr_decay^e`.
+    #[arg(long, default_value_t = TrainConfig::default().lr_decay)]
+    pub lr_decay: f64,
+    /// Balanced batches with this share of positives (default: the set's own shares).
+    #[arg(long)]
+    pub positive_share: Option<f64>,
     /// Seed of the initial weights and of the batch order.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -78,12 +85,15 @@ pub fn run(args: TrainArgs) -> Result<()> {
         batch: args.batch,
         learning_rate: args.learning_rate,
         seed: args.seed,
+        lr_decay: args.lr_decay,
+        positive_share: args.positive_share,
         ..TrainConfig::default()
     };
+    let per_epoch = patchwalk_footholds::train::epoch_order(&set, &config, &mut rand::rngs::StdRng::seed_from_u64(config.seed)).len();
     let started = Instant::now();
     let losses = train(&model.net, &set, &config, |epoch, loss| {
         let s = started.elapsed().as_secs_f64();
-        println!("epoch {}: loss {loss:.4} ({:.0} s, {:.0} samples/s)", epoch + 1, s, (epoch + 1) as f64 * set.len() as f64 / s.max(1e-9));
+        println!("epoch {}: loss {loss:.4} ({:.0} s, {:.1} samples/s)", epoch + 1, s, (epoch + 1) as f64 * per_epoch as f64 / s.max(1e-9));
     })?;
     let seconds = started.elapsed().as_secs_f64();
     model.notes = serde_json::json!({
@@ -93,6 +103,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         "train": config,
         "epoch_losses": losses,
         "train_seconds": seconds,
+        "samples_per_second": (args.epochs * per_epoch) as f64 / seconds.max(1e-9),
     });
     model.save(&args.out)?;
     println!("trained {} epochs on {} samples in {seconds:.0} s -> {}", args.epochs, set.len(), args.out.display());

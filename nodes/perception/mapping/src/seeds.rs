@@ -364,8 +364,8 @@ mod tests {
         let far = plain[plain.len() - 1];
         let second = plain[plain.len() - 2];
         let priors = [
-            prior_at(&depth, &intrinsics, &volume_from_camera, second.pixel, 0.6),
-            prior_at(&depth, &intrinsics, &volume_from_camera, far.pixel, 0.9),
+            prior_at(depth, intrinsics, volume_from_camera, second.pixel, 0.6),
+            prior_at(depth, intrinsics, volume_from_camera, far.pixel, 0.9),
         ];
         let learned = SeedConfig { order: SeedOrder::LearnedFirst, ..config.clone() };
         let seeds = select(&scene, &[], &priors, &learned, 0);
@@ -401,9 +401,9 @@ mod tests {
         let mut beside = a.pixel;
         beside.0 += 1;
         let priors = [
-            prior_at(&depth, &intrinsics, &volume_from_camera, a.pixel, 0.7),
-            prior_at(&depth, &intrinsics, &volume_from_camera, b.pixel, 0.8),
-            prior_at(&depth, &intrinsics, &volume_from_camera, beside, 0.5),
+            prior_at(depth, intrinsics, volume_from_camera, a.pixel, 0.7),
+            prior_at(depth, intrinsics, volume_from_camera, b.pixel, 0.8),
+            prior_at(depth, intrinsics, volume_from_camera, beside, 0.5),
             // Behind the camera: not in the image, no seed.
             SeedPrior { point_in_volume: (volume_from_camera * Point3::new(0.0, 0.0, -1.0)).coords, score: 1.0 },
         ];

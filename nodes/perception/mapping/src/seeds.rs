@@ -266,7 +266,15 @@ mod tests {
     use crate::saliency::{hiking_saliency, SaliencyConfig};
     use patchwalk_fusion::volume::{initial_volume_from_camera, map_from_volume_rotation, MovingVolumeConfig};
 
-    fn setup() -> (DepthImage, Intrinsics, Saliency, VolumeGrid, Isometry3<f64>) {
+    type Scene = (DepthImage, Intrinsics, Saliency, VolumeGrid, Isometry3<f64>);
+
+    /// [`select_seeds`] on the scene of [`setup`].
+    fn select(scene: &Scene, occupied: &[usize], priors: &[SeedPrior], config: &SeedConfig, frame: u64) -> Vec<Seed> {
+        let (depth, intrinsics, saliency, grid, volume_from_camera) = scene;
+        select_seeds(saliency, AuxiliaryImage { depth, intrinsics }, grid, volume_from_camera, occupied, priors, config, frame)
+    }
+
+    fn setup() -> Scene {
         let intrinsics = small_camera();
         let depth = floor_and_wall(&intrinsics);
         let g = gravity_from_vector(Vector3::y()).unwrap();
@@ -282,18 +290,10 @@ mod tests {
 
     #[test]
     fn seeds_respect_caps_order_and_saliency() {
-        let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
+        let scene = setup();
+        let (depth, _, saliency, grid, volume_from_camera) = &scene;
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let seeds = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &config,
-            0,
-        );
+        let seeds = select(&scene, &[], &[], &config, 0);
         assert!(seeds.len() >= 10, "{} seeds", seeds.len());
         // ng = 1: every cell at most once, every seed salient and inside its cell.
         let mut cells: Vec<_> = seeds.iter().map(|s| s.cell).collect();
@@ -314,82 +314,29 @@ mod tests {
         };
         assert!(seeds.windows(2).all(|w| distance(w[0].cell) <= distance(w[1].cell)));
         // ns caps the total and keeps the nearest cells.
-        let capped = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &SeedConfig { max_seeds: 3, ..config.clone() },
-            0,
-        );
+        let capped = select(&scene, &[], &[], &SeedConfig { max_seeds: 3, ..config.clone() }, 0);
         assert_eq!(capped.len(), 3);
         assert_eq!(capped.iter().map(|s| s.cell).collect::<Vec<_>>(), seeds[..3].iter().map(|s| s.cell).collect::<Vec<_>>());
         // ng = 3 gives up to 3 per cell.
-        let three = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &SeedConfig { per_cell: 3, ..config.clone() },
-            0,
-        );
+        let three = select(&scene, &[], &[], &SeedConfig { per_cell: 3, ..config.clone() }, 0);
         assert!(three.len() > 2 * seeds.len());
         // Deterministic for the same frame, different for another frame.
-        let again = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &config,
-            0,
-        );
+        let again = select(&scene, &[], &[], &config, 0);
         assert_eq!(again, seeds);
-        let other = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &config,
-            1,
-        );
+        let other = select(&scene, &[], &[], &config, 1);
         assert_ne!(other, seeds);
     }
 
     #[test]
     fn occupied_cells_take_no_new_seeds() {
-        let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
+        let scene = setup();
+        let (_, _, _, grid, _) = &scene;
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let all = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &config,
-            0,
-        );
+        let all = select(&scene, &[], &[], &config, 0);
         let mut occupied = vec![0; 64];
         let full = all[0].cell;
         occupied[grid.flat(full)] = 1;
-        let rest = select_seeds(
-            &saliency,
-            AuxiliaryImage { depth: &depth, intrinsics: &intrinsics },
-            &grid,
-            &volume_from_camera,
-            &occupied,
-            &[],
-            &config,
-            0,
-        );
+        let rest = select(&scene, &occupied, &[], &config, 0);
         assert_eq!(rest.len(), all.len() - 1);
         assert!(rest.iter().all(|s| s.cell != full));
     }
@@ -409,19 +356,19 @@ mod tests {
 
     #[test]
     fn learned_first_puts_predicted_cells_first_and_seeds_next_to_the_prediction() {
-        let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
-        let aux = AuxiliaryImage { depth: &depth, intrinsics: &intrinsics };
+        let scene = setup();
+        let (depth, intrinsics, _, grid, volume_from_camera) = &scene;
         let config = SeedConfig { max_seeds: 1000, ..Default::default() };
-        let plain = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &config, 0);
+        let plain = select(&scene, &[], &[], &config, 0);
         // Two predictions in the two farthest seeded cells, the farther one scored higher.
         let far = plain[plain.len() - 1];
         let second = plain[plain.len() - 2];
         let priors = [
-            prior_at(&depth, &intrinsics, &volume_from_camera, second.pixel, 0.6),
-            prior_at(&depth, &intrinsics, &volume_from_camera, far.pixel, 0.9),
+            prior_at(depth, intrinsics, volume_from_camera, second.pixel, 0.6),
+            prior_at(depth, intrinsics, volume_from_camera, far.pixel, 0.9),
         ];
         let learned = SeedConfig { order: SeedOrder::LearnedFirst, ..config.clone() };
-        let seeds = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &learned, 0);
+        let seeds = select(&scene, &[], &priors, &learned, 0);
         assert_eq!(seeds.len(), plain.len(), "the same cells are seeded");
         assert_eq!((seeds[0].cell, seeds[1].cell), (far.cell, second.cell), "best score first");
         // Each at the salient point nearest its prediction: here the very pixel predicted.
@@ -434,43 +381,33 @@ mod tests {
         };
         assert!(seeds[2..].windows(2).all(|w| distance(w[0].cell) <= distance(w[1].cell)));
         // ns keeps the predicted cells.
-        let capped =
-            select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &SeedConfig { max_seeds: 1, ..learned.clone() }, 0);
+        let capped = select(&scene, &[], &priors, &SeedConfig { max_seeds: 1, ..learned.clone() }, 0);
         assert_eq!(capped.iter().map(|s| s.cell).collect::<Vec<_>>(), vec![far.cell]);
         // Without predictions (or with non-finite ones) it is J's order.
-        assert_eq!(select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &learned, 0), plain);
+        assert_eq!(select(&scene, &[], &[], &learned, 0), plain);
         let nan = [SeedPrior { point_in_volume: Vector3::new(f64::NAN, 0.0, 0.0), score: 1.0 }];
-        assert_eq!(select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &nan, &learned, 0), plain);
+        assert_eq!(select(&scene, &[], &nan, &learned, 0), plain);
     }
 
     #[test]
     fn learned_only_seeds_at_the_predictions_by_score_within_the_caps() {
-        let (depth, intrinsics, saliency, grid, volume_from_camera) = setup();
-        let aux = AuxiliaryImage { depth: &depth, intrinsics: &intrinsics };
+        let scene = setup();
+        let (depth, intrinsics, _, grid, volume_from_camera) = &scene;
         let config = SeedConfig { max_seeds: 1000, order: SeedOrder::LearnedOnly, ..Default::default() };
-        assert!(select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &[], &config, 0).is_empty(), "no predictions, no seeds");
-        let plain = select_seeds(
-            &saliency,
-            aux,
-            &grid,
-            &volume_from_camera,
-            &[],
-            &[],
-            &SeedConfig { order: SeedOrder::Saliency, ..config.clone() },
-            0,
-        );
+        assert!(select(&scene, &[], &[], &config, 0).is_empty(), "no predictions, no seeds");
+        let plain = select(&scene, &[], &[], &SeedConfig { order: SeedOrder::Saliency, ..config.clone() }, 0);
         let (a, b) = (plain[0], plain[plain.len() / 2]);
         // A third prediction in a's cell scored below it: ng = 1 keeps only the better one.
         let mut beside = a.pixel;
         beside.0 += 1;
         let priors = [
-            prior_at(&depth, &intrinsics, &volume_from_camera, a.pixel, 0.7),
-            prior_at(&depth, &intrinsics, &volume_from_camera, b.pixel, 0.8),
-            prior_at(&depth, &intrinsics, &volume_from_camera, beside, 0.5),
+            prior_at(depth, intrinsics, volume_from_camera, a.pixel, 0.7),
+            prior_at(depth, intrinsics, volume_from_camera, b.pixel, 0.8),
+            prior_at(depth, intrinsics, volume_from_camera, beside, 0.5),
             // Behind the camera: not in the image, no seed.
             SeedPrior { point_in_volume: (volume_from_camera * Point3::new(0.0, 0.0, -1.0)).coords, score: 1.0 },
         ];
-        let seeds = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &config, 0);
+        let seeds = select(&scene, &[], &priors, &config, 0);
         let cell_of_beside = {
             let p = priors[2].point_in_volume;
             grid.cell_of_volume_point(&p).unwrap()
@@ -485,9 +422,9 @@ mod tests {
         // A mapped patch in b's cell: the cell takes no learned seed either; ns caps the total.
         let mut occupied = vec![0; 64];
         occupied[grid.flat(b.cell)] = 1;
-        let rest = select_seeds(&saliency, aux, &grid, &volume_from_camera, &occupied, &priors, &config, 0);
+        let rest = select(&scene, &occupied, &priors, &config, 0);
         assert!(rest.iter().all(|s| s.cell != b.cell) && rest.len() == expected - 1);
-        let one = select_seeds(&saliency, aux, &grid, &volume_from_camera, &[], &priors, &SeedConfig { max_seeds: 1, ..config.clone() }, 0);
+        let one = select(&scene, &[], &priors, &SeedConfig { max_seeds: 1, ..config.clone() }, 0);
         assert_eq!(one.len(), 1);
     }
 

@@ -16,7 +16,7 @@
 //! `terrain_sim record /tmp/seed201 --frames 20 -p seed=201`, seeds the shipped weights were not
 //! trained on), the TUM fr1_xyz excerpt is always included unless `--no-tum`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -105,7 +105,7 @@ fn tum() -> Result<Sequence> {
 }
 
 /// A simulated recording with the node's defaults (the simulated robot's rig).
-fn sim(dir: &PathBuf) -> Result<Sequence> {
+fn sim(dir: &Path) -> Result<Sequence> {
     let dataset = Dataset::open(dir).with_context(|| format!("opening {}", dir.display()))?;
     load(dataset, format!("terrain_sim {}", dir.display()), TrackerConfig::default(), default_mapper_config())
 }

@@ -188,11 +188,14 @@ pub struct StageSettings {
     pub max_rate_hz: f64,
 }
 
+/// Predicted footholds for the mapper's seeds: points in the fixed (= map) frame and their scores.
+pub type SeedPriors = Vec<(Vector3<f64>, f64)>;
+
 /// What the pipeline thread, the ROS loop and the stage thread share.
 pub struct FootholdStage {
     frames: Latest<FootholdFrame>,
     goal: Mutex<Option<Target>>,
-    priors: Mutex<Option<Vec<(Vector3<f64>, f64)>>>,
+    priors: Mutex<Option<SeedPriors>>,
     health: Mutex<FootholdHealth>,
     settings: Mutex<StageSettings>,
     /// Whether the pipeline wants predictions for its seeds.
@@ -225,7 +228,7 @@ impl FootholdStage {
     }
 
     /// New predictions for the mapper's seeds, once each (fixed = map frame).
-    pub fn take_priors(&self) -> Option<Vec<(Vector3<f64>, f64)>> {
+    pub fn take_priors(&self) -> Option<SeedPriors> {
         self.priors.lock().ok().and_then(|mut p| p.take())
     }
 

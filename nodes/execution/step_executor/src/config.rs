@@ -217,13 +217,6 @@ impl StepExecutorConfig {
         if self.servos.is_empty() {
             return Err(ConfigError::Invalid("servos: at least one servo is required".into()));
         }
-        if self.servos.len() > patchwalk_dynamixel::servo_bus::MAX_SERVOS {
-            return Err(ConfigError::Invalid(format!(
-                "servos: {} servos, one chain carries at most {}",
-                self.servos.len(),
-                patchwalk_dynamixel::servo_bus::MAX_SERVOS
-            )));
-        }
         let mut ids = std::collections::BTreeSet::new();
         let mut joints = std::collections::BTreeSet::new();
         for (i, servo) in self.servos.iter().enumerate() {

@@ -13,8 +13,6 @@ use nix::time::{clock_gettime, clock_nanosleep, ClockId, ClockNanosleepFlags};
 pub struct CycleClock {
     period: TimeSpec,
     next: TimeSpec,
-    /// How long after its deadline the last [`CycleClock::wait`] returned.
-    late: Duration,
 }
 
 fn now() -> TimeSpec {
@@ -25,42 +23,31 @@ fn now() -> TimeSpec {
 impl CycleClock {
     /// A schedule whose first deadline is now.
     pub fn start(period: Duration) -> Self {
-        Self { period: TimeSpec::from(period), next: now(), late: Duration::ZERO }
-    }
-
-    /// How long after its deadline the last [`CycleClock::wait`] returned: the thread's wake-up
-    /// latency (scheduling jitter), or how far the cycle overran.
-    pub fn lateness(&self) -> Duration {
-        self.late
+        Self { period: TimeSpec::from(period), next: now() }
     }
 
     /// Sleep until the next deadline. Returns `false` when it had already passed (an overrun; the
     /// schedule then restarts from now).
     pub fn wait(&mut self) -> bool {
         self.next = self.next + self.period;
-        let before = now();
-        if self.next <= before {
-            self.late = Duration::from(before - self.next);
-            self.next = before;
+        if self.next <= now() {
+            self.next = now();
             return false;
         }
         loop {
             match clock_nanosleep(ClockId::CLOCK_MONOTONIC, ClockNanosleepFlags::TIMER_ABSTIME, &self.next) {
                 Err(nix::errno::Errno::EINTR) => continue,
-                Ok(_) => break,
+                Ok(_) => return true,
                 Err(_) => {
                     // Not expected on Linux; a relative sleep keeps the loop running.
                     let left = self.next - now();
                     if left > TimeSpec::new(0, 0) {
                         std::thread::sleep(Duration::from(left));
                     }
-                    break;
+                    return true;
                 }
             }
         }
-        let woke = now();
-        self.late = if woke > self.next { Duration::from(woke - self.next) } else { Duration::ZERO };
-        true
     }
 }
 
@@ -80,6 +67,5 @@ mod tests {
         assert!(clock.next >= expected);
         std::thread::sleep(Duration::from_millis(10));
         assert!(!clock.wait(), "a deadline 8 ms in the past is an overrun");
-        assert!(clock.lateness() >= Duration::from_millis(7), "{:?}", clock.lateness());
     }
 }

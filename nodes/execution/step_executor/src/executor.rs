@@ -1,14 +1,9 @@
 //! The bus thread: owns the [`ServoBus`] and the [`Player`], runs the 8 ms control cycle on absolute
 //! deadlines ([`CycleClock`], `SCHED_FIFO` where permitted), and talks to the rest of the node
-//! without a lock on its side: commands in through a channel (polled once a cycle), telemetry out
-//! through a bounded wait-free ring (dropped, never waited for, when the node is behind), an atomic
-//! e-stop flag (read at the start of every cycle and between its transactions, so a stop waits
-//! behind at most one bus transaction), and the bus health ([`BusHealth`]) through a triple buffer
-//! (see [`crate::handoff`]).
-//!
-//! A cycle allocates nothing (the telemetry record holds fixed-size arrays and shared names, the
-//! player's and the bus's buffers are reused; `tests/cycle_allocations.rs` counts): only a command
-//! and a new fault's message do.
+//! through channels (commands in, telemetry out, never blocking: telemetry is dropped when the
+//! consumer is behind), an atomic e-stop flag (read at the start of every cycle and between its
+//! transactions, so a stop waits behind at most one bus transaction), and the bus health
+//! ([`BusHealth`], handed over with a try-lock so the cycle never waits for a reader).
 //!
 //! Faults: every fault the player sees latches (see [`crate::player`]); a bus too slow for the cycle
 //! is one too ([`SlowBusDetector`]). Recovery: torque off clears a latched fault; a hardware error
@@ -17,24 +12,21 @@
 //! A panic inside the bus implementation is already turned into an error by the bus.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, Sender};
-
-use crate::handoff::{HealthReceiver, HealthSender, TelemetryReceiver};
-use crate::spsc::Producer;
 use patchwalk_dynamixel::priority::{make_realtime, raise_thread_priority, Priority};
 
 use crate::config::{BusConfig, StepExecutorConfig};
 use crate::cycle_clock::CycleClock;
 use crate::health::{BusHealth, HealthTracker};
 use crate::library::Motion;
-use crate::player::{goal_ticks, CycleReport, Player, PlayerEvent, PlayerState};
+use crate::player::{CycleReport, Player, PlayerEvent, PlayerState};
 use crate::slow_bus::{SlowBusConfig, SlowBusDetector};
 use patchwalk_dynamixel::mx28;
-use patchwalk_dynamixel::servo_bus::{self, BusError, ServoArray, ServoBus, SyncReadBuffer};
+use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 
 /// Errors of executor commands.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -66,17 +58,14 @@ enum Command {
 pub struct Telemetry {
     /// When the cycle started (deadline-scheduled every `cycle`).
     pub started: Instant,
-    /// How long after its deadline the cycle started (the bus thread's wake-up latency, or how
-    /// far the previous cycle overran).
-    pub wake_late: Duration,
     /// Time the cycle's bus traffic took.
     pub busy: Duration,
     pub cycle_index: u64,
     /// Keyframe being played (0 when idle).
     pub keyframe_index: usize,
     /// Measured joint positions (rad, joint order) where known.
-    pub positions: ServoArray<Option<f64>>,
-    pub goal: Option<ServoArray<f64>>,
+    pub positions: Vec<Option<f64>>,
+    pub goal: Option<Vec<f64>>,
     pub state: PlayerState,
     pub torque: bool,
     pub event: Option<PlayerEvent>,
@@ -119,11 +108,11 @@ impl LoopSettings {
 /// Handle of the running bus thread.
 pub struct Executor {
     commands: Sender<Command>,
-    telemetry: TelemetryReceiver<Telemetry>,
+    telemetry: Receiver<Telemetry>,
     estop: Arc<AtomicBool>,
     shutdown: Arc<AtomicBool>,
     notify: Arc<OnceLock<Notify>>,
-    health: HealthReceiver,
+    health: Arc<Mutex<BusHealth>>,
     reply_timeout: Duration,
     thread: Option<JoinHandle<()>>,
 }
@@ -152,12 +141,12 @@ impl Executor {
     /// Spawn the bus thread. `bus` must already be initialised (see [`initialise_bus`]).
     pub fn spawn(bus: Box<dyn ServoBus>, player: Player, settings: LoopSettings) -> Result<Self, ExecutorError> {
         let (command_tx, command_rx) = crossbeam_channel::unbounded::<Command>();
-        let (telemetry_tx, telemetry_rx) = crate::handoff::telemetry::<Telemetry>(TELEMETRY_CAPACITY);
+        let (telemetry_tx, telemetry_rx) = crossbeam_channel::bounded::<Telemetry>(1024);
         let estop = Arc::new(AtomicBool::new(false));
         let shutdown = Arc::new(AtomicBool::new(false));
         let notify: Arc<OnceLock<Notify>> = Arc::new(OnceLock::new());
-        let tracker = HealthTracker::new(player.ids(), settings.cycle);
-        let (health_tx, health) = crate::handoff::health(&tracker.health);
+        let tracker = HealthTracker::new(&player.ids(), settings.cycle);
+        let health = Arc::new(Mutex::new(tracker.health.clone()));
         // A reboot waits for the servos to boot: the reply may take that long.
         let reply_timeout = Duration::from_secs(2) + settings.reboot_wait * 2;
         let bus_loop = BusLoop {
@@ -171,8 +160,7 @@ impl Executor {
             estop: Arc::clone(&estop),
             shutdown: Arc::clone(&shutdown),
             notify: Arc::clone(&notify),
-            health: health_tx,
-            vitals: SyncReadBuffer::new(),
+            health: Arc::clone(&health),
             commands: command_rx,
             telemetry: telemetry_tx,
         };
@@ -195,15 +183,15 @@ impl Executor {
         let _ = self.notify.set(notify);
     }
 
-    /// Telemetry of the cycles since the last call (the last [`TELEMETRY_CAPACITY`] at most).
-    pub fn telemetry(&self) -> &TelemetryReceiver<Telemetry> {
+    /// Telemetry of the cycles since the last call.
+    pub fn telemetry(&self) -> &Receiver<Telemetry> {
         &self.telemetry
     }
 
     /// The bus health as of the last update (every `bus.health_read_period_cycles` cycles, at
     /// least every 25).
     pub fn health(&self) -> BusHealth {
-        self.health.latest()
+        self.health.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).clone()
     }
 
     fn request<T>(&self, make: impl FnOnce(Reply<T>) -> Command) -> Result<T, ExecutorError> {
@@ -265,18 +253,13 @@ struct BusLoop {
     estop: Arc<AtomicBool>,
     shutdown: Arc<AtomicBool>,
     notify: Arc<OnceLock<Notify>>,
-    health: HealthSender,
-    /// The vitals sync read's answer (reused).
-    vitals: SyncReadBuffer,
+    health: Arc<Mutex<BusHealth>>,
     commands: Receiver<Command>,
-    telemetry: Producer<Telemetry>,
+    telemetry: Sender<Telemetry>,
 }
 
 /// How often the health summary is handed over when vitals are not read more often.
 const HEALTH_PUBLISH_CYCLES: u64 = 25;
-
-/// Telemetry records the ring holds for the node (about 8 s of cycles at 8 ms).
-pub const TELEMETRY_CAPACITY: usize = 1024;
 
 impl BusLoop {
     fn run(mut self) {
@@ -297,9 +280,8 @@ impl BusLoop {
         let mut previous_start: Option<Instant> = None;
         while !self.shutdown.load(Ordering::SeqCst) {
             let started = Instant::now();
-            let wake_late = clock.lateness();
             let estop = self.estop.swap(false, Ordering::SeqCst);
-            let flag = &self.estop;
+            let flag = Arc::clone(&self.estop);
             let mut report = self.player.cycle_with_stop(self.bus.as_mut(), estop, &mut || flag.swap(false, Ordering::SeqCst));
             self.tracker.read(self.player.last_errors());
             let busy = started.elapsed();
@@ -338,7 +320,6 @@ impl BusLoop {
             }
             let telemetry = Telemetry {
                 started,
-                wake_late,
                 busy,
                 cycle_index,
                 keyframe_index: self.player.keyframe_index(),
@@ -350,7 +331,7 @@ impl BusLoop {
             };
             let urgent = telemetry.goal.is_some() || telemetry.event.is_some();
             // Never block the control loop on a slow consumer: drop telemetry instead.
-            let _ = self.telemetry.push(telemetry);
+            let _ = self.telemetry.try_send(telemetry);
             if let (true, Some(notify)) = (urgent, self.notify.get()) {
                 notify();
             }
@@ -361,24 +342,27 @@ impl BusLoop {
 
     /// Present Input Voltage and Temperature (144..=146) of every servo in one sync read.
     fn read_vitals(&mut self) {
-        match self.bus.sync_read(self.player.ids(), mx28::PRESENT_INPUT_VOLTAGE, 3, &mut self.vitals) {
-            Ok(()) => {
-                for (id, result) in self.vitals.iter() {
-                    self.tracker.vitals(id, result.as_ref().map(|r| r.data()));
+        let ids = self.player.ids();
+        match self.bus.sync_read(&ids, mx28::PRESENT_INPUT_VOLTAGE, 3) {
+            Ok(results) => {
+                for (id, result) in results {
+                    self.tracker.vitals(id, &result.map(|r| r.data));
                 }
             }
             Err(e) => {
-                for &id in self.player.ids() {
-                    self.tracker.vitals(id, Err(&e));
+                for id in ids {
+                    self.tracker.vitals(id, &Err(e.clone()));
                 }
             }
         }
     }
 
-    /// Hand the health over (never waits for the reader).
+    /// Hand the health over unless a reader holds it right now (then the next update does).
     fn publish_health(&mut self) {
         self.tracker.summarise();
-        self.health.publish(&self.tracker.health);
+        if let Ok(mut shared) = self.health.try_lock() {
+            shared.clone_from(&self.tracker.health);
+        }
     }
 
     /// One command; returns whether the slow-bus check should start afresh (the loop was blocked on
@@ -533,13 +517,17 @@ impl BusLoop {
 }
 
 fn all_ids(player: &Player, value: u8) -> Vec<(u8, u8)> {
-    player.ids().iter().map(|&id| (id, value)).collect()
+    player.ids().into_iter().map(|id| (id, value)).collect()
 }
 
 fn enable_torque(bus: &mut dyn ServoBus, player: &Player) -> Result<(), ExecutorError> {
     // Latch the goal to the measured pose first so nothing jumps when torque comes on.
-    let goals: Vec<(u8, u32)> =
-        player.joints().iter().zip(player.last_present()).filter_map(|(j, p)| p.map(|q| (j.servo.id, goal_ticks(j, q)))).collect();
+    let goals: Vec<(u8, u32)> = player
+        .joints()
+        .iter()
+        .zip(player.last_present())
+        .filter_map(|(j, p)| p.map(|q| (j.servo.id, j.servo.ticks_from_joint(q).round().clamp(0.0, 4095.0) as u32)))
+        .collect();
     if goals.len() != player.joints().len() {
         return Err(ExecutorError::Refused("cannot enable torque: not every servo position is known".into()));
     }
@@ -564,7 +552,7 @@ mod tests {
                 limits: JointLimits { lower: -1.0, upper: 1.0 },
             })
             .collect();
-        Player::new(PlayerConfig::default(), joints).unwrap()
+        Player::new(PlayerConfig::default(), joints)
     }
 
     fn wait_for(executor: &Executor, mut predicate: impl FnMut(&Telemetry) -> bool) -> Telemetry {

@@ -48,53 +48,6 @@ pub struct BusHealth {
     pub scheduling: String,
 }
 
-impl ServoHealth {
-    /// Become a copy of `other`; the error is cloned only when it differs (so copying the same
-    /// health again allocates nothing).
-    pub fn copy_from(&mut self, other: &ServoHealth) {
-        let ServoHealth { id, comm_errors, last_error, hardware_error, temperature_c, input_voltage_v } = other;
-        (self.id, self.comm_errors, self.hardware_error, self.temperature_c, self.input_voltage_v) =
-            (*id, *comm_errors, *hardware_error, *temperature_c, *input_voltage_v);
-        if self.last_error != *last_error {
-            self.last_error.clone_from(last_error);
-        }
-    }
-}
-
-impl BusHealth {
-    /// Become a copy of `other`, reusing this one's storage: with as many servos and the same
-    /// texts, nothing is allocated (the bus thread hands the health over this way every cycle it
-    /// publishes).
-    pub fn copy_from(&mut self, other: &BusHealth) {
-        let BusHealth {
-            servos,
-            cycle_rate_hz,
-            nominal_rate_hz,
-            cycle_period_p50_ms,
-            cycle_period_p99_ms,
-            cycle_busy_p50_ms,
-            cycle_busy_p99_ms,
-            deadline_misses,
-            cycles,
-            scheduling,
-        } = other;
-        self.servos.truncate(servos.len());
-        for (mine, theirs) in self.servos.iter_mut().zip(servos) {
-            mine.copy_from(theirs);
-        }
-        if let Some(more) = servos.get(self.servos.len()..) {
-            self.servos.extend_from_slice(more);
-        }
-        (self.cycle_rate_hz, self.nominal_rate_hz, self.cycle_period_p50_ms, self.cycle_period_p99_ms) =
-            (*cycle_rate_hz, *nominal_rate_hz, *cycle_period_p50_ms, *cycle_period_p99_ms);
-        (self.cycle_busy_p50_ms, self.cycle_busy_p99_ms, self.deadline_misses, self.cycles) =
-            (*cycle_busy_p50_ms, *cycle_busy_p99_ms, *deadline_misses, *cycles);
-        if self.scheduling != *scheduling {
-            self.scheduling.clone_from(scheduling);
-        }
-    }
-}
-
 /// Number of cycles the statistics are computed over (about 2 s at 8 ms).
 pub const CYCLE_WINDOW: usize = 256;
 
@@ -195,20 +148,18 @@ impl HealthTracker {
     }
 
     /// A Present Input Voltage + Present Temperature read (addresses 144..=146) of one servo.
-    pub fn vitals(&mut self, id: u8, result: Result<&[u8], &BusError>) {
+    pub fn vitals(&mut self, id: u8, result: &Result<Vec<u8>, BusError>) {
         let Some(servo) = self.health.servos.iter_mut().find(|s| s.id == id) else { return };
         match result {
             Ok(data) => {
-                if let [v0, v1, temperature, ..] = data {
+                if let [v0, v1, temperature, ..] = data.as_slice() {
                     servo.input_voltage_v = Some(f64::from(u16::from_le_bytes([*v0, *v1])) / 10.0);
                     servo.temperature_c = Some(*temperature);
                 }
             }
             Err(error) => {
                 servo.comm_errors += 1;
-                if servo.last_error.as_ref() != Some(error) {
-                    servo.last_error = Some(error.clone());
-                }
+                servo.last_error = Some(error.clone());
             }
         }
     }
@@ -260,7 +211,7 @@ mod tests {
         let mut tracker = HealthTracker::new(&[1, 2], Duration::from_millis(8));
         tracker.read(&[None, Some(BusError::Timeout { id: 2 })]);
         tracker.read(&[None, Some(BusError::Hardware { id: 2, bits: 0x04 })]);
-        tracker.vitals(1, Ok(&[118, 0, 41]));
+        tracker.vitals(1, &Ok(vec![118, 0, 41]));
         for _ in 0..4 {
             tracker.cycle(Some(Duration::from_millis(10)), Duration::from_millis(2), true);
         }
@@ -275,13 +226,5 @@ mod tests {
         assert_eq!((h.deadline_misses, h.cycles, h.cycle_period_p99_ms), (4, 4, 10.0));
         tracker.rebooted(2);
         assert_eq!(tracker.hardware_faulted().count(), 0);
-        let mut copy = BusHealth::default();
-        copy.copy_from(&tracker.health);
-        assert_eq!(copy, tracker.health);
-        let mut fewer = tracker.health.clone();
-        fewer.servos.truncate(1);
-        fewer.scheduling = "other".into();
-        copy.copy_from(&fewer);
-        assert_eq!(copy, fewer);
     }
 }

@@ -16,13 +16,7 @@
 //! REBOOT for a hardware error), and the positions are not handed out for recording.
 //! Joint limits (URDF, and the servo's 0..=4095 range) are checked for the whole motion before the
 //! first byte is sent, and again for every goal.
-//!
-//! A cycle allocates nothing: the goal, the readings and the per-servo results are fixed-size
-//! [`ServoArray`]s owned by the player and overwritten every cycle, the bus reads into the player's
-//! [`SyncReadBuffer`], and the motion name and a latched fault are shared (`Arc`), so reporting the
-//! state copies no text. Only a new fault formats its message.
 
-use std::sync::Arc;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -30,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::ServoConfig;
 use crate::library::{Keyframe, Motion};
 use patchwalk_dynamixel::mx28;
-use patchwalk_dynamixel::servo_bus::{self, BusError, ServoArray, ServoBus, SyncReadBuffer, MAX_SERVOS};
+use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 use patchwalk_robot_model::kinematics::JointLimits;
 
 /// Playback configuration.
@@ -77,8 +71,6 @@ pub enum PlayerError {
     Empty(String),
     #[error("the servos are faulted ({0}); clear the fault (torque off/on) first")]
     Faulted(String),
-    #[error("{0} joints; one servo chain carries at most {MAX_SERVOS}")]
-    TooManyJoints(usize),
 }
 
 /// One joint: its servo and position limits.
@@ -110,19 +102,19 @@ impl std::fmt::Display for Fault {
 pub enum PlayerState {
     Idle,
     Playing {
-        name: Arc<str>,
+        name: String,
     },
     /// Stopped by e-stop; holding the measured positions.
     Stopped,
     /// Stopped by a bus fault; holding the last measured positions.
-    Faulted(Arc<Fault>),
+    Faulted(Fault),
 }
 
 /// Events emitted by a cycle.
 #[derive(Debug, Clone, PartialEq)]
 pub enum PlayerEvent {
-    Started { name: Arc<str> },
-    Finished { name: Arc<str> },
+    Started { name: String },
+    Finished { name: String },
     EStopped,
     Fault(Fault),
 }
@@ -131,9 +123,9 @@ pub enum PlayerEvent {
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct CycleReport {
     /// Goal positions sent this cycle (rad, joint order).
-    pub goal: Option<ServoArray<f64>>,
+    pub goal: Option<Vec<f64>>,
     /// Measured positions (rad, joint order) where known.
-    pub present: ServoArray<Option<f64>>,
+    pub present: Vec<Option<f64>>,
     pub event: Option<PlayerEvent>,
 }
 
@@ -175,28 +167,23 @@ impl Trajectory {
         self.keyframes.len().saturating_sub(1)
     }
 
-    /// Positions at time `t` (s) from the start into `out` (one per joint); the last keyframe
-    /// after the end.
-    pub fn sample_into(&self, t: f64, out: &mut [f64]) {
+    /// Positions at time `t` (s) from the start; the last keyframe after the end.
+    pub fn sample(&self, t: f64) -> Vec<f64> {
         let mut from = self.start.as_slice();
         let mut segment_start = 0.0;
         for frame in &self.keyframes {
             let arrive = segment_start + frame.move_s;
             if t < arrive {
                 let s = if frame.move_s > 0.0 { minimum_jerk((t - segment_start) / frame.move_s) } else { 1.0 };
-                for ((q, a), b) in out.iter_mut().zip(from).zip(&frame.positions) {
-                    *q = a + (b - a) * s;
-                }
-                return;
+                return from.iter().zip(&frame.positions).map(|(a, b)| a + (b - a) * s).collect();
             }
             if t < arrive + frame.pause_s {
-                out.iter_mut().zip(&frame.positions).for_each(|(q, b)| *q = *b);
-                return;
+                return frame.positions.clone();
             }
             segment_start = arrive + frame.pause_s;
             from = &frame.positions;
         }
-        out.iter_mut().zip(from).for_each(|(q, a)| *q = *a);
+        from.to_vec()
     }
 }
 
@@ -205,40 +192,29 @@ impl Trajectory {
 pub struct Player {
     config: PlayerConfig,
     joints: Vec<JointSpec>,
-    ids: ServoArray<u8>,
     state: PlayerState,
     trajectory: Option<Trajectory>,
     cycle_index: u64,
     /// Last measured positions (rad), joint order.
-    last_present: ServoArray<Option<f64>>,
-    /// This cycle's read, per servo (overwritten every cycle).
-    read_ticks: ServoArray<Option<i32>>,
-    read_errors: ServoArray<Option<BusError>>,
-    /// The sync read's answer (overwritten every cycle).
-    answer: SyncReadBuffer,
-    /// This cycle's goal (rad, joint order).
-    goal: ServoArray<f64>,
+    last_present: Vec<Option<f64>>,
+    /// This cycle's read, per servo (preallocated, overwritten every cycle).
+    read_ticks: Vec<Option<i32>>,
+    read_errors: Vec<Option<BusError>>,
 }
 
 impl Player {
-    /// A player for `joints` (at most [`MAX_SERVOS`]: one chain).
-    pub fn new(config: PlayerConfig, joints: Vec<JointSpec>) -> Result<Self, PlayerError> {
+    pub fn new(config: PlayerConfig, joints: Vec<JointSpec>) -> Self {
         let n = joints.len();
-        let ids = ServoArray::try_from_slice(&joints.iter().map(|j| j.servo.id).collect::<Vec<_>>())
-            .map_err(|_| PlayerError::TooManyJoints(n))?;
-        Ok(Self {
+        Self {
             config,
             joints,
-            ids,
             state: PlayerState::Idle,
             trajectory: None,
             cycle_index: 0,
-            last_present: ServoArray::filled(n),
-            read_ticks: ServoArray::filled(n),
-            read_errors: ServoArray::filled(n),
-            answer: SyncReadBuffer::new(),
-            goal: ServoArray::filled(n),
-        })
+            last_present: vec![None; n],
+            read_ticks: vec![None; n],
+            read_errors: vec![None; n],
+        }
     }
 
     pub fn state(&self) -> &PlayerState {
@@ -249,8 +225,8 @@ impl Player {
         &self.joints
     }
 
-    pub fn ids(&self) -> &[u8] {
-        &self.ids
+    pub fn ids(&self) -> Vec<u8> {
+        self.joints.iter().map(|j| j.servo.id).collect()
     }
 
     pub fn last_present(&self) -> &[Option<f64>] {
@@ -274,9 +250,9 @@ impl Player {
         }
         let fault = self.fault(error);
         self.trajectory = None;
-        self.state = PlayerState::Faulted(Arc::new(fault.clone()));
+        self.state = PlayerState::Faulted(fault.clone());
         report.event = Some(PlayerEvent::Fault(fault));
-        report.present = self.last_present;
+        report.present = self.last_present.clone();
         Some(report)
     }
 
@@ -329,9 +305,8 @@ impl Player {
         let start: Vec<f64> = self.last_present.iter().zip(first).map(|(p, f)| p.unwrap_or(*f)).collect();
         self.trajectory = Some(Trajectory::new(start, motion.keyframes.clone()));
         self.cycle_index = 0;
-        let name: Arc<str> = motion.name.as_str().into();
-        self.state = PlayerState::Playing { name: Arc::clone(&name) };
-        Ok(PlayerEvent::Started { name })
+        self.state = PlayerState::Playing { name: motion.name.clone() };
+        Ok(PlayerEvent::Started { name: motion.name.clone() })
     }
 
     /// Clear a fault/stop (after the operator toggled torque); back to idle.
@@ -341,20 +316,27 @@ impl Player {
     }
 
     /// Goal ticks for positions (rad).
-    fn goal_ticks(&self, positions: &[f64]) -> ServoArray<(u8, u32)> {
-        ServoArray::collect_from(self.joints.iter().zip(positions).map(|(j, &q)| (j.servo.id, goal_ticks(j, q))))
+    fn goal_ticks(&self, positions: &[f64]) -> Vec<(u8, u32)> {
+        self.joints
+            .iter()
+            .zip(positions)
+            .map(|(j, &q)| (j.servo.id, j.servo.ticks_from_joint(q).round().clamp(0.0, 4095.0) as u32))
+            .collect()
     }
 
     /// Hold: command the last measured position of every servo that has one (best effort).
-    fn hold(&mut self, bus: &mut dyn ServoBus) -> Option<ServoArray<f64>> {
-        let targets = ServoArray::collect_from(
-            self.joints.iter().zip(&self.last_present).filter_map(|(j, p)| p.map(|q| (j.servo.id, goal_ticks(j, q)))),
-        );
+    fn hold(&mut self, bus: &mut dyn ServoBus) -> Option<Vec<f64>> {
+        let targets: Vec<(u8, u32)> = self
+            .joints
+            .iter()
+            .zip(&self.last_present)
+            .filter_map(|(j, p)| p.map(|q| (j.servo.id, j.servo.ticks_from_joint(q).round().clamp(0.0, 4095.0) as u32)))
+            .collect();
         if targets.is_empty() {
             return None;
         }
         servo_bus::sync_write_u32(bus, mx28::GOAL_POSITION, &targets).ok()?;
-        Some(ServoArray::collect_from(self.last_present.iter().map(|p| p.unwrap_or(f64::NAN))))
+        Some(self.last_present.iter().map(|p| p.unwrap_or(f64::NAN)).collect())
     }
 
     fn fault(&self, error: BusError) -> Fault {
@@ -365,8 +347,9 @@ impl Player {
 
     /// Read present positions; on failure keep the partial readings.
     fn read_present(&mut self, bus: &mut dyn ServoBus) -> Result<(), BusError> {
-        let result = servo_bus::read_present_each(bus, &self.ids, &mut self.read_ticks, &mut self.read_errors, &mut self.answer);
-        for ((slot, joint), ticks) in self.last_present.iter_mut().zip(&self.joints).zip(self.read_ticks.iter()) {
+        let ids = self.ids();
+        let result = servo_bus::read_present_each(bus, &ids, &mut self.read_ticks, &mut self.read_errors);
+        for ((slot, joint), ticks) in self.last_present.iter_mut().zip(&self.joints).zip(&self.read_ticks) {
             if let Some(ticks) = ticks {
                 *slot = Some(joint.servo.joint_from_ticks(f64::from(*ticks)));
             }
@@ -393,31 +376,26 @@ impl Player {
             self.state = PlayerState::Stopped;
             self.trajectory = None;
             report.event = Some(PlayerEvent::EStopped);
-            report.present = self.last_present;
+            report.present = self.last_present.clone();
             return report;
         }
-        let t = self.elapsed();
-        let playing = match (&self.state, &self.trajectory) {
-            (PlayerState::Playing { name }, Some(trajectory)) => {
-                trajectory.sample_into(t, &mut self.goal);
-                // 1 µs tolerance: keyframe durations are decimal seconds, cycle times are multiples of 8 ms.
-                Some((Arc::clone(name), t >= trajectory.duration() - 1e-6))
-            }
-            _ => None,
-        };
-        if let Some((name, finished)) = playing {
-            let goal = self.goal;
+        if let (PlayerState::Playing { name }, Some(trajectory)) = (&self.state, &self.trajectory) {
+            let name = name.clone();
+            let t = self.elapsed();
+            let goal = trajectory.sample(t);
+            // 1 µs tolerance: keyframe durations are decimal seconds, cycle times are multiples of 8 ms.
+            let finished = t >= trajectory.duration() - 1e-6;
             if let Err(limit) = self.check_limits(0, &goal) {
                 let error = BusError::InvalidRequest(limit.to_string());
                 report.event = Some(PlayerEvent::Fault(self.fault(error.clone())));
-                self.state = PlayerState::Faulted(Arc::new(self.fault(error)));
+                self.state = PlayerState::Faulted(self.fault(error));
                 report.goal = self.hold(bus);
                 return report;
             }
             if let Err(error) = servo_bus::sync_write_u32(bus, mx28::GOAL_POSITION, &self.goal_ticks(&goal)) {
                 let fault = self.fault(error);
                 report.event = Some(PlayerEvent::Fault(fault.clone()));
-                self.state = PlayerState::Faulted(Arc::new(fault));
+                self.state = PlayerState::Faulted(fault);
                 self.trajectory = None;
                 return report;
             }
@@ -429,7 +407,7 @@ impl Player {
                 self.state = PlayerState::Stopped;
                 self.trajectory = None;
                 report.event = Some(PlayerEvent::EStopped);
-                report.present = self.last_present;
+                report.present = self.last_present.clone();
                 return report;
             }
             if finished {
@@ -439,30 +417,25 @@ impl Player {
             }
         }
         if let Err(error) = self.read_present(bus) {
-            report.present = self.last_present;
+            report.present = self.last_present.clone();
             let fault = self.fault(error);
             if matches!(self.state, PlayerState::Playing { .. }) {
                 // During a motion: stop, hold the measured pose, latch until cleared.
                 report.goal = self.hold(bus);
                 self.trajectory = None;
-                self.state = PlayerState::Faulted(Arc::new(fault.clone()));
+                self.state = PlayerState::Faulted(fault.clone());
                 report.event = Some(PlayerEvent::Fault(fault));
             } else if !matches!(self.state, PlayerState::Faulted(_)) {
                 // Idle or training (torque off): nothing to stop; latch it so that nothing starts
                 // and no stale position is recorded until the fault is cleared.
-                self.state = PlayerState::Faulted(Arc::new(fault.clone()));
+                self.state = PlayerState::Faulted(fault.clone());
                 report.event = Some(PlayerEvent::Fault(fault));
             }
             return report;
         }
-        report.present = self.last_present;
+        report.present = self.last_present.clone();
         report
     }
-}
-
-/// Goal Position (ticks) for joint position `q` (rad), inside the servo's 0..=4095.
-pub(crate) fn goal_ticks(joint: &JointSpec, q: f64) -> u32 {
-    joint.servo.ticks_from_joint(q).round().clamp(0.0, 4095.0) as u32
 }
 
 #[cfg(test)]
@@ -496,12 +469,6 @@ mod tests {
         }
     }
 
-    fn sample(trajectory: &Trajectory, t: f64) -> Vec<f64> {
-        let mut out = vec![0.0; trajectory.start.len()];
-        trajectory.sample_into(t, &mut out);
-        out
-    }
-
     fn frame(value: f64, n: usize, move_s: f64, pause_s: f64) -> Keyframe {
         Keyframe { positions: vec![value; n], move_s, pause_s }
     }
@@ -512,15 +479,9 @@ mod tests {
         for id in 1..=n {
             bus.write(id, mx28::TORQUE_ENABLE, &[1]).unwrap();
         }
-        let mut player = Player::new(PlayerConfig::default(), joints(n)).unwrap();
+        let mut player = Player::new(PlayerConfig::default(), joints(n));
         player.cycle(&mut bus, false);
         (player, bus)
-    }
-
-    #[test]
-    fn a_player_drives_one_chain_of_at_most_twelve_servos() {
-        assert!(matches!(Player::new(PlayerConfig::default(), joints(13)), Err(PlayerError::TooManyJoints(13))));
-        assert_eq!(Player::new(PlayerConfig::default(), joints(12)).unwrap().ids(), (1..=12).collect::<Vec<u8>>());
     }
 
     #[test]
@@ -538,13 +499,13 @@ mod tests {
     fn trajectory_interpolates_pauses_and_ends_on_keyframes() {
         let traj = Trajectory::new(vec![0.0], vec![frame(1.0, 1, 1.0, 0.5), frame(-1.0, 1, 2.0, 0.0)]);
         assert_eq!(traj.duration(), 3.5);
-        assert!((sample(&traj, 0.5)[0] - 0.5).abs() < 1e-12);
-        assert_eq!(sample(&traj, 1.2), vec![1.0]);
-        assert!((sample(&traj, 2.5)[0] - 0.0).abs() < 1e-12);
-        assert_eq!(sample(&traj, 9.0), vec![-1.0]);
+        assert!((traj.sample(0.5)[0] - 0.5).abs() < 1e-12);
+        assert_eq!(traj.sample(1.2), vec![1.0]);
+        assert!((traj.sample(2.5)[0] - 0.0).abs() < 1e-12);
+        assert_eq!(traj.sample(9.0), vec![-1.0]);
         assert_eq!((traj.keyframe_index(0.0), traj.keyframe_index(1.4), traj.keyframe_index(1.5), traj.keyframe_index(9.0)), (0, 0, 1, 1));
         let zero_move = Trajectory::new(vec![0.0], vec![frame(0.3, 1, 0.0, 0.1)]);
-        assert_eq!(sample(&zero_move, 0.0), vec![0.3]);
+        assert_eq!(zero_move.sample(0.0), vec![0.3]);
     }
 
     #[test]

@@ -119,7 +119,7 @@ fn rig_with_budget(budget: Duration) -> Rig {
     let link = dir.path().join("servo-bus");
     point_link(&link, &chain.device_path());
     let mut bus = DynamixelBus::open(&link, 1_000_000).unwrap().with_response_timeout(budget);
-    let player = Player::new(PlayerConfig::default(), joint_specs()).unwrap();
+    let player = Player::new(PlayerConfig::default(), joint_specs());
     initialise_bus(&mut bus, &player, &BusConfig::default()).unwrap();
     let executor = Executor::spawn(Box::new(bus), player, LoopSettings::new(CYCLE)).unwrap();
     let rig = Rig { chain, link, executor, _dir: dir };
@@ -200,7 +200,7 @@ fn run_row(row: &Row) {
         assert!(matches!(t.state, PlayerState::Faulted(_)), "{cell}: {:?}", t.state);
         if phase == Phase::Motion {
             // Held in the fault's cycle: the goal sent is the measured pose, not the trajectory's.
-            let goal = t.goal.unwrap_or_default();
+            let goal = t.goal.clone().unwrap_or_default();
             if row.recovery != Recovery::Reconnect {
                 assert_eq!(goal.len(), 12, "{cell}: a hold in the fault's cycle");
                 for (g, p) in goal.iter().zip(&t.positions) {

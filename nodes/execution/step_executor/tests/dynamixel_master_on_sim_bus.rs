@@ -46,10 +46,10 @@ fn twelve_servo_sync_write_then_sync_read() {
     servo_bus::sync_write_u8(&mut bus, mx28::TORQUE_ENABLE, &ids(12).iter().map(|&id| (id, 1)).collect::<Vec<_>>()).unwrap();
     let goals: Vec<(u8, u32)> = ids(12).iter().map(|&id| (id, 2048 + 10 * u32::from(id))).collect();
     servo_bus::sync_write_u32(&mut bus, mx28::GOAL_POSITION, &goals).unwrap();
-    let goal_back = servo_bus::sync_read_vec(&mut bus, &ids(12), mx28::GOAL_POSITION, 4).unwrap();
+    let goal_back = bus.sync_read(&ids(12), mx28::GOAL_POSITION, 4).unwrap();
     for ((id, result), (_, goal)) in goal_back.iter().zip(&goals) {
         let data = result.as_ref().unwrap();
-        assert_eq!(u32::from_le_bytes(data.data().try_into().unwrap()), *goal, "servo {id}");
+        assert_eq!(u32::from_le_bytes(data.data.clone().try_into().unwrap()), *goal, "servo {id}");
         assert!(!data.alert);
     }
     // Present positions converge to the goals (120 ticks at ~3700 ticks/s: ~30 ms).
@@ -71,7 +71,7 @@ fn injected_crc_error_is_a_checksum_error_for_that_servo_only() {
     chain.set_faults(|f| {
         f.crc_errors.insert(3);
     });
-    let results = servo_bus::sync_read_vec(&mut bus, &ids(4), mx28::PRESENT_POSITION, 4).unwrap();
+    let results = bus.sync_read(&ids(4), mx28::PRESENT_POSITION, 4).unwrap();
     for (id, result) in &results {
         if *id == 3 {
             assert_eq!(result, &Err(BusError::Checksum { id: 3 }));
@@ -94,7 +94,7 @@ fn silent_servo_or_chain_times_out_with_its_id() {
         f.silent.clear();
         f.silent_all = true;
     });
-    assert_eq!(servo_bus::read_vec(&mut bus, 1, mx28::PRESENT_POSITION, 4), Err(BusError::Timeout { id: 1 }));
+    assert_eq!(bus.read(1, mx28::PRESENT_POSITION, 4), Err(BusError::Timeout { id: 1 }));
     chain.set_faults(|f| f.silent_all = false);
     assert_eq!(bus.ping(1).unwrap(), mx28::MODEL_NUMBER);
 }
@@ -176,7 +176,7 @@ fn step_motion() -> Motion {
 fn player_drives_twelve_simulated_servos_through_the_keyframes() {
     let (chain, mut bus) = setup(12);
     servo_bus::sync_write_u8(&mut bus, mx28::TORQUE_ENABLE, &ids(12).iter().map(|&id| (id, 1)).collect::<Vec<_>>()).unwrap();
-    let mut player = Player::new(PlayerConfig::default(), joint_specs()).unwrap();
+    let mut player = Player::new(PlayerConfig::default(), joint_specs());
     player.cycle(&mut bus, false);
     player.start(&step_motion()).unwrap();
     let mut finished = false;
@@ -206,7 +206,7 @@ fn player_drives_twelve_simulated_servos_through_the_keyframes() {
 fn fault_mid_motion_stops_and_holds_on_the_pty_bus() {
     let (chain, mut bus) = setup(12);
     servo_bus::sync_write_u8(&mut bus, mx28::TORQUE_ENABLE, &ids(12).iter().map(|&id| (id, 1)).collect::<Vec<_>>()).unwrap();
-    let mut player = Player::new(PlayerConfig::default(), joint_specs()).unwrap();
+    let mut player = Player::new(PlayerConfig::default(), joint_specs());
     player.cycle(&mut bus, false);
     player.start(&step_motion()).unwrap();
     for _ in 0..10 {

@@ -7,9 +7,6 @@
 //!   (`bus.response_timeout_ms`) for slow hosts; the same lower-level calls serve ping/read/write;
 //! - `bulk_read` with ≥ 2 entries is broken → never used;
 //! - the default 128-byte write buffer cannot hold a 12-servo sync write → 1 KiB read/write buffers;
-//! - every instruction is encoded in place into that write buffer (the crate's `write_instruction`)
-//!   and every answer is parsed in place in the read buffer and copied into the caller's buffer, so
-//!   a control cycle's transactions allocate nothing;
 //! - malformed/echoed frames can panic inside the crate → every call runs under `catch_unwind`, so a
 //!   panic becomes an error on the control thread that owns this bus, never a dead node; a panic
 //!   while reading a servo's status packet is [`BusError::Malformed`] naming that servo (in a sync
@@ -23,10 +20,10 @@ use std::path::Path;
 use std::sync::Once;
 use std::time::{Duration, Instant};
 
-use dynamixel2::instructions::{instruction_id, packet_id};
+use dynamixel2::instructions::{instruction_id, packet_id, SyncWriteData};
 use dynamixel2::{Bus, InvalidMessage, ReadError, WriteError};
 
-use super::{check_sync_read, check_sync_write, BusError, ServoBus, SyncReadBuffer, SyncReadData};
+use super::{BusError, ServoBus, SyncReadData, SyncReadResult};
 
 /// Read/write buffer size (bytes): a 12-servo 4-byte sync write is 10 + 4 + 12·5 = 74 bytes before
 /// stuffing, a 12-servo sync read response burst 12·15 = 180 bytes; 1 KiB leaves ample room.
@@ -125,21 +122,11 @@ impl DynamixelBus {
         Instant::now() + Duration::from_nanos(bytes * 10 * 1_000_000_000 / baud) + self.response_timeout
     }
 
-    /// One instruction to one servo (`encode` writes its `param_len` parameter bytes in place) and
-    /// its status packet, whose parameters (exactly `out.len()` bytes) go into `out`. Returns the
-    /// alert bit.
-    fn transfer(
-        &mut self,
-        id: u8,
-        instruction: u8,
-        param_len: usize,
-        encode: impl FnOnce(&mut [u8]),
-        out: &mut [u8],
-    ) -> Result<bool, BusError> {
-        let expected = out.len();
+    /// One instruction to one servo and its status packet: (parameters, alert bit).
+    fn transfer(&mut self, id: u8, instruction: u8, params: &[u8], expected: usize) -> Result<(Vec<u8>, bool), BusError> {
         let budget = self.deadline(expected).saturating_duration_since(Instant::now());
         let result = self.guarded(|bus| {
-            bus.write_instruction(id, instruction, param_len, encode).map_err(write_error)?;
+            bus.write_instruction(id, instruction, params.len(), |buffer| buffer.copy_from_slice(params)).map_err(write_error)?;
             let response = bus.read_status_response_deadline(Instant::now() + budget).map_err(|e| read_error(id, e))?;
             if response.packet_id() != id {
                 return Err(BusError::Protocol { id, detail: format!("answer from servo {}", response.packet_id()) });
@@ -150,8 +137,7 @@ impl DynamixelBus {
                     detail: format!("{} parameter bytes instead of {expected}", response.parameters().len()),
                 });
             }
-            out.copy_from_slice(response.parameters());
-            Ok(response.alert())
+            Ok((response.parameters().to_vec(), response.alert()))
         });
         result.map_err(|e| match e {
             BusError::Panicked(detail) => BusError::Malformed { id, detail },
@@ -174,113 +160,89 @@ impl DynamixelBus {
 
 impl ServoBus for DynamixelBus {
     fn ping(&mut self, id: u8) -> Result<u16, BusError> {
-        let mut answer = [0u8; 3];
-        self.transfer(id, instruction_id::PING, 0, |_| {}, &mut answer)?;
-        Ok(u16::from_le_bytes([answer[0], answer[1]]))
+        let (params, _) = self.transfer(id, instruction_id::PING, &[], 3)?;
+        Ok(u16::from_le_bytes([params.first().copied().unwrap_or(0), params.get(1).copied().unwrap_or(0)]))
     }
 
-    fn read(&mut self, id: u8, address: u16, out: &mut [u8]) -> Result<(), BusError> {
-        let count = u16::try_from(out.len()).map_err(|_| BusError::InvalidRequest(format!("read of {} bytes", out.len())))?;
+    fn read(&mut self, id: u8, address: u16, count: u16) -> Result<Vec<u8>, BusError> {
         let [a0, a1] = address.to_le_bytes();
         let [c0, c1] = count.to_le_bytes();
-        self.transfer(id, instruction_id::READ, 4, |buffer| buffer.copy_from_slice(&[a0, a1, c0, c1]), out).map(|_| ())
+        self.transfer(id, instruction_id::READ, &[a0, a1, c0, c1], usize::from(count)).map(|(data, _)| data)
     }
 
     fn write(&mut self, id: u8, address: u16, data: &[u8]) -> Result<(), BusError> {
-        let encode = |buffer: &mut [u8]| {
-            let (head, tail) = buffer.split_at_mut(2);
-            head.copy_from_slice(&address.to_le_bytes());
-            tail.copy_from_slice(data);
-        };
-        self.transfer(id, instruction_id::WRITE, 2 + data.len(), encode, &mut []).map(|_| ())
+        let mut params = address.to_le_bytes().to_vec();
+        params.extend_from_slice(data);
+        self.transfer(id, instruction_id::WRITE, &params, 0).map(|_| ())
     }
 
-    fn sync_write(&mut self, address: u16, count: u16, ids: &[u8], data: &[u8]) -> Result<(), BusError> {
-        // dynamixel2 asserts on a wrong length; reject it as a typed error first.
-        check_sync_write(count, ids, data)?;
-        let stride = usize::from(count);
-        // Parameters: address, count, then (id, count bytes) per servo (Protocol 2.0 SYNC WRITE).
-        let encode = |buffer: &mut [u8]| {
-            let (head, entries) = buffer.split_at_mut(4);
-            head[..2].copy_from_slice(&address.to_le_bytes());
-            head[2..].copy_from_slice(&count.to_le_bytes());
-            for ((entry, id), bytes) in entries.chunks_exact_mut(stride + 1).zip(ids).zip(data.chunks_exact(stride.max(1))) {
-                entry[0] = *id;
-                entry[1..].copy_from_slice(bytes);
-            }
-        };
-        let len = 4 + ids.len() * (stride + 1);
-        self.guarded(|bus| bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_WRITE, len, encode).map_err(write_error))
+    fn sync_write(&mut self, address: u16, count: u16, data: &[(u8, Vec<u8>)]) -> Result<(), BusError> {
+        if let Some((id, bytes)) = data.iter().find(|(_, bytes)| bytes.len() != usize::from(count)) {
+            // dynamixel2 asserts on this; reject it as a typed error first.
+            return Err(BusError::InvalidRequest(format!("servo {id}: {} bytes for a {count}-byte sync write", bytes.len())));
+        }
+        let entries: Vec<SyncWriteData<&[u8]>> =
+            data.iter().map(|(id, bytes)| SyncWriteData { motor_id: *id, data: bytes.as_slice() }).collect();
+        self.guarded(|bus| bus.sync_write(address, count, &entries).map_err(write_error))
     }
 
-    fn sync_read(&mut self, ids: &[u8], address: u16, count: u16, out: &mut SyncReadBuffer) -> Result<(), BusError> {
-        check_sync_read(ids, count)?;
-        out.clear();
-        let encode = |buffer: &mut [u8]| {
-            let (head, tail) = buffer.split_at_mut(4);
-            head[..2].copy_from_slice(&address.to_le_bytes());
-            head[2..].copy_from_slice(&count.to_le_bytes());
-            tail.copy_from_slice(ids);
-        };
+    fn sync_read(&mut self, ids: &[u8], address: u16, count: u16) -> Result<Vec<SyncReadResult>, BusError> {
+        let mut params = Vec::with_capacity(4 + ids.len());
+        params.extend_from_slice(&address.to_le_bytes());
+        params.extend_from_slice(&count.to_le_bytes());
+        params.extend_from_slice(ids);
         let per_answer = self.deadline(usize::from(count)).saturating_duration_since(Instant::now());
         self.guarded(|bus| {
-            bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, 4 + ids.len(), encode).map_err(write_error)
+            bus.write_instruction(packet_id::BROADCAST, instruction_id::SYNC_READ, params.len(), |buffer| buffer.copy_from_slice(&params))
+                .map_err(write_error)
         })?;
-        while let Some(&id) = ids.get(out.len()) {
-            let rest = ids.get(out.len()..).unwrap_or(&[]);
+        let mut results: Vec<SyncReadResult> = Vec::with_capacity(ids.len());
+        while let Some(&id) = ids.get(results.len()) {
+            let rest = ids.get(results.len()..).unwrap_or(&[]);
             // Each answer is read under its own guard: a frame that panics the parser is that
             // servo's fault, the answers before it stay good.
             let answer = self.guarded(|bus| {
-                Ok(bus.read_status_response_deadline(Instant::now() + per_answer).map(|response| {
-                    let (from, params) = (response.packet_id(), response.parameters());
-                    let data = if params.len() == usize::from(count) {
-                        SyncReadData::new(params, response.alert())
-                    } else {
-                        Err(BusError::Protocol { id: from, detail: format!("{} bytes instead of {count}", params.len()) })
-                    };
-                    (from, data)
-                }))
+                Ok(bus
+                    .read_status_response_deadline(Instant::now() + per_answer)
+                    .map(|response| (response.packet_id(), response.parameters().to_vec(), response.alert())))
             });
             let (from, result) = match answer {
                 Err(BusError::Panicked(detail)) => {
                     // The crate's read buffer still holds the broken frame: nothing after it can be read.
-                    out.push(id, Err(BusError::Malformed { id, detail }));
-                    for &later in rest.iter().skip(1) {
-                        out.push(later, Err(BusError::Unread { id: later, after: id }));
-                    }
+                    results.push((id, Err(BusError::Malformed { id, detail })));
+                    results.extend(rest.iter().skip(1).map(|&later| (later, Err(BusError::Unread { id: later, after: id }))));
                     break;
                 }
                 Err(other) => return Err(other),
                 Ok(Err(ReadError::Io(e))) if e.kind() == std::io::ErrorKind::TimedOut => {
                     // Nothing more will come: every remaining servo is missing.
-                    for &missing in rest {
-                        out.push(missing, Err(BusError::Timeout { id: missing }));
-                    }
+                    results.extend(rest.iter().map(|&id| (id, Err(BusError::Timeout { id }))));
                     break;
                 }
                 Ok(Err(ReadError::Io(e))) => return Err(BusError::Io(e.to_string())),
                 Ok(Err(e)) => (id, Err(read_error(id, e))),
-                Ok(Ok(answer)) => answer,
+                Ok(Ok((from, data, _))) if data.len() != usize::from(count) => {
+                    (from, Err(BusError::Protocol { id: from, detail: format!("{} bytes instead of {count}", data.len()) }))
+                }
+                Ok(Ok((from, data, alert))) => (from, Ok(SyncReadData { data, alert })),
             };
             // Servos answer in the requested order: an answer from a later servo means the ones
             // in between are missing.
             match rest.iter().position(|&expected| expected == from) {
                 Some(skipped) => {
-                    for &missing in rest.iter().take(skipped) {
-                        out.push(missing, Err(BusError::Timeout { id: missing }));
-                    }
-                    out.push(from, result);
+                    results.extend(rest.iter().take(skipped).map(|&id| (id, Err(BusError::Timeout { id }))));
+                    results.push((from, result));
                 }
                 None => {
-                    out.push(id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") })));
+                    results.push((id, result.and_then(|_| Err(BusError::Protocol { id, detail: format!("answer from servo {from}") }))))
                 }
             }
         }
-        Ok(())
+        Ok(results)
     }
 
     fn reboot(&mut self, id: u8) -> Result<(), BusError> {
-        self.transfer(id, instruction_id::REBOOT, 0, |_| {}, &mut []).map(|_| ())
+        self.transfer(id, instruction_id::REBOOT, &[], 0).map(|_| ())
     }
 
     fn reconnect(&mut self) -> Result<(), BusError> {

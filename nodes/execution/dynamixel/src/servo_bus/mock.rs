@@ -6,7 +6,7 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use super::{check_sync_read, check_sync_write, BusError, ServoBus, SyncReadBuffer, SyncReadData};
+use super::{BusError, ServoBus, SyncReadData, SyncReadResult};
 use crate::mx28;
 
 /// One simulated servo.
@@ -33,9 +33,6 @@ pub struct MockState {
     pub reboots: Vec<u8>,
     /// Number of reconnects asked for.
     pub reconnects: usize,
-    /// Whether goal writes are logged in `goal_writes` (on by default; off for a test that counts
-    /// the control cycle's allocations, since the log itself grows).
-    pub log_goal_writes: bool,
 }
 
 /// Handle implementing [`ServoBus`]; clones share the state.
@@ -49,7 +46,7 @@ impl MockBus {
     pub fn new(ids: &[u8]) -> Self {
         let servos =
             ids.iter().map(|&id| (id, MockServo { goal: 2048, present: 2048, torque: false, hardware_error: 0, silent: false })).collect();
-        Self { state: Arc::new(Mutex::new(MockState { servos, log_goal_writes: true, ..Default::default() })) }
+        Self { state: Arc::new(Mutex::new(MockState { servos, ..Default::default() })) }
     }
 
     /// Lock the shared state (a poisoned lock is recovered: the state is plain data).
@@ -80,14 +77,11 @@ impl ServoBus for MockBus {
         }
     }
 
-    fn read(&mut self, id: u8, address: u16, out: &mut [u8]) -> Result<(), BusError> {
+    fn read(&mut self, id: u8, address: u16, count: u16) -> Result<Vec<u8>, BusError> {
         let state = self.state();
         let servo = state.servos.get(&id).filter(|s| !s.silent).ok_or(BusError::Timeout { id })?;
         let value = table_value(servo, address).ok_or(BusError::Status { id, code: 0x07 })?;
-        for (slot, byte) in out.iter_mut().zip(value.to_le_bytes()) {
-            *slot = byte;
-        }
-        Ok(())
+        Ok(value.to_le_bytes().into_iter().take(usize::from(count)).collect())
     }
 
     fn write(&mut self, id: u8, address: u16, data: &[u8]) -> Result<(), BusError> {
@@ -96,28 +90,28 @@ impl ServoBus for MockBus {
         apply_write(servo, id, address, data)
     }
 
-    fn sync_write(&mut self, address: u16, count: u16, ids: &[u8], data: &[u8]) -> Result<(), BusError> {
-        check_sync_write(count, ids, data)?;
+    fn sync_write(&mut self, address: u16, count: u16, data: &[(u8, Vec<u8>)]) -> Result<(), BusError> {
         let mut state = self.state();
-        let log = state.log_goal_writes && address == mx28::GOAL_POSITION;
         let mut logged = Vec::new();
-        for (id, bytes) in ids.iter().zip(data.chunks_exact(usize::from(count).max(1))) {
+        for (id, bytes) in data {
+            if bytes.len() != usize::from(count) {
+                return Err(BusError::InvalidRequest(format!("servo {id}: {} bytes for a {count}-byte sync write", bytes.len())));
+            }
             if let Some(servo) = state.servos.get_mut(id).filter(|s| !s.silent) {
                 // Sync write has no status packet: errors are invisible to the master, as on a real bus.
                 let _ = apply_write(servo, *id, address, bytes);
-                if log {
+                if address == mx28::GOAL_POSITION {
                     logged.push((*id, servo.goal));
                 }
             }
         }
-        if log {
+        if address == mx28::GOAL_POSITION {
             state.goal_writes.push(logged);
         }
         Ok(())
     }
 
-    fn sync_read(&mut self, ids: &[u8], address: u16, count: u16, out: &mut SyncReadBuffer) -> Result<(), BusError> {
-        check_sync_read(ids, count)?;
+    fn sync_read(&mut self, ids: &[u8], address: u16, count: u16) -> Result<Vec<SyncReadResult>, BusError> {
         let mut state = self.state();
         state.sync_reads += 1;
         let step = state.max_step_ticks;
@@ -127,18 +121,21 @@ impl ServoBus for MockBus {
                 servo.present += if step > 0 { delta.clamp(-step, step) } else { delta };
             }
         }
-        out.clear();
-        for &id in ids {
-            let result = match state.servos.get(&id).filter(|s| !s.silent) {
-                None => Err(BusError::Timeout { id }),
-                Some(servo) => match table_value(servo, address) {
-                    Some(v) => SyncReadData::new(v.to_le_bytes().get(..usize::from(count)).unwrap_or(&[]), servo.hardware_error != 0),
-                    None => Err(BusError::Status { id, code: 0x07 }),
-                },
-            };
-            out.push(id, result);
-        }
-        Ok(())
+        Ok(ids
+            .iter()
+            .map(|&id| {
+                let result = match state.servos.get(&id).filter(|s| !s.silent) {
+                    None => Err(BusError::Timeout { id }),
+                    Some(servo) => table_value(servo, address)
+                        .map(|v| SyncReadData {
+                            data: v.to_le_bytes().into_iter().take(usize::from(count)).collect(),
+                            alert: servo.hardware_error != 0,
+                        })
+                        .ok_or(BusError::Status { id, code: 0x07 }),
+                };
+                (id, result)
+            })
+            .collect())
     }
 
     fn reboot(&mut self, id: u8) -> Result<(), BusError> {

@@ -1,29 +1,22 @@
 //! Benchmarks of the step executor (prints numbers; no asserts):
 //! 1. matching 1,000 map patches × 100 trained motions (J 6.3 matcher; target ≤ 0.1 ms);
 //! 2. control-cycle period and jitter of the bus thread on the simulated pty bus (target 8 ms, p99
-//!    jitter ≤ 1 ms), at load 0 and with 4 busy-loop processes started by the bench (killed after),
-//!    with the host's load average printed before and after each run;
+//!    jitter ≤ 1 ms), at load 0 and with 4 busy-loop processes started by the bench (killed after);
 //! 3. time of one 12-servo sync write + sync read round trip through dynamixel2 on the pty bus;
-//! 4. e-stop → hold time (the stop's cycle as the node sees it) on the pty bus at each load (within
-//!    one 8 ms cycle), and on a slow bus (200 ms answers inside a 500 ms budget, slow-bus fault off
+//! 4. e-stop → hold time on a slow bus (200 ms answers inside a 500 ms budget, slow-bus fault off
 //!    so that the motion keeps playing): a stop never waits behind more than one transaction.
 //!
-//! Run: `cargo run --release -p step_executor --bin bench_step_executor` (from the repository root);
-//! `-- --cycle-only` runs the cycle benchmark alone, `--load 0 --load 4` sets its runs (busy-loop
-//! processes), `--load-nice 19` starts them under `nice -n 19`, `--seconds 20` plays longer, and
-//! `--realtime-priority 0` measures the fallback without SCHED_FIFO (nice -15).
+//! Run: `cargo run --release -p step_executor --bin bench_step_executor` (from the repository root).
 //! The bus thread asks for SCHED_FIFO (root or CAP_SYS_NICE); without it the numbers under load
 //! are those of nice -15 (the bench prints which).
 
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
-use clap::Parser;
 
 use patchwalk_dynamixel::mx28;
 use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
-use patchwalk_dynamixel::servo_bus::mock::MockBus;
-use patchwalk_dynamixel::servo_bus::{self, ServoBus};
+use patchwalk_dynamixel::servo_bus::{self};
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 use patchwalk_robot_model::kinematics::RobotModel;
 use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
@@ -137,7 +130,7 @@ fn sim_bus() -> anyhow::Result<(SimChain, DynamixelBus)> {
 
 fn bench_round_trip(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyhow::Result<()> {
     let (_chain, mut bus) = sim_bus()?;
-    let player = Player::new(config.player.clone(), specs.to_vec())?;
+    let player = Player::new(config.player.clone(), specs.to_vec());
     initialise_bus(&mut bus, &player, &config.bus)?;
     let ids: Vec<u8> = specs.iter().map(|s| s.servo.id).collect();
     let mut times = Vec::new();
@@ -154,55 +147,13 @@ fn bench_round_trip(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyhow:
     Ok(())
 }
 
-#[derive(Parser, Debug)]
-#[command(about = "step_executor benchmarks: matching, bus round trip, control-cycle jitter, e-stop on a slow bus")]
-struct Args {
-    /// Only the control-cycle benchmark.
-    #[arg(long)]
-    cycle_only: bool,
-    /// Busy-loop processes of one control-cycle run (repeat the flag for more runs).
-    #[arg(long = "load", default_values_t = [0usize, 4])]
-    loads: Vec<usize>,
-    /// Niceness of the busy-loop processes (`nice -n`).
-    #[arg(long, default_value_t = 0)]
-    load_nice: i32,
-    /// The bus of the control-cycle runs: `sim` (the Protocol 2.0 master on the simulated pty
-    /// chain) or `mock` (in memory: the cycle's scheduling alone, without the pty's kernel path).
-    #[arg(long, default_value = "sim", value_parser = ["sim", "mock"])]
-    bus: String,
-    /// Seconds of motion per control-cycle run (multiples of 1.2 s).
-    #[arg(long, default_value_t = 4.8)]
-    seconds: f64,
-    /// The bus thread's SCHED_FIFO priority (default: `bus.realtime_priority` of the config; 0 =
-    /// not asked, the thread runs at nice -15).
-    #[arg(long)]
-    realtime_priority: Option<i32>,
-    /// Spin until killed (a load process of the cycle benchmark).
-    #[arg(long, hide = true)]
-    busy_loop: bool,
-}
-
-/// The host's load average (1, 5, 15 min) as `/proc/loadavg` shows it.
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "?".into())
-}
-
-/// `n` busy-loop processes (this binary with `--busy-loop`, under `nice -n nice`), killed when dropped.
+/// `n` busy-loop processes (this binary with `--busy-loop`), killed when dropped.
 struct Load(Vec<std::process::Child>);
 
 impl Load {
-    fn start(n: usize, nice: i32) -> anyhow::Result<Self> {
+    fn start(n: usize) -> anyhow::Result<Self> {
         let exe = std::env::current_exe()?;
-        let spawn = || {
-            if nice == 0 {
-                std::process::Command::new(&exe).arg("--busy-loop").spawn()
-            } else {
-                std::process::Command::new("nice").arg("-n").arg(nice.to_string()).arg(&exe).arg("--busy-loop").spawn()
-            }
-        };
-        let children = (0..n).map(|_| spawn()).collect::<Result<Vec<_>, _>>()?;
+        let children = (0..n).map(|_| std::process::Command::new(&exe).arg("--busy-loop").spawn()).collect::<Result<Vec<_>, _>>()?;
         Ok(Self(children))
     }
 }
@@ -216,34 +167,13 @@ impl Drop for Load {
     }
 }
 
-fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: usize, args: &Args) -> anyhow::Result<()> {
-    let player = Player::new(config.player.clone(), specs.to_vec())?;
-    let mut _chain = None;
-    let mut bus: Box<dyn ServoBus> = if args.bus == "mock" {
-        let ids: Vec<u8> = specs.iter().map(|s| s.servo.id).collect();
-        let mock = MockBus::new(&ids);
-        mock.state().log_goal_writes = false;
-        Box::new(mock)
-    } else {
-        let (chain, bus) = sim_bus()?;
-        _chain = Some(chain);
-        // The chain answers through the kernel's pty path, which runs at normal priority: on a
-        // loaded host one answer can lag past RS-485's 34 ms (the tests allow 300 ms for the same
-        // reason). A late answer then shows as an overrun in the figures instead of a fault.
-        Box::new(bus.with_response_timeout(Duration::from_millis(300)))
-    };
-    initialise_bus(bus.as_mut(), &player, &config.bus)?;
-    let load_before = load_average();
-    let _load = Load::start(load, args.load_nice)?;
+fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: usize) -> anyhow::Result<()> {
+    let (_chain, mut bus) = sim_bus()?;
+    let player = Player::new(config.player.clone(), specs.to_vec());
+    initialise_bus(&mut bus, &player, &config.bus)?;
+    let _load = Load::start(load)?;
     std::thread::sleep(Duration::from_millis(200));
-    let mut settings = LoopSettings::from_config(config);
-    if let Some(priority) = args.realtime_priority {
-        settings.realtime_priority = priority;
-    }
-    // Measured, not tripped: a bus too slow for the cycle shows as overruns in the figures.
-    settings.slow_bus.consecutive_misses = 0;
-    settings.slow_bus.min_rate_percent = 0.0;
-    let executor = Executor::spawn(bus, player, settings)?;
+    let executor = Executor::spawn(Box::new(bus), player, LoopSettings::from_config(config))?;
     let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 1.0, pause_s: 0.2 };
     // Ankle/knee-safe small amplitude inside every joint's limits.
     let motion = Motion {
@@ -256,15 +186,14 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
             nalgebra::Vector3::zeros(),
             nalgebra::Vector3::new(0.1, 0.0, -0.29),
         )?,
-        keyframes: [0.3, 0.1, 0.4, 0.2].into_iter().cycle().take((args.seconds / 1.2).ceil().max(1.0) as usize).map(keyframe).collect(),
+        keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
     };
-    // Let the loop learn the present pose, then play.
+    // Let the loop learn the present pose, then play ~4.8 s.
     std::thread::sleep(Duration::from_millis(100));
     executor.play(motion)?;
     let mut starts = Vec::new();
     let mut busy = Vec::new();
-    let mut wake_late = Vec::new();
-    let deadline = Instant::now() + Duration::from_secs_f64(args.seconds * 2.0 + 5.0);
+    let deadline = Instant::now() + Duration::from_secs(10);
     loop {
         let t = executor.telemetry().recv_timeout(Duration::from_secs(1))?;
         if let Some(PlayerEvent::Fault(fault)) = &t.event {
@@ -273,7 +202,6 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
         if matches!(t.state, step_executor::player::PlayerState::Playing { .. }) {
             starts.push(t.started);
             busy.push(t.busy.as_secs_f64() * 1e3);
-            wake_late.push(t.wake_late.as_secs_f64() * 1e3);
         }
         if matches!(t.event, Some(PlayerEvent::Finished { .. })) || Instant::now() > deadline {
             break;
@@ -283,16 +211,9 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
     let target = config.player.cycle_ms;
     let jitter: Vec<f64> = periods.iter().map(|p| (p - target).abs()).collect();
     let health = executor.health();
-    let nice = if args.load_nice == 0 { String::new() } else { format!(" under nice -n {}", args.load_nice) };
-    println!(
-        "control cycle on the {} bus with {load} busy-loop processes{nice} (load average before {load_before}, after {}; bus thread: {}):",
-        args.bus,
-        load_average(),
-        health.scheduling
-    );
+    println!("control cycle at load {load} ({load} busy-loop processes; bus thread: {}):", health.scheduling);
     summary("  control cycle period (target 8 ms)", " ms", periods);
     summary("  control cycle |period - 8 ms| jitter", " ms", jitter);
-    summary("  control cycle start after its deadline (wake-up latency; an overrun's excess)", " ms", wake_late);
     summary("  control cycle bus time (sync write + sync read + hold logic)", " ms", busy);
     println!(
         "  bus health: {:.1} cycles/s of {:.0}, period p50 {:.3} ms p99 {:.3} ms, deadline misses {}",
@@ -301,30 +222,17 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
     Ok(())
 }
 
-/// E-stop → hold (the EStopped cycle as the node sees it) at random points of the cycle, `tries`
-/// times, with the chain answering after `latency` and `load` busy-loop processes running.
-fn bench_estop(
-    config: &StepExecutorConfig,
-    specs: &[JointSpec],
-    latency: Duration,
-    load: usize,
-    tries: usize,
-    args: &Args,
-) -> anyhow::Result<()> {
+fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> anyhow::Result<()> {
     let (chain, bus) = sim_bus()?;
     let mut bus = bus.with_response_timeout(Duration::from_millis(500));
-    let player = Player::new(config.player.clone(), specs.to_vec())?;
+    let player = Player::new(config.player.clone(), specs.to_vec());
     initialise_bus(&mut bus, &player, &config.bus)?;
     let mut settings = LoopSettings::from_config(config);
     settings.slow_bus.consecutive_misses = 0;
     settings.slow_bus.min_rate_percent = 0.0;
-    if let Some(priority) = args.realtime_priority {
-        settings.realtime_priority = priority;
-    }
-    let _load = Load::start(load, args.load_nice)?;
     let executor = Executor::spawn(Box::new(bus), player, settings)?;
     std::thread::sleep(Duration::from_millis(100));
-    chain.set_faults(|f| f.latency = latency);
+    chain.set_faults(|f| f.latency = Duration::from_millis(200));
     let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 20.0, pause_s: 0.0 };
     let motion = Motion {
         name: "slow".into(),
@@ -340,8 +248,7 @@ fn bench_estop(
     };
     let mut rng = Rng(0x5EED_0000_E570_0001);
     let mut times = Vec::new();
-    let cycle_s = config.player.cycle_ms / 1000.0;
-    for _ in 0..tries {
+    for _ in 0..8 {
         executor.play(motion.clone())?;
         // Into the motion, then a stop at a random point of a cycle.
         let mut playing = 0;
@@ -350,7 +257,7 @@ fn bench_estop(
                 playing += 1;
             }
         }
-        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, latency.as_secs_f64().max(cycle_s))));
+        std::thread::sleep(Duration::from_secs_f64(rng.uniform(0.0, 0.2)));
         while executor.telemetry().try_recv().is_ok() {}
         let asked = Instant::now();
         executor.estop();
@@ -362,18 +269,12 @@ fn bench_estop(
             }
         }
     }
-    let ms = latency.as_secs_f64() * 1e3;
-    if latency.is_zero() {
-        summary(&format!("e-stop -> hold ({load} busy-loop processes, load average {})", load_average()), " ms", times);
-    } else {
-        summary(&format!("e-stop -> hold on a slow bus ({ms:.0} ms answers, one transaction = one sync read)"), " ms", times);
-    }
+    summary("e-stop -> hold on a slow bus (200 ms answers, one transaction = one sync read)", " ms", times);
     Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
-    if args.busy_loop {
+    if std::env::args().any(|a| a == "--busy-loop") {
         // A load process for the cycle benchmark: spin until killed.
         let mut x = 0u64;
         loop {
@@ -383,18 +284,10 @@ fn main() -> anyhow::Result<()> {
     let config: StepExecutorConfig = patchwalk_ros::params::load_config(Some(std::path::Path::new("config/step_executor.yaml")), &[])
         .context("run from the repository root (reads config/step_executor.yaml and urdf/rpbp.urdf)")?;
     let specs = joint_specs(&config)?;
-    if !args.cycle_only {
-        bench_matching()?;
-        bench_round_trip(&config, &specs)?;
-    }
-    for &load in &args.loads {
-        bench_control_cycle(&config, &specs, load, &args)?;
-    }
-    if !args.cycle_only {
-        for &load in &args.loads {
-            bench_estop(&config, &specs, Duration::ZERO, load, 50, &args)?;
-        }
-        bench_estop(&config, &specs, Duration::from_millis(200), 0, 8, &args)?;
-    }
+    bench_matching()?;
+    bench_round_trip(&config, &specs)?;
+    bench_control_cycle(&config, &specs, 0)?;
+    bench_control_cycle(&config, &specs, 4)?;
+    bench_estop_on_slow_bus(&config, &specs)?;
     Ok(())
 }

@@ -232,7 +232,6 @@ fn safety_status(s: &Snapshot<'_>) -> DiagnosticStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use patchwalk_dynamixel::servo_bus::ServoArray;
     use step_executor::player::PlayerState;
 
     fn runtime_status(state: RunState) -> RuntimeStatus {
@@ -257,11 +256,10 @@ mod tests {
     fn telemetry(positions: Vec<Option<f64>>) -> Telemetry {
         Telemetry {
             started: Instant::now(),
-            wake_late: Duration::ZERO,
             busy: Duration::from_millis(2),
             cycle_index: 0,
             keyframe_index: 0,
-            positions: ServoArray::try_from_slice(&positions).unwrap(),
+            positions,
             goal: None,
             state: PlayerState::Idle,
             torque: true,

@@ -630,11 +630,6 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             executor.stop();
         }
         let mut more = full(node::serve(&stop_srv, STOP, &mut log, |_| executor.stop()));
-        if executor.stops_in_pass > 0 {
-            // The latched state goes out at once, ahead of the pass's other work: a burst of
-            // requests served below would otherwise hold it back until the end of the pass.
-            estop_topic.publish_state(true, &mut log);
-        }
         let beats = node::drain(&heartbeat_sub, HEARTBEAT_TOPIC, 1024, &mut log, |_, _| {});
         if beats > 0 {
             executor.deadman.beat(Instant::now());

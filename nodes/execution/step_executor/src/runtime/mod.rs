@@ -122,8 +122,6 @@ pub enum RuntimeError {
     Model(#[from] patchwalk_robot_model::kinematics::KinematicsError),
     #[error("joint {0:?} of the servo config has no position limits in the URDF")]
     NoLimits(String),
-    #[error("player: {0}")]
-    Player(#[from] crate::player::PlayerError),
 }
 
 impl Runtime {
@@ -167,7 +165,7 @@ impl Runtime {
             warnings.push(format!("{err}; starting with an empty library (the file is kept and moved aside on the next save)"));
         }
         let matcher = Matcher::new(config.matcher.clone(), library.motions().iter().map(|m| &m.patch));
-        let player = Player::new(config.player.clone(), joint_specs.clone())?;
+        let player = Player::new(config.player.clone(), joint_specs.clone());
         let (bus, bus_error) = match open_bus() {
             Err(e) => (None, Some(e.to_string())),
             Ok(mut bus) => match initialise_bus(bus.as_mut(), &player, &config.bus) {
@@ -238,7 +236,7 @@ impl Runtime {
         let Some(bus) = &self.bus else { return Vec::new() };
         let telemetry: Vec<Telemetry> = bus.telemetry().try_iter().collect();
         for t in &telemetry {
-            self.positions = t.positions.to_vec();
+            self.positions = t.positions.clone();
             self.torque = t.torque;
             self.player_state = t.state.clone();
             self.keyframe_index = u32::try_from(t.keyframe_index).unwrap_or(u32::MAX);
@@ -248,13 +246,11 @@ impl Runtime {
                     self.current_motion.clear();
                 }
                 Some(PlayerEvent::Finished { .. }) | Some(PlayerEvent::EStopped) => self.current_motion.clear(),
-                Some(PlayerEvent::Started { name }) => self.current_motion = name.to_string(),
+                Some(PlayerEvent::Started { name }) => self.current_motion = name.clone(),
                 None => {}
             }
             if let PlayerState::Playing { name } = &t.state {
-                if *self.current_motion != **name {
-                    self.current_motion = name.to_string();
-                }
+                self.current_motion = name.clone();
             }
         }
         telemetry
@@ -306,7 +302,7 @@ impl Runtime {
         let name = motion.name.clone();
         self.bus()?.play(motion)?;
         self.current_motion = name.clone();
-        self.player_state = PlayerState::Playing { name: name.into() };
+        self.player_state = PlayerState::Playing { name };
         self.torque = true;
         Ok(())
     }

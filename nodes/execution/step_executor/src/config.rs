@@ -142,15 +142,18 @@ pub struct RosConfig {
     /// Automatic execution stays armed only while heartbeats arrive on /step_executor/heartbeat at
     /// most this far apart, s (the operator's deadman).
     pub heartbeat_timeout_s: f64,
-    /// SCHED_FIFO priority of the node's ROS loop and DDS threads (1..=99, below the bus thread's;
-    /// 0 = normal scheduling), so that an e-stop request is read and answered ahead of the host's
-    /// other work. Long jobs (training fits, library writes) run at normal priority.
+    /// Scheduling of the node's ROS loop and DDS threads, so that an e-stop request is read and
+    /// answered ahead of the host's other work: 0 = nice -15 (where permitted); 1..=99 (below the bus
+    /// thread's) = SCHED_FIFO at that priority. SCHED_FIFO is off by default: while the ROS side works
+    /// through a burst of calls or a large reply it keeps the kernel's tty work items (which carry the
+    /// serial port's bytes, USB adapters and ptys alike) off the CPU, and the bus cycle stalls for tens
+    /// of ms. Long jobs (training fits, library writes) run at normal priority either way.
     pub realtime_priority: i32,
 }
 
 impl Default for RosConfig {
     fn default() -> Self {
-        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0, heartbeat_timeout_s: 0.5, realtime_priority: 20 }
+        Self { joint_state_rate_hz: 50.0, status_rate_hz: 5.0, heartbeat_timeout_s: 0.5, realtime_priority: 0 }
     }
 }
 

@@ -541,11 +541,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let network = node::DdsNetwork::resolve(args.node.dds_network)?;
     let shutdown = Shutdown::install()?;
 
-    // The ROS loop answers the e-stop first on every wake-up; at SCHED_FIFO (inherited by the DDS
-    // threads created below) it also wakes ahead of the host's other work.
+    // The ROS loop answers the e-stop first on every wake-up; at nice -15 or SCHED_FIFO (inherited by
+    // the DDS threads created below) it also wakes ahead of the host's other work.
     if params.realtime_priority > 0 {
         let priority = patchwalk_dynamixel::priority::make_realtime(params.realtime_priority);
         tracing::info!("ROS loop and DDS threads: {priority}");
+    } else if patchwalk_dynamixel::priority::raise_thread_priority() {
+        tracing::info!("ROS loop and DDS threads: nice -15");
+    } else {
+        tracing::info!("ROS loop and DDS threads: normal priority (nice -15 not permitted)");
     }
     let mut ros = RosNode::with_names("step_executor", names, network)?;
     let mut patches_sub = ros.subscription::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;

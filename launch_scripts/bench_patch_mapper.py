@@ -55,6 +55,8 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--min-patches", type=int, default=100)
     parser.add_argument("--param", action="append", default=[], help="extra patch_mapper --param")
+    parser.add_argument("--sim-param", action="append", default=[],
+                        help="extra terrain_sim -p, e.g. scene.terrain.path=<heightmap.png> to walk over a terrain")
     args = parser.parse_args()
 
     from patchwalk_msgs.msg import MapperStatus, PatchArray
@@ -70,7 +72,7 @@ def main() -> int:
     mapper_args += [a for k, v in mapper_params.items() for a in ("--param", f"{k}={v}")]
     mapper_args += [a for p in args.param for a in ("--param", p)]
     harness = pw.RosHarness("bench_patch_mapper")
-    sim = pw.NodeProcess("terrain_sim", ["run"], ENV, LOG_DIR)
+    sim = pw.NodeProcess("terrain_sim", ["run", *[a for p in args.sim_param for a in ("-p", p)]], ENV, LOG_DIR)
     mapper = pw.NodeProcess("patch_mapper", ["run", *mapper_args], ENV, LOG_DIR)
     lock = threading.Lock()
     arrivals: list[tuple[float, float, int]] = []  # (arrival wall s, stamp s, patches)

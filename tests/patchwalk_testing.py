@@ -361,8 +361,32 @@ class Heartbeat:
                 return
 
     def wait_for_executor(self, timeout: float = DEFAULT_TIMEOUT_S) -> None:
-        """Until the executor's subscription has matched (the first heartbeats can then arrive)."""
+        """Until the executor's subscription has matched and its `/diagnostics` (1 Hz) report a
+        heartbeat younger than its timeout: discovery can match this side's writer before the
+        executor's reader, and heartbeats sent in between are lost, so a matched subscription alone
+        does not mean an `arm` would be accepted."""
+        from diagnostic_msgs.msg import DiagnosticArray
+
         wait_until(lambda: self._publisher.get_subscription_count() > 0, f"a subscriber on {HEARTBEAT_TOPIC}", timeout)
+        seen = threading.Event()
+
+        def on_diagnostics(msg) -> None:
+            for status in msg.status:
+                if status.name.endswith("safety"):
+                    values = {v.key: v.value for v in status.values}
+                    try:
+                        if float(values["heartbeat_age_s"]) < float(values["heartbeat_timeout_s"]):
+                            seen.set()
+                    except (KeyError, ValueError):  # "never": no heartbeat arrived yet
+                        pass
+
+        with self._lock:
+            subscription = self._node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        try:
+            assert seen.wait(timeout), f"the executor's diagnostics never reported a heartbeat within {timeout} s"
+        finally:
+            with self._lock:
+                self._node.destroy_subscription(subscription)
 
     def stop(self) -> None:
         if self._stop.is_set():

@@ -27,5 +27,17 @@ def test_an_unpaced_burst_is_answered_in_full(ros, step_executor, count):
     while got < count and answered.acquire(timeout=max(0.0, deadline - time.monotonic())):
         got += 1
     print(f"burst of {count}: {got} answered in {time.monotonic() - started:.2f} s")
-    assert got == count, f"{got} of {count} answered"
+    missing = [i for i, f in enumerate(futures) if not f.done()]
+    assert got == count, f"{got} of {count} answered; unanswered calls (in sending order): {ranges(missing)}"
     assert all(f.result().success for f in futures)
+
+
+def ranges(indices: list[int]) -> str:
+    """`[3, 4, 5, 9]` as "3-5, 9": whether lost calls form one block or are scattered."""
+    out: list[str] = []
+    for i in indices:
+        if out and int(out[-1].split("-")[-1]) == i - 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{i}"
+        else:
+            out.append(str(i))
+    return ", ".join(out)

@@ -28,7 +28,9 @@ def test_an_unpaced_burst_is_answered_in_full(ros, step_executor, count):
         got += 1
     print(f"burst of {count}: {got} answered in {time.monotonic() - started:.2f} s")
     missing = [i for i, f in enumerate(futures) if not f.done()]
-    assert got == count, f"{got} of {count} answered; unanswered calls (in sending order): {ranges(missing)}"
+    warnings = [line for line in step_executor.log_path.read_text(errors="replace").splitlines() if "WARN" in line or "ERROR" in line]
+    assert got == count, (f"{got} of {count} answered; unanswered calls (in sending order): {ranges(missing)}; "
+                          f"the executor's warnings: {warnings[-20:]}")
     assert all(f.result().success for f in futures)
 
 

@@ -83,11 +83,10 @@ struct Shared {
   writer_guid: GUID,
   reliable_writer: bool,
   is_builtin: bool,
-  // True for VOLATILE durability (the DDS default). When true, a reliable writer
-  // with no matched reliable reader trims KeepLast on insert (there is no
-  // late-joiner to serve, so retaining unacked samples is pointless). When false
-  // (TRANSIENT_LOCAL / TRANSIENT / PERSISTENT) the writer must retain samples for
-  // late-joining readers, so pre-match trimming is disabled.
+  // True for VOLATILE durability (the DDS default). Pre-match KeepLast trimming
+  // no longer depends on it: a TRANSIENT_LOCAL writer serves late joiners its
+  // KeepLast history (the last `max_retain` samples), which trimming keeps.
+  #[allow(dead_code)]
   volatile: bool,
   topic_name: String,
 }
@@ -284,13 +283,16 @@ impl WriterSendBuffer {
     //    samples ahead, and when the reader finally matches it faces a huge
     //    unacknowledged backlog that must be recovered via repair at the slow (100
     //    ms) heartbeat cadence -- collapsing reliable throughput. Trimming to
-    //    KeepLast here keeps only the recent samples (correct for volatile
-    //    durability); once a reliable reader matches, `reliable_readers_present`
-    //    flips true and we retain everything again for repair.
+    //    KeepLast here keeps only the recent samples. That is right for volatile
+    //    durability and just as much for transient local: the history a late
+    //    joiner is handed is the writer's KeepLast history, so a latched state
+    //    written twice before anyone matched must reach the first reader as its
+    //    last value only, never as the stale value first. Once a reliable reader
+    //    matches, `reliable_readers_present` flips true and we retain everything
+    //    again for repair.
     // Built-in (discovery) writers are always exempt to never lose discovery data.
     let trim_keep_last = !shared.is_builtin
-      && (!may_block
-        || (shared.reliable_writer && shared.volatile && !inner.reliable_readers_present));
+      && (!may_block || (shared.reliable_writer && !inner.reliable_readers_present));
     if trim_keep_last {
       while inner.changes.len() > inner.max_retain {
         // BTreeMap keeps keys sorted, so the first entry is the oldest SN.
@@ -474,6 +476,29 @@ mod tests {
   // `all_acked_before == 0`. Sequence numbers start at 1, so that frontier
   // leaves nothing unacknowledged on a fresh writer: the window must still
   // admit `window_limit` samples.
+  // A transient-local KeepLast 1 writer (a latched state) written twice before
+  // any reader matched keeps only the newest sample: a late joiner must not be
+  // handed the stale one first.
+  #[test]
+  fn transient_local_keep_last_history_is_trimmed_before_any_reader() {
+    let buf = WriterSendBuffer::new(
+      GUID::GUID_UNKNOWN,
+      "t".to_string(),
+      /* reliable_writer */ true,
+      /* is_builtin */ false,
+      /* volatile */ false,
+      /* window_limit */ 1,
+      /* backlog_limit */ 1000,
+      /* max_retain */ 1,
+    );
+    assert!(admit_now(&buf, WriteOptions::default())); // seq 1 ("false")
+    assert!(admit_now(&buf, WriteOptions::default())); // seq 2 ("true")
+    assert_eq!(buf.retained_len(), 1);
+    assert_eq!(buf.first_change_sequence_number(), SequenceNumber::new(2));
+    assert!(buf.get_by_sn(SequenceNumber::new(1)).is_none());
+    assert!(buf.get_by_sn(SequenceNumber::new(2)).is_some());
+  }
+
   #[test]
   fn unacknowledged_reader_frontier_leaves_full_window() {
     let buf = WriterSendBuffer::new(

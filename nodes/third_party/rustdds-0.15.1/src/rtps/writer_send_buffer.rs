@@ -476,29 +476,6 @@ mod tests {
   // `all_acked_before == 0`. Sequence numbers start at 1, so that frontier
   // leaves nothing unacknowledged on a fresh writer: the window must still
   // admit `window_limit` samples.
-  // A transient-local KeepLast 1 writer (a latched state) written twice before
-  // any reader matched keeps only the newest sample: a late joiner must not be
-  // handed the stale one first.
-  #[test]
-  fn transient_local_keep_last_history_is_trimmed_before_any_reader() {
-    let buf = WriterSendBuffer::new(
-      GUID::GUID_UNKNOWN,
-      "t".to_string(),
-      /* reliable_writer */ true,
-      /* is_builtin */ false,
-      /* volatile */ false,
-      /* window_limit */ 1,
-      /* backlog_limit */ 1000,
-      /* max_retain */ 1,
-    );
-    assert!(admit_now(&buf, WriteOptions::default())); // seq 1 ("false")
-    assert!(admit_now(&buf, WriteOptions::default())); // seq 2 ("true")
-    assert_eq!(buf.retained_len(), 1);
-    assert_eq!(buf.first_change_sequence_number(), SequenceNumber::new(2));
-    assert!(buf.get_by_sn(SequenceNumber::new(1)).is_none());
-    assert!(buf.get_by_sn(SequenceNumber::new(2)).is_some());
-  }
-
   #[test]
   fn unacknowledged_reader_frontier_leaves_full_window() {
     let buf = WriterSendBuffer::new(
@@ -628,18 +605,19 @@ mod tests {
     assert!(buf.get_by_sn(SequenceNumber::new(1)).is_none());
   }
 
-  // A durable (non-VOLATILE) reliable writer must NOT drop on insert even before
-  // a reader matches: it retains samples for late-joining readers. The
-  // `max_retain` bound does not apply to it.
+  // A durable (non-VOLATILE) reliable writer keeps its KeepLast history before a
+  // reader matches: the last `max_retain` (= depth) samples, which is what a late
+  // joiner is handed. A latched state written `false` then `true` must reach the
+  // first reader as `true`, never as the stale `false` first.
   #[test]
-  fn durable_reliable_writer_not_trimmed_before_match() {
+  fn transient_local_keep_last_history_is_trimmed_before_any_reader() {
     let max_retain = 2;
     let buf = WriterSendBuffer::new(
       GUID::GUID_UNKNOWN,
       "t".to_string(),
       /* reliable_writer */ true,
       /* is_builtin */ false,
-      /* volatile */ false, // TRANSIENT_LOCAL etc: keep for late joiners
+      /* volatile */ false, // TRANSIENT_LOCAL
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
@@ -648,9 +626,10 @@ mod tests {
     for _ in 0..10 {
       assert!(admit_now(&buf, WriteOptions::default()));
     }
-    // Durable path keeps everything for potential late-joiner delivery / repair
-    // despite tiny max_retain.
-    assert_eq!(buf.retained_len(), 10);
+    assert_eq!(buf.retained_len(), 2);
+    assert_eq!(buf.first_change_sequence_number(), SequenceNumber::new(9));
+    assert!(buf.get_by_sn(SequenceNumber::new(8)).is_none());
+    assert!(buf.get_by_sn(SequenceNumber::new(10)).is_some());
   }
 
   // A VOLATILE reliable writer with no matched reliable reader trims KeepLast on

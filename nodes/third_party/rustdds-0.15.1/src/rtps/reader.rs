@@ -1,5 +1,5 @@
 use std::{
-  cmp::max,
+  cmp::{max, min},
   collections::{BTreeMap, BTreeSet},
   fmt, iter,
   rc::Rc,
@@ -1602,15 +1602,20 @@ impl Reader {
 
 // The readerSNState of the ACKNACK sent when a writer that sent us data up to
 // `last_sn` before its match is matched: the sequence numbers up to `last_sn`
-// still missing from `writer_proxy`, within the newest 256 (from 1 at the
-// earliest), or, when none is missing, an acknowledgement up to `last_sn`.
+// still missing from `writer_proxy`, the oldest 256 of them, or, when none is
+// missing, an acknowledgement up to `last_sn`.
 fn early_data_reader_sn_state(
   writer_proxy: &RtpsWriterProxy,
   last_sn: SequenceNumber,
 ) -> SequenceNumberSet {
-  let first_sn = max(SequenceNumber::new(1), last_sn - SequenceNumber::new(255));
+  // The base is the oldest missing sequence number: an ACKNACK acknowledges
+  // everything below its base, so a base past a missing sample would lose it
+  // for good. What lies beyond the 256 the set can name is requested by the
+  // ACKNACKs that answer the writer's next HEARTBEATs.
+  let first_sn = max(SequenceNumber::new(1), writer_proxy.all_ackable_before());
+  let window_end = min(last_sn, first_sn + SequenceNumber::new(255));
   let missing: BTreeSet<SequenceNumber> = writer_proxy
-    .missing_seqnums(first_sn, last_sn)
+    .missing_seqnums(first_sn, window_end)
     .into_iter()
     .collect();
   match missing.first() {
@@ -1857,16 +1862,26 @@ mod tests {
   fn early_data_acknack_names_what_is_still_missing() {
     let writer_guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
     let mut proxy = RtpsWriterProxy::new(writer_guid, vec![], vec![], EntityId::UNKNOWN);
-    // Nothing kept: everything up to last_sn is requested, the newest 256 at most.
+    // Nothing kept: everything up to last_sn is requested, the oldest 256 at most
+    // (a base past a missing sample would acknowledge it unseen).
     let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(3));
     assert_eq!(
       set.iter().collect::<Vec<_>>(),
       (1..=3).map(SequenceNumber::new).collect::<Vec<_>>()
     );
     let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(1000));
-    assert_eq!(set.base(), SequenceNumber::new(745));
+    assert_eq!(set.base(), SequenceNumber::new(1));
     assert_eq!(set.iter().count(), 256);
-    assert_eq!(set.iter().last(), Some(SequenceNumber::new(1000)));
+    assert_eq!(set.iter().last(), Some(SequenceNumber::new(256)));
+    // 1..=16 kept and delivered, 17..=1000 not: the request starts at 17.
+    let mut delivered = RtpsWriterProxy::new(writer_guid, vec![], vec![], EntityId::UNKNOWN);
+    for sn in 1..=16 {
+      delivered.received_changes_add(SequenceNumber::new(sn), Timestamp::now());
+    }
+    let set = early_data_reader_sn_state(&delivered, SequenceNumber::new(1000));
+    assert_eq!(set.base(), SequenceNumber::new(17));
+    assert_eq!(set.iter().count(), 256);
+    assert_eq!(set.iter().next(), Some(SequenceNumber::new(17)));
     // Sample 2 was kept and delivered: only 1 and 3 are requested.
     proxy.received_changes_add(SequenceNumber::new(2), Timestamp::now());
     let set = early_data_reader_sn_state(&proxy, SequenceNumber::new(3));

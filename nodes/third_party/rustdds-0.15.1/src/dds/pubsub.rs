@@ -537,21 +537,11 @@ impl InnerPublisher {
       }
       _ => resource_max.unwrap_or(DEFAULT_WRITER_MAX_SAMPLES),
     };
-    // Default durability is VOLATILE (DDS v1.4 2.2.3). Only VOLATILE reliable
-    // writers may trim KeepLast before a reader matches; durable writers must
-    // retain samples for late joiners.
-    let volatile = matches!(
-      writer_qos
-        .durability()
-        .unwrap_or(policy::Durability::Volatile),
-      policy::Durability::Volatile
-    );
     let send_buffer = WriterSendBuffer::new(
       guid,
       topic.name(),
       writer_qos.is_reliable(),
       guid.entity_id.entity_kind.is_built_in(),
-      volatile,
       window_limit,
       backlog_limit,
       max_retain,

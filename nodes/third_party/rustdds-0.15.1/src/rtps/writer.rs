@@ -2798,7 +2798,6 @@ mod tests {
           "repair_test".to_string(),
           true, // reliable
           writer_id.kind().is_built_in(),
-          false,
           DEFAULT_WRITER_MAX_SAMPLES,
           DEFAULT_WRITER_MAX_SAMPLES,
           DEFAULT_WRITER_MAX_SAMPLES,
@@ -3052,7 +3051,6 @@ mod tests {
         guid,
         "reply_test".to_string(),
         true,
-        false,
         false,
         DEFAULT_WRITER_MAX_SAMPLES,
         DEFAULT_WRITER_MAX_SAMPLES,

@@ -83,11 +83,6 @@ struct Shared {
   writer_guid: GUID,
   reliable_writer: bool,
   is_builtin: bool,
-  // True for VOLATILE durability (the DDS default). Pre-match KeepLast trimming
-  // no longer depends on it: a TRANSIENT_LOCAL writer serves late joiners its
-  // KeepLast history (the last `max_retain` samples), which trimming keeps.
-  #[allow(dead_code)]
-  volatile: bool,
   topic_name: String,
 }
 
@@ -112,7 +107,6 @@ impl WriterSendBuffer {
     topic_name: String,
     reliable_writer: bool,
     is_builtin: bool,
-    volatile: bool,
     window_limit: usize,
     backlog_limit: usize,
     max_retain: usize,
@@ -135,7 +129,6 @@ impl WriterSendBuffer {
         writer_guid,
         reliable_writer,
         is_builtin,
-        volatile,
         topic_name,
       }),
     }
@@ -483,7 +476,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ true,
       /* is_builtin */ false,
-      /* volatile */ true,
       /* window_limit */ 1,
       /* backlog_limit */ 1000,
       /* max_retain */ 1,
@@ -509,7 +501,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ false,
       /* is_builtin */ false,
-      /* volatile */ true,
       /* window_limit */ 1000,
       /* backlog_limit */ 2,
       /* max_retain */ 1000,
@@ -537,7 +528,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ false,
       /* is_builtin */ false,
-      /* volatile */ true,
       /* window_limit */ 1000,
       /* backlog_limit */ 1,
       /* max_retain */ 1000,
@@ -557,7 +547,6 @@ mod tests {
       "t".to_string(),
       false,
       /* is_builtin */ true,
-      /* volatile */ true,
       1000,
       /* backlog_limit */ 1,
       /* max_retain */ 1000,
@@ -581,7 +570,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ false,
       /* is_builtin */ false,
-      /* volatile */ true,
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
@@ -617,7 +605,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ true,
       /* is_builtin */ false,
-      /* volatile */ false, // TRANSIENT_LOCAL
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,
@@ -646,7 +633,6 @@ mod tests {
       "t".to_string(),
       /* reliable_writer */ true,
       /* is_builtin */ false,
-      /* volatile */ true,
       /* window_limit */ 1000,
       /* backlog_limit */ 1000,
       max_retain,

@@ -239,22 +239,7 @@ fn find_header(buffer: &[u8]) -> usize {
 mod tests {
     use super::*;
 
-    /// Every file of `tests/data/fuzz/<target>/` (a missing directory is a failure: the corpus is
-    /// part of the repository).
-    fn stored_inputs(target: &str) -> Vec<(std::path::PathBuf, Vec<u8>)> {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz").join(target);
-        let mut inputs: Vec<_> = std::fs::read_dir(&dir)
-            .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-            .map(|entry| entry.unwrap().path())
-            .map(|path| {
-                let bytes = std::fs::read(&path).unwrap();
-                (path, bytes)
-            })
-            .collect();
-        inputs.sort();
-        assert!(!inputs.is_empty(), "no stored inputs in {}", dir.display());
-        inputs
-    }
+    use patchwalk_test_support::stored_fuzz_inputs as stored_inputs;
 
     #[test]
     fn crc_of_manual_ping_example() {

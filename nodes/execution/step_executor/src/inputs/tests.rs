@@ -4,22 +4,7 @@
 use super::*;
 use patchwalk_msgs::geometry_msgs::msg::Point;
 
-/// Every file of `tests/data/fuzz/<target>/` (a missing directory is a failure: the corpus is part
-/// of the repository).
-fn stored_inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz").join(target);
-    let mut inputs: Vec<(PathBuf, Vec<u8>)> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-        .map(|entry| entry.unwrap().path())
-        .map(|path| {
-            let bytes = std::fs::read(&path).unwrap();
-            (path, bytes)
-        })
-        .collect();
-    inputs.sort();
-    assert!(!inputs.is_empty(), "no stored inputs in {}", dir.display());
-    inputs
-}
+use patchwalk_test_support::stored_fuzz_inputs as stored_inputs;
 
 fn selected(selector: u8, payload: Vec<u8>) -> Vec<u8> {
     [vec![selector], payload].concat()

@@ -2,24 +2,8 @@
 //! inputs that once crashed) replayed through them: each must give a result or a typed error.
 
 use super::*;
-use std::path::{Path, PathBuf};
 
-/// Every file of `tests/data/fuzz/<target>/` (a missing directory is a failure: the corpus is part
-/// of the repository).
-fn stored_inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data/fuzz").join(target);
-    let mut inputs: Vec<(PathBuf, Vec<u8>)> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-        .map(|entry| entry.unwrap().path())
-        .map(|path| {
-            let bytes = std::fs::read(&path).unwrap();
-            (path, bytes)
-        })
-        .collect();
-    inputs.sort();
-    assert!(!inputs.is_empty(), "no stored inputs in {}", dir.display());
-    inputs
-}
+use patchwalk_test_support::stored_fuzz_inputs as stored_inputs;
 
 fn camera_info(width: u32, height: u32) -> CameraInfo {
     let mut info = CameraInfo { width, height, ..Default::default() };

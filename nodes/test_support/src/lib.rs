@@ -38,10 +38,8 @@ mod tests {
 
     #[test]
     fn every_target_directory_holds_inputs() {
-        let targets: Vec<String> = std::fs::read_dir(fuzz_corpus_dir())
-            .unwrap()
-            .map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
+        let targets: Vec<String> =
+            std::fs::read_dir(fuzz_corpus_dir()).unwrap().map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned()).collect();
         assert!(targets.iter().any(|t| t == "params_yaml"), "{targets:?}");
         for target in &targets {
             let inputs = stored_fuzz_inputs(target);

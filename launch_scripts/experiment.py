@@ -117,17 +117,34 @@ class Hand:
 class Services:
     """Service clients kept for the whole experiment (a new client per call waits for discovery again)."""
 
-    def __init__(self, harness: "pw.RosHarness"):
+    def __init__(self, harness: "pw.RosHarness", log: Callable[[str], None] = print):
         self.ros = harness
+        self.log = log
         self.clients: dict[str, object] = {}
 
     def call(self, srv_type, name: str, request=None, timeout: float = pw.DEFAULT_TIMEOUT_S, attempt_s: float = 5.0):
         """The response of service `name`; a request lost while discovery settles is sent again after
-        `attempt_s` (the services used here are idempotent)."""
-        client = self.clients.get(name)
-        if client is None:
-            client = self.clients[name] = self.ros.client(srv_type, name)
-        return pw.call_on(client, srv_type, name, request, timeout, attempt_s, error=TimeoutError)
+        `attempt_s` (the services used here are idempotent). A client left without an answer to two
+        sends is replaced by a new one (new DDS endpoints, discovered afresh) until `timeout`."""
+        deadline = time.monotonic() + timeout
+        while True:
+            client = self.clients.get(name)
+            if client is None:
+                client = self.clients[name] = self.ros.client(srv_type, name)
+            window = min(2 * attempt_s, max(0.0, deadline - time.monotonic()))
+            try:
+                return pw.call_on(client, srv_type, name, request, window, attempt_s, error=TimeoutError)
+            except TimeoutError as e:
+                self._drop(name)
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"no response from {name} within {timeout} s, with new clients") from e
+                self.log(f"  {e}; calling again with a new client")
+
+    def _drop(self, name: str) -> None:
+        client = self.clients.pop(name, None)
+        if client is not None:
+            with self.ros._lock:
+                self.ros.node.destroy_client(client)
 
     def close(self) -> None:
         with self.ros._lock:
@@ -200,7 +217,7 @@ class Experiment:
         if config.full_motions not in ("first", "all"):
             raise ValueError(f"full_motions {config.full_motions!r}: 'first' or 'all'")
         self.ros, self.hand, self.rocks, self.config = harness, hand, rocks, config
-        self.services = Services(harness)
+        self.services = Services(harness, config.log)
         # The trainer watches the robot: the executor arms only while this heartbeat arrives (its
         # deadman disarms and holds within ros.heartbeat_timeout_s when it stops).
         self.heartbeat = harness.heartbeat()

@@ -75,8 +75,11 @@ def ros_environment(log_dir: Path) -> dict[str, str]:
         "ROS_PYTHON_CHECK_FIELDS": "1",
         # patchwalk nodes: RustDDS restricted to 127.0.0.1 (also their default).
         "PATCHWALK_DDS_NETWORK": "loopback",
-        "RUST_LOG": os.environ.get("RUST_LOG", "info"),
     }
+    # The nodes' own default filter keeps the middleware's per-sample lines off (a new node otherwise
+    # logs a line for each endpoint a long-lived participant ever disposed); RUST_LOG overrides it.
+    if os.environ.get("RUST_LOG"):
+        env["RUST_LOG"] = os.environ["RUST_LOG"]
     env.setdefault("HOME", os.environ.get("HOME", str(log_dir)))
     return env
 

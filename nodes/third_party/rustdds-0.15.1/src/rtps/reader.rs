@@ -185,12 +185,15 @@ struct EarlySample {
   writer_sn: SequenceNumber,
 }
 
-// What a not-yet-matched writer sent: the highest sequence number, when the
-// last sample came, and the samples kept for delivery on match.
+// What a not-yet-matched writer sent: the highest sequence number of its
+// samples (0 when only a HEARTBEAT came), when the last message came, the
+// samples kept for delivery on match, and the range (first_sn, last_sn) its
+// latest HEARTBEAT announced.
 struct EarlyWriterData {
   last_sn: SequenceNumber,
   received: Timestamp,
   samples: Vec<EarlySample>,
+  heartbeat: Option<(SequenceNumber, SequenceNumber)>,
 }
 
 impl Reader {
@@ -451,12 +454,12 @@ impl Reader {
             self.topic_name, writer
           );
 
-          // The writer may have matched us earlier and sent its HEARTBEAT before we
-          // knew it, so that HEARTBEAT was discarded. Without a request the next
-          // one comes only after the writer's heartbeat period, and a Reliable
-          // reader withholds all samples received in the meantime.
-          // If the writer already sent us data that was dropped because it was not
-          // matched yet, request that data right away instead.
+          // The writer may have matched us earlier and sent its HEARTBEAT and data
+          // before we knew it. Without a request the next HEARTBEAT comes only
+          // after the writer's heartbeat period, and a Reliable reader withholds
+          // all samples received in the meantime. So what the writer announced
+          // or sent before the match is requested right away; with nothing
+          // remembered, a preemptive ACKNACK asks for a HEARTBEAT.
           // Samples the writer sent before the match are delivered now (a NACK for
           // them would be ignored by a writer that still counts them as in flight,
           // e.g. under Fast DDS's NACK suppression, and recovery would wait for
@@ -465,7 +468,14 @@ impl Reader {
             let early_data = self.early_writer_data.remove(&writer).filter(|early| {
               Timestamp::now().duration_since(early.received) < EARLY_WRITER_DATA_RETENTION
             });
-            let early_last_sn = early_data.as_ref().map(|early| early.last_sn);
+            let early_heartbeat = early_data.as_ref().and_then(|early| early.heartbeat);
+            let early_last_sn = early_data
+              .as_ref()
+              .map(|early| {
+                let announced = early_heartbeat.map_or(SequenceNumber::new(0), |(_, last)| last);
+                max(early.last_sn, announced)
+              })
+              .filter(|last| *last >= SequenceNumber::new(1));
             for sample in early_data.into_iter().flat_map(|early| early.samples) {
               self.process_received_data(
                 sample.data,
@@ -474,6 +484,19 @@ impl Reader {
                 writer,
                 sample.writer_sn,
               );
+            }
+            if let Some((first_sn, _)) = early_heartbeat {
+              // The writer no longer has what lies below its announced first_sn.
+              if let Some(writer_proxy) = self.matched_writers.get_mut(&writer) {
+                writer_proxy.irrelevant_changes_up_to(first_sn);
+                let before = writer_proxy.all_ackable_before();
+                if self
+                  .acquire_the_topic_cache_guard()
+                  .mark_reliably_received_before(writer, before)
+                {
+                  self.notify_cache_change();
+                }
+              }
             }
             if let Some(mut writer_proxy) = self.matched_writers.remove(&writer) {
               match early_last_sn {
@@ -975,6 +998,11 @@ impl Reader {
         "HEARTBEAT from {:?}, but no writer proxy available. topic={:?} reader={:?}",
         writer_guid, self.topic_name, self.my_guid
       );
+      // The writer matched us before we matched it (or, for a builtin writer,
+      // before we discovered its participant): remember what it announced, to
+      // request it as soon as it matches instead of after its next periodic
+      // HEARTBEAT.
+      self.remember_early_heartbeat(writer_guid, heartbeat.first_sn, heartbeat.last_sn);
       return false;
     }
     // sanity check
@@ -1491,7 +1519,9 @@ impl Reader {
 
   // An ACKNACK without the final flag requests an immediate HEARTBEAT from the
   // writer.
-  fn remember_early_writer_data(&mut self, writer_guid: GUID, sample: EarlySample) {
+  // The entry of a not-yet-matched writer, made room for (the oldest entry is
+  // dropped beyond MAX_EARLY_WRITERS) and created when missing.
+  fn early_entry(&mut self, writer_guid: GUID, received: Timestamp) -> &mut EarlyWriterData {
     if !self.early_writer_data.contains_key(&writer_guid)
       && self.early_writer_data.len() >= MAX_EARLY_WRITERS
     {
@@ -1504,20 +1534,43 @@ impl Reader {
         self.early_writer_data.remove(&oldest);
       }
     }
+    self
+      .early_writer_data
+      .entry(writer_guid)
+      .or_insert(EarlyWriterData {
+        last_sn: SequenceNumber::new(0),
+        received,
+        samples: Vec::new(),
+        heartbeat: None,
+      })
+  }
+
+  fn remember_early_heartbeat(
+    &mut self,
+    writer_guid: GUID,
+    first_sn: SequenceNumber,
+    last_sn: SequenceNumber,
+  ) {
+    if self.reliability == policy::Reliability::BestEffort || self.like_stateless {
+      return;
+    }
+    let now = Timestamp::now();
+    let entry = self.early_entry(writer_guid, now);
+    entry.received = now;
+    entry.heartbeat = match entry.heartbeat {
+      Some((_, seen_last)) if seen_last > last_sn => entry.heartbeat,
+      _ => Some((first_sn, last_sn)),
+    };
+  }
+
+  fn remember_early_writer_data(&mut self, writer_guid: GUID, sample: EarlySample) {
     let kept_bytes: usize = self
       .early_writer_data
       .values()
       .flat_map(|early| early.samples.iter())
       .map(|kept| kept.data.payload_size())
       .sum();
-    let entry = self
-      .early_writer_data
-      .entry(writer_guid)
-      .or_insert(EarlyWriterData {
-        last_sn: sample.writer_sn,
-        received: sample.receive_timestamp,
-        samples: Vec::new(),
-      });
+    let entry = self.early_entry(writer_guid, sample.receive_timestamp);
     entry.last_sn = entry.last_sn.max(sample.writer_sn);
     entry.received = sample.receive_timestamp;
     let duplicate = entry
@@ -1901,8 +1954,9 @@ mod tests {
   // data is kept, not delivered, and is delivered when the writer matches (then
   // the first ACKNACK to that writer, with count 1, acknowledges it). A copy the
   // writer resends later is not delivered again.
-  #[test]
-  fn data_from_a_writer_before_its_match_is_delivered_on_match() {
+  // A reliable, stateful reader of a test topic, and the receiver of its data
+  // notifications.
+  fn reliable_test_reader() -> (Reader, mio_source::NotificationReceiver, QosPolicies) {
     let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
     let topic_name = "test_name";
     let reliable_qos = QosPolicyBuilder::new()
@@ -1924,7 +1978,7 @@ mod tests {
     let (_reader_command_sender, reader_command_receiver) =
       wake_channel::<ReaderCommand>(10, &LoopWaker::new());
     let reader_guid = GUID::dummy_test_guid(EntityKind::READER_NO_KEY_USER_DEFINED);
-    let mut reader = Reader::new(
+    let reader = Reader::new(
       ReaderIngredients {
         guid: reader_guid,
         notification_sender,
@@ -1944,13 +1998,20 @@ mod tests {
       participant_status_sender,
     );
 
+    (reader, notification_receiver, reliable_qos)
+  }
+
+  #[test]
+  fn data_from_a_writer_before_its_match_is_delivered_on_match() {
+    let (mut reader, notification_receiver, reliable_qos) = reliable_test_reader();
+
     let writer_guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
     let mr_state = MessageReceiverState {
       source_guid_prefix: writer_guid.prefix,
       ..Default::default()
     };
     let data = Data {
-      reader_id: reader_guid.entity_id,
+      reader_id: reader.entity_id(),
       writer_id: writer_guid.entity_id,
       writer_sn: SequenceNumber::new(1),
       ..Data::default()
@@ -1990,7 +2051,7 @@ mod tests {
 
     // A resent copy of the sample is a duplicate.
     let data = Data {
-      reader_id: reader_guid.entity_id,
+      reader_id: reader.entity_id(),
       writer_id: writer_guid.entity_id,
       writer_sn: SequenceNumber::new(1),
       ..Data::default()
@@ -2003,6 +2064,59 @@ mod tests {
     assert!(
       notification_receiver.try_recv().is_err(),
       "a duplicate was delivered"
+    );
+  }
+
+  // A HEARTBEAT from a writer that is not matched yet (it matched us first, or
+  // is a builtin writer of a participant we have not discovered yet) is
+  // remembered: on match the reader requests the announced samples at once,
+  // instead of waiting for the writer's next periodic HEARTBEAT.
+  #[test]
+  fn a_heartbeat_before_the_match_is_answered_with_a_nack_on_match() {
+    let (mut reader, _notification_receiver, reliable_qos) = reliable_test_reader();
+    let writer_guid = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: writer_guid.prefix,
+      ..Default::default()
+    };
+    let reader_id = reader.entity_id();
+    let heartbeat = |first: i64, last: i64, count: i32| Heartbeat {
+      reader_id,
+      writer_id: writer_guid.entity_id,
+      first_sn: SequenceNumber::new(first),
+      last_sn: SequenceNumber::new(last),
+      count,
+    };
+    let (newer, older) = (heartbeat(3, 7, 2), heartbeat(1, 5, 1));
+    assert!(!reader.handle_heartbeat_msg(&newer, false, &mr_state));
+    // A reordered older HEARTBEAT does not replace the newer announcement.
+    assert!(!reader.handle_heartbeat_msg(&older, false, &mr_state));
+    assert_eq!(
+      reader
+        .early_writer_data
+        .get(&writer_guid)
+        .and_then(|early| early.heartbeat),
+      Some((SequenceNumber::new(3), SequenceNumber::new(7)))
+    );
+
+    reader.matched_writer_add(
+      writer_guid,
+      EntityId::UNKNOWN,
+      mr_state.unicast_reply_locator_list.to_vec(),
+      mr_state.multicast_reply_locator_list.to_vec(),
+      &reliable_qos,
+    );
+    assert!(reader.early_writer_data.is_empty());
+    let writer_proxy = reader.matched_writer(writer_guid).expect("writer matched");
+    // One ACKNACK went out on match; what lies below first_sn is given up ...
+    assert_eq!(writer_proxy.sent_ack_nack_count, 1);
+    assert_eq!(writer_proxy.all_ackable_before(), SequenceNumber::new(3));
+    // ... and the ACKNACK requests 3..=7.
+    let set = early_data_reader_sn_state(writer_proxy, SequenceNumber::new(7));
+    assert_eq!(set.base(), SequenceNumber::new(3));
+    assert_eq!(
+      set.iter().collect::<Vec<_>>(),
+      (3..=7).map(SequenceNumber::new).collect::<Vec<_>>()
     );
   }
 

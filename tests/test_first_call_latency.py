@@ -96,9 +96,18 @@ def check(times: dict[str, list[float]], what: str) -> None:
         assert max(samples) < FIRST_CALL_BOUND_S, f"{service}: first calls took {samples} s ({report[service]})"
 
 
+def settled(ros) -> None:
+    """One answered call before the timed ones: a server that has just started first takes in the
+    discovery history of the harness's participant (which grows with every node a test session
+    created), and the first call of the first client would time that instead of the client's."""
+    ros.call(ListMotions, "/step_executor/list_motions")
+
+
 def test_first_call_of_a_new_node_on_a_known_participant_is_fast(ros, step_executor):
+    settled(ros)
     check(measure(lambda name: FreshClientNode(name, ros.context), ROUNDS_SHARED), "new nodes, shared participant")
 
 
 def test_first_call_of_a_new_participant_is_fast(ros, step_executor):
+    settled(ros)
     check(measure(FreshClientNode, ROUNDS_OWN), "new participants")

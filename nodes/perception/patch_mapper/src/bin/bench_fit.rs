@@ -13,24 +13,11 @@ use patchwalk_spl::fit::simulate::{
 use patchwalk_spl::fit::{
     fit_patch, fit_patch_with_boundary_points, BoundaryRequest, FitConfig, FitError, FitRequest, SurfaceRequest, WeightDerivative,
 };
-use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType, PATCH_TYPES};
 use patchwalk_spl::sensor::{ErrorModel, StereoErrorParams};
 use patchwalk_spl::validate::{validate_patch, ValidateConfig};
 use rand::SeedableRng;
 use std::time::Instant;
-
-const ALL_TYPES: [(SurfaceType, BoundaryType); 10] = [
-    (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
-    (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
-    (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
-    (SurfaceType::CircularParaboloid, BoundaryType::Circle),
-    (SurfaceType::Plane, BoundaryType::Ellipse),
-    (SurfaceType::Plane, BoundaryType::Circle),
-    (SurfaceType::Plane, BoundaryType::Rectangle),
-    (SurfaceType::Plane, BoundaryType::Quadrilateral),
-    (SurfaceType::Sphere, BoundaryType::Circle),
-    (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
-];
 
 const AUTO_FAMILY: [(SurfaceType, BoundaryType); 5] = [
     (SurfaceType::Plane, BoundaryType::Ellipse),
@@ -213,7 +200,7 @@ fn accuracy(args: &Args) {
     println!("  errors for draws from N(fit, Σ), i.e. the floor an efficient estimator with the fit's Σ would reach)");
     let mut all_in = (0usize, 0usize);
     let mut all_chart = 0usize;
-    for (s, b) in ALL_TYPES {
+    for (s, b) in PATCH_TYPES {
         let (mut normal, mut centre, mut curv) = (Vec::new(), Vec::new(), Vec::new());
         let (mut s_normal, mut s_offset) = (Vec::new(), Vec::new());
         let mut floor: [Vec<f64>; 3] = Default::default();

@@ -29,20 +29,8 @@ use patchwalk_mapping::pipeline::{default_mapper_config, Pipeline, PipelineConfi
 use patchwalk_spl::fit::simulate::{chi2_95, error_on_manifold, mahalanobis, truth_params};
 use patchwalk_spl::fuse::fuse;
 use patchwalk_spl::fuse_views::{observe, world_truth};
-use patchwalk_spl::patch::{BoundaryType, SurfaceType};
+use patchwalk_spl::patch::PATCH_TYPES;
 
-const TYPES: [(SurfaceType, BoundaryType); 10] = [
-    (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
-    (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
-    (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
-    (SurfaceType::CircularParaboloid, BoundaryType::Circle),
-    (SurfaceType::Plane, BoundaryType::Ellipse),
-    (SurfaceType::Plane, BoundaryType::Circle),
-    (SurfaceType::Plane, BoundaryType::Rectangle),
-    (SurfaceType::Plane, BoundaryType::Quadrilateral),
-    (SurfaceType::Sphere, BoundaryType::Circle),
-    (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
-];
 const KS: [usize; 4] = [1, 2, 5, 10];
 
 fn arg<T: std::str::FromStr>(name: &str, default: T) -> Result<T> {
@@ -66,7 +54,7 @@ fn simulator(trials: usize, seed: u64) {
     let mut fuse_us: Vec<f64> = Vec::new();
     println!("1. Simulator (seed {seed}, {trials} patches per type, 150 points per view, independent views within 20° of the normal):");
     println!("   {:<34} {:>8} {:>8} {:>8} {:>8}", "type: inside the 95 % ellipsoid at k =", 1, 2, 5, 10);
-    for (s, b) in TYPES {
+    for (s, b) in PATCH_TYPES {
         let mut type_inside = [0usize; 4];
         let mut type_counted = [0usize; 4];
         for _ in 0..trials {

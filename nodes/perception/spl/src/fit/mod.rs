@@ -173,23 +173,10 @@ mod tests {
     use super::simulate::{random_visible_patch as random_patch, sample_sensor, SceneConfig};
     use super::*;
     use crate::geometry::{exp_map, r_xy_from_normal, r_xy_jacobian, right_jacobian_inverse};
-    use crate::patch::{BoundaryType, SurfaceType};
+    use crate::patch::{BoundaryType, SurfaceType, PATCH_TYPES};
     use crate::sensor::ErrorModel;
     use nalgebra::Vector2;
     use rand::SeedableRng;
-
-    const ALL_TYPES: [(SurfaceType, BoundaryType); 10] = [
-        (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
-        (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
-        (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
-        (SurfaceType::CircularParaboloid, BoundaryType::Circle),
-        (SurfaceType::Plane, BoundaryType::Ellipse),
-        (SurfaceType::Plane, BoundaryType::Circle),
-        (SurfaceType::Plane, BoundaryType::Rectangle),
-        (SurfaceType::Plane, BoundaryType::Quadrilateral),
-        (SurfaceType::Sphere, BoundaryType::Circle),
-        (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
-    ];
 
     fn near_kinect() -> SceneConfig {
         SceneConfig { range: (0.8, 1.2), ..SceneConfig::default() }
@@ -214,7 +201,7 @@ mod tests {
     fn every_type_is_recovered_when_requested() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         let model = ErrorModel::default();
-        for (s, b) in ALL_TYPES {
+        for (s, b) in PATCH_TYPES {
             for _ in 0..5 {
                 let truth = random_patch(&mut rng, s, b, &near_kinect()).unwrap();
                 let (pts, covs) = sample_sensor(&mut rng, &truth, 400, &model);
@@ -306,7 +293,7 @@ mod tests {
         use super::simulate::{chi2_95, error_on_manifold, mahalanobis, truth_params};
         let mut rng = rand::rngs::StdRng::seed_from_u64(23);
         let (mut inside, mut counted) = (0usize, 0usize);
-        for (s, b) in ALL_TYPES {
+        for (s, b) in PATCH_TYPES {
             let mut inside_type = (0usize, 0usize);
             for _ in 0..60 {
                 let truth = random_patch(&mut rng, s, b, &SceneConfig::default()).unwrap();

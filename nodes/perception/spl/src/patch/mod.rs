@@ -19,7 +19,7 @@ use json::PatchJson;
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 pub use shape::{PatchQuery, PatchShape};
-pub use types::{dof, is_5dof, is_valid_combination, BoundaryType, SurfaceType};
+pub use types::{dof, is_5dof, is_valid_combination, BoundaryType, SurfaceType, PATCH_TYPES};
 
 /// Errors building or reading a patch.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -202,18 +202,15 @@ pub(crate) mod tests {
     use rand::{Rng, SeedableRng};
 
     pub(crate) fn all_types() -> Vec<(SurfaceType, BoundaryType)> {
-        vec![
-            (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
-            (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
-            (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
-            (SurfaceType::CircularParaboloid, BoundaryType::Circle),
-            (SurfaceType::Plane, BoundaryType::Ellipse),
-            (SurfaceType::Plane, BoundaryType::Circle),
-            (SurfaceType::Plane, BoundaryType::Rectangle),
-            (SurfaceType::Plane, BoundaryType::Quadrilateral),
-            (SurfaceType::Sphere, BoundaryType::Circle),
-            (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
-        ]
+        PATCH_TYPES.to_vec()
+    }
+
+    #[test]
+    fn the_ten_types_are_distinct_and_valid() {
+        for (i, &(s, b)) in PATCH_TYPES.iter().enumerate() {
+            assert!(is_valid_combination(s, b), "{s:?}/{b:?}");
+            assert!(PATCH_TYPES[..i].iter().all(|&other| other != (s, b)), "{s:?}/{b:?} twice");
+        }
     }
 
     pub(crate) fn example(surface: SurfaceType, boundary: BoundaryType) -> Patch {

@@ -129,6 +129,20 @@ pub fn is_valid_combination(surface: SurfaceType, boundary: BoundaryType) -> boo
     }
 }
 
+/// The 10 patch types (surface, boundary) in the order of IROS Table I.
+pub const PATCH_TYPES: [(SurfaceType, BoundaryType); 10] = [
+    (SurfaceType::EllipticParaboloid, BoundaryType::Ellipse),
+    (SurfaceType::HyperbolicParaboloid, BoundaryType::Ellipse),
+    (SurfaceType::CylindricParaboloid, BoundaryType::Rectangle),
+    (SurfaceType::CircularParaboloid, BoundaryType::Circle),
+    (SurfaceType::Plane, BoundaryType::Ellipse),
+    (SurfaceType::Plane, BoundaryType::Circle),
+    (SurfaceType::Plane, BoundaryType::Rectangle),
+    (SurfaceType::Plane, BoundaryType::Quadrilateral),
+    (SurfaceType::Sphere, BoundaryType::Circle),
+    (SurfaceType::CircularCylinder, BoundaryType::Rectangle),
+];
+
 /// Whether the type has revolute symmetry and the 5-DoF pose `(r_xy, c)` (eq 6).
 pub fn is_5dof(surface: SurfaceType, boundary: BoundaryType) -> bool {
     boundary == BoundaryType::Circle && matches!(surface, SurfaceType::CircularParaboloid | SurfaceType::Plane | SurfaceType::Sphere)

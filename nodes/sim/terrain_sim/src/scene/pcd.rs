@@ -4,7 +4,7 @@
 //! after the other, each as `POINTS` values). Field types F (4, 8 bytes), I and U (1, 2, 4, 8).
 
 use super::lzf;
-use super::point_cloud::{CloudError, ScalarType};
+use super::point_cloud::{header_line, CloudError, PointSink, ScalarType};
 
 #[derive(Debug, Clone)]
 struct Field {
@@ -29,14 +29,7 @@ pub fn parse_pcd(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
     let mut offset = 0;
     let mut line_number = 0;
     let encoding = loop {
-        line_number += 1;
-        let Some(end) = bytes.get(offset..).and_then(|rest| rest.iter().position(|&b| b == b'\n')) else {
-            return Err(CloudError::Header { line: line_number, reason: "the header ends before a DATA line".into() });
-        };
-        let line = std::str::from_utf8(bytes.get(offset..offset + end).unwrap_or(&[]))
-            .map_err(|_| CloudError::Header { line: line_number, reason: "not text".into() })?
-            .trim();
-        offset += end + 1;
+        let line = header_line(bytes, &mut offset, &mut line_number, "a DATA line")?;
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
@@ -124,15 +117,7 @@ pub fn parse_pcd(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
         return Err(CloudError::Header { line: line_number, reason: "FIELDS lacks x, y or z".into() });
     };
     let data = bytes.get(offset..).unwrap_or(&[]);
-    let mut cloud = Vec::with_capacity(n);
-    let mut push = |index: usize, p: [f64; 3]| -> Result<(), CloudError> {
-        if p.iter().all(|c| c.is_finite()) {
-            cloud.push(p);
-        } else if !drop_non_finite {
-            return Err(CloudError::NonFinite { point: index, value: p });
-        }
-        Ok(())
-    };
+    let mut cloud = PointSink::new(n, drop_non_finite);
     match encoding {
         Encoding::Ascii => {
             let text = std::str::from_utf8(data).map_err(|_| CloudError::Ascii { line: line_number + 1, reason: "not text".into() })?;
@@ -154,7 +139,7 @@ pub fn parse_pcd(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
                         .parse::<f64>()
                         .map_err(|_| CloudError::Ascii { line: line_number + 1 + k, reason: format!("{token:?} is not a number") })
                 };
-                push(index, [value(x)?, value(y)?, value(z)?])?;
+                cloud.push(index, [value(x)?, value(y)?, value(z)?])?;
             }
         }
         Encoding::Binary => {
@@ -165,7 +150,7 @@ pub fn parse_pcd(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
             for index in 0..n {
                 let record = data.get(index * record_size..(index + 1) * record_size).unwrap_or(&[]);
                 let value = |(i, at, _): (usize, usize, usize)| fields.get(i).map_or(f64::NAN, |f| f.kind.read_le(record, at));
-                push(index, [value(x), value(y), value(z)])?;
+                cloud.push(index, [value(x), value(y), value(z)])?;
             }
         }
         Encoding::BinaryCompressed => {
@@ -188,11 +173,11 @@ pub fn parse_pcd(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
                 let value = |axis: usize, (i, _, _): (usize, usize, usize)| {
                     fields.get(i).map_or(f64::NAN, |f| f.kind.read_le(&raw, starts.get(axis).copied().unwrap_or(0) + index * f.kind.size()))
                 };
-                push(index, [value(0, x), value(1, y), value(2, z)])?;
+                cloud.push(index, [value(0, x), value(1, y), value(2, z)])?;
             }
         }
     }
-    Ok(cloud)
+    Ok(cloud.into_points())
 }
 
 /// Writes points as a PCD file with fields x y z (F 4) in the given data flavour (tests, tools).

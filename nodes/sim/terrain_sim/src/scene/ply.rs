@@ -2,7 +2,7 @@
 //! from `format ascii 1.0` or `binary_little_endian 1.0` files. Elements before `vertex` are
 //! skipped (list properties included); faces after it are ignored, so meshes read as their vertices.
 
-use super::point_cloud::{CloudError, ScalarType};
+use super::point_cloud::{header_line, CloudError, PointSink, ScalarType};
 
 #[derive(Debug, Clone)]
 enum Property {
@@ -25,14 +25,7 @@ pub fn parse_ply(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
     let mut offset = 0;
     let mut line_number = 0;
     loop {
-        line_number += 1;
-        let Some(end) = bytes.get(offset..).and_then(|rest| rest.iter().position(|&b| b == b'\n')) else {
-            return Err(CloudError::Header { line: line_number, reason: "the header ends before end_header".into() });
-        };
-        let line = std::str::from_utf8(bytes.get(offset..offset + end).unwrap_or(&[]))
-            .map_err(|_| CloudError::Header { line: line_number, reason: "not text".into() })?
-            .trim();
-        offset += end + 1;
+        let line = header_line(bytes, &mut offset, &mut line_number, "end_header")?;
         let header = |reason: String| CloudError::Header { line: line_number, reason };
         if line_number == 1 {
             if line != "ply" {
@@ -86,15 +79,7 @@ pub fn parse_ply(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
         return Err(CloudError::Header { line: line_number, reason: "the vertex element lacks x, y or z".into() });
     };
     let data = bytes.get(offset..).unwrap_or(&[]);
-    let mut cloud = Vec::with_capacity(vertex.count);
-    let mut push = |index: usize, p: [f64; 3]| -> Result<(), CloudError> {
-        if p.iter().all(|c| c.is_finite()) {
-            cloud.push(p);
-        } else if !drop_non_finite {
-            return Err(CloudError::NonFinite { point: index, value: p });
-        }
-        Ok(())
-    };
+    let mut cloud = PointSink::new(vertex.count, drop_non_finite);
     if binary {
         let mut at = 0;
         let truncated = |what: &str| CloudError::Truncated { what: format!("binary data in {what}") };
@@ -131,7 +116,7 @@ pub fn parse_ply(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
                     }
                 }
                 if is_vertex {
-                    push(index, values)?;
+                    cloud.push(index, values)?;
                 }
             }
         }
@@ -166,10 +151,10 @@ pub fn parse_ply(bytes: &[u8], drop_non_finite: bool) -> Result<Vec<[f64; 3]>, C
                     .parse::<f64>()
                     .map_err(|_| CloudError::Ascii { line: line_number + 1 + k, reason: format!("{token:?} is not a number") })
             };
-            push(index, [value(xi)?, value(yi)?, value(zi)?])?;
+            cloud.push(index, [value(xi)?, value(yi)?, value(zi)?])?;
         }
     }
-    Ok(cloud)
+    Ok(cloud.into_points())
 }
 
 /// Writes points as a PLY file (`float x y z`), `ascii` or `binary_little_endian` (tests, tools).

@@ -42,6 +42,48 @@ pub enum CloudError {
     Heightfield(#[from] HeightfieldError),
 }
 
+/// The next line of a text header that starts at `*offset`, trimmed; `offset` moves past it and
+/// `line_number` counts it. `missing` names what a header that ends first lacks.
+pub(super) fn header_line<'a>(bytes: &'a [u8], offset: &mut usize, line_number: &mut usize, missing: &str) -> Result<&'a str, CloudError> {
+    *line_number += 1;
+    let line = *line_number;
+    let Some(end) = bytes.get(*offset..).and_then(|rest| rest.iter().position(|&b| b == b'\n')) else {
+        return Err(CloudError::Header { line, reason: format!("the header ends before {missing}") });
+    };
+    let text = std::str::from_utf8(bytes.get(*offset..*offset + end).unwrap_or(&[]))
+        .map_err(|_| CloudError::Header { line, reason: "not text".into() })?
+        .trim();
+    *offset += end + 1;
+    Ok(text)
+}
+
+/// The points of a cloud file in file order, as its reader finds them: a point with a non-finite
+/// coordinate is skipped when `drop_non_finite`, and an error naming it otherwise.
+pub(super) struct PointSink {
+    points: Vec<[f64; 3]>,
+    drop_non_finite: bool,
+}
+
+impl PointSink {
+    pub(super) fn new(capacity: usize, drop_non_finite: bool) -> Self {
+        Self { points: Vec::with_capacity(capacity), drop_non_finite }
+    }
+
+    /// Point number `index` of the file.
+    pub(super) fn push(&mut self, index: usize, p: [f64; 3]) -> Result<(), CloudError> {
+        if p.iter().all(|c| c.is_finite()) {
+            self.points.push(p);
+        } else if !self.drop_non_finite {
+            return Err(CloudError::NonFinite { point: index, value: p });
+        }
+        Ok(())
+    }
+
+    pub(super) fn into_points(self) -> Vec<[f64; 3]> {
+        self.points
+    }
+}
+
 /// Scalar types of PCD fields and PLY properties.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScalarType {

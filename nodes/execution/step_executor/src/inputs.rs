@@ -11,14 +11,14 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::Vector3;
 use patchwalk_msgs::msg::PatchArray;
 use patchwalk_msgs::srv;
 use patchwalk_robot_model::kinematics::{JointLimits, RobotModel};
 use patchwalk_ros::params::ParamError;
 use patchwalk_ros::patch_msg::{self, PatchMsgError};
 use patchwalk_ros::wire::{self, WireError};
-use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+use patchwalk_spl::patch::Patch;
 
 use crate::action_file::{self, ExportError, IdMap, IdMapError, ImportError, PageError};
 use crate::config::{ConfigError, StepExecutorConfig};
@@ -247,15 +247,11 @@ fn write_replay_library() -> Result<PathBuf, LibraryError> {
     let path = dir.join("motions.yaml");
     let joints = StepExecutorConfig::default().joint_names();
     let mut library = MotionLibrary::new(&path, joints.clone());
-    let patch = Patch::new(
-        SurfaceType::Plane,
-        BoundaryType::Circle,
-        vec![0.03],
-        Vector2::zeros(),
-        Vector3::zeros(),
-        Vector3::new(0.12, 0.04, -0.3),
-    )
-    .map_err(|e| LibraryError::Malformed { path: path.clone(), location: "patch".into(), message: e.to_string() })?;
+    let patch = Patch::level_disc(0.03, Vector3::new(0.12, 0.04, -0.3)).map_err(|e| LibraryError::Malformed {
+        path: path.clone(),
+        location: "patch".into(),
+        message: e.to_string(),
+    })?;
     let keyframes = vec![Keyframe { positions: vec![0.0; joints.len()], move_s: 0.5, pause_s: 0.1 }];
     library.insert(Motion { name: "replay_step".into(), patch, keyframes })?;
     library.save()?;

@@ -442,7 +442,7 @@ impl Player {
 mod tests {
     use super::*;
     use patchwalk_dynamixel::servo_bus::mock::MockBus;
-    use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+    use patchwalk_spl::patch::Patch;
 
     fn joints(n: u8) -> Vec<JointSpec> {
         (1..=n)
@@ -454,19 +454,7 @@ mod tests {
     }
 
     fn motion(frames: Vec<Keyframe>) -> Motion {
-        Motion {
-            name: "step".into(),
-            patch: Patch::new(
-                SurfaceType::Plane,
-                BoundaryType::Circle,
-                vec![0.02],
-                nalgebra::Vector2::zeros(),
-                nalgebra::Vector3::zeros(),
-                nalgebra::Vector3::new(0.1, 0.0, -0.28),
-            )
-            .unwrap(),
-            keyframes: frames,
-        }
+        Motion { name: "step".into(), patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.28)).unwrap(), keyframes: frames }
     }
 
     fn frame(value: f64, n: usize, move_s: f64, pause_s: f64) -> Keyframe {

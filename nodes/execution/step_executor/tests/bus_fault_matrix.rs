@@ -18,7 +18,7 @@ use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::BusError;
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 use patchwalk_robot_model::kinematics::JointLimits;
-use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+use patchwalk_spl::patch::Patch;
 use step_executor::config::{BusConfig, ServoConfig, DEFAULT_JOINTS};
 use step_executor::executor::{initialise_bus, Executor, ExecutorError, LoopSettings, Telemetry};
 use step_executor::library::{Keyframe, Motion};
@@ -88,15 +88,7 @@ fn joint_specs() -> Vec<JointSpec> {
 fn motion(target: f64, move_s: f64) -> Motion {
     Motion {
         name: "step".into(),
-        patch: Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.02],
-            nalgebra::Vector2::zeros(),
-            nalgebra::Vector3::zeros(),
-            nalgebra::Vector3::new(0.1, 0.0, -0.29),
-        )
-        .unwrap(),
+        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29)).unwrap(),
         keyframes: vec![Keyframe { positions: vec![target; 12], move_s, pause_s: 0.0 }],
     }
 }

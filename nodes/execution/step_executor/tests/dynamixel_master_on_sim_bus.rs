@@ -10,7 +10,7 @@ use patchwalk_dynamixel::servo_bus::dynamixel::DynamixelBus;
 use patchwalk_dynamixel::servo_bus::{self, BusError, ServoBus};
 use patchwalk_dynamixel::sim_chain::{SimChain, SimConfig};
 use patchwalk_robot_model::kinematics::JointLimits;
-use patchwalk_spl::patch::{BoundaryType, Patch, SurfaceType};
+use patchwalk_spl::patch::Patch;
 use step_executor::config::{ServoConfig, DEFAULT_JOINTS};
 use step_executor::library::{Keyframe, Motion};
 use step_executor::player::{JointSpec, Player, PlayerConfig, PlayerEvent, PlayerState};
@@ -156,15 +156,7 @@ fn joint_specs() -> Vec<JointSpec> {
 fn step_motion() -> Motion {
     Motion {
         name: "rock1".into(),
-        patch: Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.02],
-            nalgebra::Vector2::zeros(),
-            nalgebra::Vector3::zeros(),
-            nalgebra::Vector3::new(0.1, 0.0, -0.29),
-        )
-        .unwrap(),
+        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29)).unwrap(),
         keyframes: vec![
             Keyframe { positions: vec![0.2; 12], move_s: 0.16, pause_s: 0.04 },
             Keyframe { positions: vec![-0.1; 12], move_s: 0.16, pause_s: 0.0 },

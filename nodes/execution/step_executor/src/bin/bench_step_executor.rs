@@ -178,14 +178,7 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
     // Ankle/knee-safe small amplitude inside every joint's limits.
     let motion = Motion {
         name: "bench".into(),
-        patch: Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.02],
-            nalgebra::Vector2::zeros(),
-            nalgebra::Vector3::zeros(),
-            nalgebra::Vector3::new(0.1, 0.0, -0.29),
-        )?,
+        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29))?,
         keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
     };
     // Let the loop learn the present pose, then play ~4.8 s.
@@ -236,14 +229,7 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
     let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 20.0, pause_s: 0.0 };
     let motion = Motion {
         name: "slow".into(),
-        patch: Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.02],
-            nalgebra::Vector2::zeros(),
-            nalgebra::Vector3::zeros(),
-            nalgebra::Vector3::new(0.1, 0.0, -0.29),
-        )?,
+        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29))?,
         keyframes: vec![keyframe(0.3)],
     };
     let mut rng = Rng(0x5EED_0000_E570_0001);

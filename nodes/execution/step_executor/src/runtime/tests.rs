@@ -2,7 +2,7 @@
 
 use super::*;
 use patchwalk_dynamixel::servo_bus::mock::MockBus;
-use patchwalk_spl::patch::{BoundaryType, SurfaceType};
+use patchwalk_spl::patch::SurfaceType;
 use std::time::{Duration, Instant};
 
 fn config(dir: &std::path::Path) -> StepExecutorConfig {
@@ -62,15 +62,7 @@ fn commands_are_refused_with_typed_errors_naming_the_field() {
     let dir = tempfile::tempdir().unwrap();
     let (mut runtime, _) = Runtime::with_bus(config(dir.path()), || Err("no such port".into())).unwrap();
     // A non-finite point is refused before anything is looked at, also with a map to pick from.
-    let patch = Patch::new(
-        SurfaceType::Plane,
-        BoundaryType::Circle,
-        vec![0.03],
-        nalgebra::Vector2::zeros(),
-        Vector3::zeros(),
-        Vector3::new(0.0, 0.1, 0.4),
-    )
-    .unwrap();
+    let patch = Patch::level_disc(0.03, Vector3::new(0.0, 0.1, 0.4)).unwrap();
     assert!(matches!(runtime.select_nearest([0.0; 3]), Err(CommandError::NoPatches)));
     runtime.on_patch_map(&[patch], &Isometry3::identity()).unwrap();
     for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
@@ -145,15 +137,7 @@ fn train_match_and_play_on_the_mock_bus() {
 
     // A patch map: one plane 0.15 m ahead of the camera.
     let map_from_camera = Isometry3::identity();
-    let camera_patch = Patch::new(
-        SurfaceType::Plane,
-        BoundaryType::Circle,
-        vec![0.03],
-        nalgebra::Vector2::zeros(),
-        Vector3::zeros(),
-        Vector3::new(0.0, 0.1, 0.4),
-    )
-    .unwrap();
+    let camera_patch = Patch::level_disc(0.03, Vector3::new(0.0, 0.1, 0.4)).unwrap();
     runtime.on_patch_map(std::slice::from_ref(&camera_patch), &map_from_camera).unwrap();
     let base_from_camera = runtime.base_from_camera().unwrap();
     let expected_c = base_from_camera * Point3::from(camera_patch.center);

@@ -62,6 +62,12 @@ pub struct Patch {
 }
 
 impl Patch {
+    /// A level disc: a plane with a circular boundary of `radius` m centred at `center`, its
+    /// normal +z, with zero covariance (a designed patch, like [`Patch::new`]).
+    pub fn level_disc(radius: f64, center: Vector3<f64>) -> Result<Self, PatchError> {
+        Self::new(SurfaceType::Plane, BoundaryType::Circle, vec![radius], Vector2::zeros(), Vector3::zeros(), center)
+    }
+
     /// A patch from its parts, with zero covariance (a designed patch). Checks the type pair, the
     /// number of boundary parameters and finiteness; normalises `r_z = 0` for 5-DoF types and the
     /// curvature pattern of the surface type; for 5-DoF types a full `r` is replaced by

@@ -100,6 +100,26 @@ fn silent_servo_or_chain_times_out_with_its_id() {
 }
 
 #[test]
+fn a_port_unplugged_while_an_answer_is_awaited_is_a_lost_port_not_a_silent_servo() {
+    let (chain, bus) = setup(2);
+    let mut bus = bus.with_response_timeout(Duration::from_millis(400));
+    chain.set_faults(|f| f.silent_all = true); // the request stays unanswered, the read in flight
+    let chain = std::sync::Arc::new(chain);
+    let unplugger = {
+        let chain = std::sync::Arc::clone(&chain);
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(50));
+            chain.unplug();
+        })
+    };
+    let single = bus.read(1, mx28::PRESENT_POSITION, 4);
+    unplugger.join().unwrap();
+    assert!(matches!(&single, Err(BusError::Io(detail)) if detail.contains("hung up")), "{single:?}");
+    let burst = servo_bus::read_present_positions(&mut bus, &ids(2)).unwrap_err().0;
+    assert!(matches!(&burst, BusError::Io(_)), "{burst:?}");
+}
+
+#[test]
 fn latency_beyond_the_timeout_is_a_timeout() {
     let (chain, mut bus) = setup(1);
     chain.set_faults(|f| f.latency = ANSWER_BUDGET * 2);

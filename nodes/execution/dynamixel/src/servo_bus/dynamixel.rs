@@ -12,9 +12,13 @@
 //!   while reading a servo's status packet is [`BusError::Malformed`] naming that servo (in a sync
 //!   read: the servo whose answer was due; the servos after it are [`BusError::Unread`]).
 //!
-//! [`ServoBus::reconnect`] reopens the same path (an unplugged USB adapter or pty that came back).
+//! A port that hung up (an unplugged USB adapter, a closed pty) reads as end of file, which the crate
+//! retries until its deadline: a timeout on a hung-up port is reported as [`BusError::Io`] naming
+//! the port, not as a silent servo. [`ServoBus::reconnect`] reopens the same path (an adapter or pty
+//! that came back).
 
 use std::cell::Cell;
+use std::os::fd::AsFd;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::Path;
 use std::sync::Once;
@@ -141,8 +145,21 @@ impl DynamixelBus {
         });
         result.map_err(|e| match e {
             BusError::Panicked(detail) => BusError::Malformed { id, detail },
+            BusError::Timeout { .. } if self.hung_up() => self.lost_port(),
             other => other,
         })
+    }
+
+    /// Whether the port has hung up: the device is gone (POLLHUP, POLLERR or POLLNVAL without waiting).
+    fn hung_up(&self) -> bool {
+        use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+        let mut fds = [PollFd::new(self.bus.serial_port().as_fd(), PollFlags::empty())];
+        let gone = PollFlags::POLLHUP | PollFlags::POLLERR | PollFlags::POLLNVAL;
+        matches!(poll(&mut fds, PollTimeout::ZERO), Ok(n) if n > 0) && fds[0].revents().is_some_and(|r| r.intersects(gone))
+    }
+
+    fn lost_port(&self) -> BusError {
+        BusError::Io(format!("{}: the port hung up (adapter unplugged?)", self.port.display()))
     }
 
     /// Run one transaction with panics turned into errors.
@@ -215,6 +232,9 @@ impl ServoBus for DynamixelBus {
                 }
                 Err(other) => return Err(other),
                 Ok(Err(ReadError::Io(e))) if e.kind() == std::io::ErrorKind::TimedOut => {
+                    if self.hung_up() {
+                        return Err(self.lost_port());
+                    }
                     // Nothing more will come: every remaining servo is missing.
                     results.extend(rest.iter().map(|&id| (id, Err(BusError::Timeout { id }))));
                     break;

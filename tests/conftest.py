@@ -29,8 +29,13 @@ def pytest_configure(config):
 RUN_SUBCOMMAND = {"patch_mapper", "step_executor", "terrain_sim"}
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def _ros_session():
+    """One rclpy participant per test module. A node that starts receives the whole discovery history
+    of every participant on the graph, and Fast DDS keeps an entry for each endpoint a participant ever
+    removed: a harness living for the whole session (thousands of clients, subscriptions and nodes
+    made and destroyed) would make each new node spend seconds taking it in before it sees the
+    harness's newest subscriptions and clients, and the wait grows with the session's age."""
     harness = pw.RosHarness()
     yield harness
     harness.shutdown()

@@ -146,6 +146,9 @@ class Collector:
     topic: str
     messages: list = field(default_factory=list)
     _cond: threading.Condition = field(default_factory=threading.Condition)
+    # What the subscribing side knows of the graph, for the failure message (e.g. the publisher count:
+    # publishers seen but nothing received points at the publishing node not matching this reader).
+    graph: Callable[[], str] = lambda: ""
 
     def _on_message(self, msg: Any) -> None:
         with self._cond:
@@ -167,7 +170,7 @@ class Collector:
                     last = self.messages[-1] if self.messages else None
                     raise AssertionError(
                         f"no matching message on {self.topic} within {timeout} s "
-                        f"({len(self.messages)} received, last: {last})"
+                        f"({len(self.messages)} received, last: {last}; {self.graph()})"
                     )
                 self._cond.wait(left)
 
@@ -273,6 +276,7 @@ class RosHarness:
         qos = qos or QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                                 depth=10, durability=DurabilityPolicy.VOLATILE)
         collector = Collector(topic)
+        collector.graph = lambda: f"publishers on the graph: {self.node.count_publishers(topic)}"
         with self._lock:
             self._entities.append(self.node.create_subscription(msg_type, topic, collector._on_message, qos))
         return collector
@@ -415,7 +419,9 @@ def call_on(client, srv_type, name: str, request=None, timeout: float = DEFAULT_
         raise error(f"service {name} not available within {timeout} s")
     request = request if request is not None else srv_type.Request()
     deadline = time.monotonic() + timeout
+    sent = 0
     while True:
+        sent += 1
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _: done.set())
@@ -423,7 +429,8 @@ def call_on(client, srv_type, name: str, request=None, timeout: float = DEFAULT_
             return future.result()
         client.remove_pending_request(future)
         if time.monotonic() > deadline:
-            raise error(f"no response from {name} within {timeout} s")
+            raise error(f"no response from {name} within {timeout} s ({sent} requests sent; the service was "
+                        f"{'still' if client.service_is_ready() else 'no longer'} on the graph)")
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout: float = DEFAULT_TIMEOUT_S, period: float = 0.05):

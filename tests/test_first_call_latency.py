@@ -98,8 +98,8 @@ def check(times: dict[str, list[float]], what: str) -> None:
 
 def settled(ros) -> None:
     """One answered call before the timed ones: a server that has just started first takes in the
-    discovery history of the harness's participant (which grows with every node a test session
-    created), and the first call of the first client would time that instead of the client's."""
+    discovery history of the harness's participant (which grows with every node and client the test
+    module made), and the first call of the first client would time that instead of the client's."""
     ros.call(ListMotions, "/step_executor/list_motions")
 
 

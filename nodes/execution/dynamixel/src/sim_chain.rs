@@ -448,10 +448,10 @@ fn serve(master: OwnedFd, shared: Arc<Shared>, stop: Arc<AtomicBool>, config: Si
             continue;
         }
         match nix::unistd::read(std::os::fd::AsRawFd::as_raw_fd(&master), &mut buffer) {
-            Ok(0) => continue,
-            Ok(n) => parser.feed(&buffer[..n]),
+            Ok(n) if n > 0 => parser.feed(&buffer[..n]),
             Err(nix::errno::Errno::EAGAIN) | Err(nix::errno::Errno::EINTR) => continue,
-            Err(_) => {
+            // End of file or an error while readable: rest, never spin at real-time priority.
+            Ok(_) | Err(_) => {
                 std::thread::sleep(Duration::from_millis(5));
                 continue;
             }

@@ -1,12 +1,17 @@
 //! Absolute deadlines for the control cycle: `clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)` to
 //! `start + k · period`, so a late wake-up does not shift the cycles after it (a relative sleep
 //! would add every wake-up latency to the schedule). After an overrun the schedule restarts from
-//! now instead of bursting to catch up.
+//! now instead of bursting to catch up, after a rest of [`OVERRUN_REST_FRACTION`] of a period: a
+//! SCHED_FIFO loop whose every cycle overruns (CPU-bound work, a bus that fails at once) must still
+//! leave the CPU to the host's other threads, the DDS ones that carry an e-stop included.
 
 use std::time::Duration;
 
 use nix::sys::time::TimeSpec;
 use nix::time::{clock_gettime, clock_nanosleep, ClockId, ClockNanosleepFlags};
+
+/// After an overrun the loop sleeps `period / OVERRUN_REST_FRACTION` before the next cycle.
+pub const OVERRUN_REST_FRACTION: u32 = 10;
 
 /// The cycle's deadline schedule on the monotonic clock.
 #[derive(Debug, Clone)]
@@ -31,6 +36,7 @@ impl CycleClock {
     pub fn wait(&mut self) -> bool {
         self.next = self.next + self.period;
         if self.next <= now() {
+            std::thread::sleep(Duration::from(self.period) / OVERRUN_REST_FRACTION);
             self.next = now();
             return false;
         }
@@ -66,6 +72,9 @@ mod tests {
         let expected = first + TimeSpec::from(Duration::from_millis(6));
         assert!(clock.next >= expected);
         std::thread::sleep(Duration::from_millis(10));
+        let before = now();
         assert!(!clock.wait(), "a deadline 8 ms in the past is an overrun");
+        // Even so the loop rested a tenth of a period: an overrunning loop never spins.
+        assert!(now() - before >= TimeSpec::from(Duration::from_millis(2) / OVERRUN_REST_FRACTION));
     }
 }

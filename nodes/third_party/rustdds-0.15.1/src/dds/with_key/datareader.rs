@@ -1386,6 +1386,75 @@ mod tests {
     assert_eq!(result_vec2.unwrap().len(), 0);
   }
 
+  // A dispose by the hash of a key the reader never saw (an endpoint removed
+  // before we discovered its participant) can never be decoded: the read
+  // pointer moves past it, so later takes do not iterate over all such
+  // disposals again (taking N of them one batch at a time was O(N^2)).
+  #[test]
+  fn disposals_of_unknown_keys_are_passed_once() {
+    use crate::{
+      dds::with_key::datawriter::WriteOptions,
+      dds::ddsdata::DDSData,
+      structure::cache_change::{CacheChange, ChangeKind},
+    };
+    let dp = DomainParticipant::new(test_domain_id(7)).expect("Participant creation failed!");
+    let mut qos = QosPolicies::qos_none();
+    qos.history = Some(policy::History::KeepAll);
+    qos.reliability = Some(policy::Reliability::Reliable {
+      max_blocking_time: Duration::from_millis(100),
+    });
+    let sub = dp.create_subscriber(&qos).unwrap();
+    let topic = dp
+      .create_topic(
+        "unknown disposals".to_string(),
+        "RandomData".to_string(),
+        &qos,
+        TopicKind::WithKey,
+      )
+      .unwrap();
+    let datareader = sub
+      .create_datareader::<RandomData, CDRDeserializerAdapter<RandomData>>(
+        &topic,
+        Some(qos.clone()),
+      )
+      .unwrap();
+    let topic_cache =
+      dp.dds_cache()
+        .write()
+        .unwrap()
+        .add_new_topic(topic.name(), topic.get_type(), &qos);
+    let writer_guid = GUID {
+      prefix: GuidPrefix::new(&[2; 12]),
+      entity_id: EntityId::create_custom_entity_id(
+        [2; 3],
+        EntityKind::WRITER_WITH_KEY_USER_DEFINED,
+      ),
+    };
+    for sn in 1..=50u8 {
+      let key_hash = crate::dds::key::KeyHash::from_pl_cdr_bytes(vec![sn; 16]).unwrap();
+      topic_cache.lock().unwrap().add_change(
+        &Timestamp::now(),
+        CacheChange::new(
+          writer_guid,
+          SequenceNumber::from(i64::from(sn)),
+          WriteOptions::default(),
+          DDSData::new_disposed_by_key_hash(ChangeKind::NotAliveDisposed, key_hash),
+        ),
+      );
+    }
+    // As a reliable reader does once the writer's samples up to 50 are all in.
+    topic_cache
+      .lock()
+      .unwrap()
+      .mark_reliably_received_before(writer_guid, SequenceNumber::from(51));
+    let simple = &datareader.simple_data_reader;
+    assert!(simple.try_take_one().unwrap().is_none());
+    assert_eq!(
+      simple.read_pointer(writer_guid),
+      Some(SequenceNumber::from(50))
+    );
+  }
+
   #[test]
   fn read_and_take_with_instance() {
     // Test the methods read_instance and take_instance of the DataReader

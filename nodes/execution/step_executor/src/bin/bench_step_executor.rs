@@ -167,6 +167,16 @@ impl Drop for Load {
     }
 }
 
+/// A motion on a level disc: one keyframe per joint angle (rad, every joint alike), each moved to in
+/// `move_s` and held `pause_s`.
+fn bench_motion(name: &str, angles: &[f64], move_s: f64, pause_s: f64) -> anyhow::Result<Motion> {
+    Ok(Motion {
+        name: name.into(),
+        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29))?,
+        keyframes: angles.iter().map(|&q| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s, pause_s }).collect(),
+    })
+}
+
 fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: usize) -> anyhow::Result<()> {
     let (_chain, mut bus) = sim_bus()?;
     let player = Player::new(config.player.clone(), specs.to_vec());
@@ -174,13 +184,8 @@ fn bench_control_cycle(config: &StepExecutorConfig, specs: &[JointSpec], load: u
     let _load = Load::start(load)?;
     std::thread::sleep(Duration::from_millis(200));
     let executor = Executor::spawn(Box::new(bus), player, LoopSettings::from_config(config))?;
-    let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 1.0, pause_s: 0.2 };
     // Ankle/knee-safe small amplitude inside every joint's limits.
-    let motion = Motion {
-        name: "bench".into(),
-        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29))?,
-        keyframes: vec![keyframe(0.3), keyframe(0.1), keyframe(0.4), keyframe(0.2)],
-    };
+    let motion = bench_motion("bench", &[0.3, 0.1, 0.4, 0.2], 1.0, 0.2)?;
     // Let the loop learn the present pose, then play ~4.8 s.
     std::thread::sleep(Duration::from_millis(100));
     executor.play(motion)?;
@@ -226,12 +231,7 @@ fn bench_estop_on_slow_bus(config: &StepExecutorConfig, specs: &[JointSpec]) -> 
     let executor = Executor::spawn(Box::new(bus), player, settings)?;
     std::thread::sleep(Duration::from_millis(100));
     chain.set_faults(|f| f.latency = Duration::from_millis(200));
-    let keyframe = |q: f64| Keyframe { positions: vec![q; DEFAULT_JOINTS.len()], move_s: 20.0, pause_s: 0.0 };
-    let motion = Motion {
-        name: "slow".into(),
-        patch: Patch::level_disc(0.02, nalgebra::Vector3::new(0.1, 0.0, -0.29))?,
-        keyframes: vec![keyframe(0.3)],
-    };
+    let motion = bench_motion("slow", &[0.3], 20.0, 0.0)?;
     let mut rng = Rng(0x5EED_0000_E570_0001);
     let mut times = Vec::new();
     for _ in 0..8 {

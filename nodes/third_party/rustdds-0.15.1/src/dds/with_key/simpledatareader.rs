@@ -356,23 +356,11 @@ where
 
     let mut changes =
       Self::try_take_undecoded(is_reliable, &topic_cache, latest_instant, last_read_sn);
-    // Changes skipped below (a dispose by the hash of a key this reader never
-    // saw, e.g. of an endpoint removed before we discovered its participant)
-    // can never be decoded: the read pointer moves past them too. Otherwise
-    // every later take iterates over (and formats an error for) all of them
-    // again, and taking a long-lived participant's discovery history of N
-    // removed endpoints costs O(N^2).
-    let mut skipped: Vec<(Timestamp, GUID, SequenceNumber)> = Vec::new();
 
     // loop in case we get a sample that should be ignored, so we try next.
     loop {
       let (timestamp, cc) = match changes.next() {
-        None => {
-          // no more data available right now
-          drop(changes);
-          Self::advance_past(&mut read_state_ref, &skipped);
-          return Ok(None);
-        }
+        None => return Ok(None), // no more data available right now
         Some((ts, cc)) => (ts, cc),
       };
 
@@ -380,21 +368,20 @@ where
 
       if let Err(ReadError::UnknownKey { .. }) = result {
         // ignore unknown key hash, continue looping
-        skipped.push((timestamp, cc.writer_guid, cc.sequence_number));
       } else {
+        // explicitly drop the cache changes to update the reader state
+        drop(changes);
+
         // return with this result
         // make copies of guid and SN to calm down borrow checker.
         let writer_guid = cc.writer_guid;
         let sequence_number = cc.sequence_number;
-        // explicitly drop the cache changes to update the reader state
-        drop(changes);
-        Self::advance_past(&mut read_state_ref, &skipped);
         // Advance read pointer, error or not, because otherwise
         // the SimpleDatareader is stuck.
-        Self::advance_past(
-          &mut read_state_ref,
-          &[(timestamp, writer_guid, sequence_number)],
-        );
+        read_state_ref.latest_instant = max(latest_instant, timestamp);
+        read_state_ref
+          .last_read_sn
+          .insert(writer_guid, sequence_number);
 
         // // Debug sanity check:
         // use crate::Duration;
@@ -407,34 +394,6 @@ where
 
         return result.map(Some);
       }
-    }
-  }
-
-  // The reliable read pointer for `writer`: the last sequence number taken or
-  // skipped.
-  #[cfg(test)]
-  pub(crate) fn read_pointer(&self, writer: GUID) -> Option<SequenceNumber> {
-    self
-      .read_state
-      .lock()
-      .ok()?
-      .last_read_sn
-      .get(&writer)
-      .copied()
-  }
-
-  // Move the read pointer past `changes` (never backwards).
-  fn advance_past(
-    read_state: &mut ReadState<<D as Keyed>::K>,
-    changes: &[(Timestamp, GUID, SequenceNumber)],
-  ) {
-    for &(timestamp, writer_guid, sequence_number) in changes {
-      read_state.latest_instant = max(read_state.latest_instant, timestamp);
-      let last = read_state
-        .last_read_sn
-        .entry(writer_guid)
-        .or_insert(sequence_number);
-      *last = max(*last, sequence_number);
     }
   }
 

@@ -30,10 +30,11 @@ RUN_SUBCOMMAND = {"patch_mapper", "step_executor", "terrain_sim"}
 
 
 @pytest.fixture(scope="module")
-def _ros_session():
+def _ros_harness():
     """One rclpy participant per test module. A node that starts receives the whole discovery history
-    of every participant on the graph, and Fast DDS keeps an entry for each endpoint a participant ever
-    removed: a harness living for the whole session (thousands of clients, subscriptions and nodes
+    of every participant on the graph, and Fast DDS keeps an entry for each endpoint a participant
+    removed until every matched participant acknowledged it (a killed node holds it back until its
+    lease ends): a harness living for the whole session (thousands of clients, subscriptions and nodes
     made and destroyed) would make each new node spend seconds taking it in before it sees the
     harness's newest subscriptions and clients, and the wait grows with the session's age."""
     harness = pw.RosHarness()
@@ -42,10 +43,10 @@ def _ros_session():
 
 
 @pytest.fixture
-def ros(_ros_session):
+def ros(_ros_harness):
     """The rclpy harness of this pytest process; what a test subscribes/publishes is destroyed after it."""
-    yield _ros_session
-    _ros_session.destroy_entities()
+    yield _ros_harness
+    _ros_harness.destroy_entities()
 
 
 @pytest.fixture

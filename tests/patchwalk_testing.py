@@ -275,8 +275,7 @@ class RosHarness:
 
         qos = qos or QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                                 depth=10, durability=DurabilityPolicy.VOLATILE)
-        collector = Collector(topic)
-        collector.graph = lambda: f"publishers on the graph: {self.node.count_publishers(topic)}"
+        collector = Collector(topic, graph=lambda: f"publishers on the graph: {self.node.count_publishers(topic)}")
         with self._lock:
             self._entities.append(self.node.create_subscription(msg_type, topic, collector._on_message, qos))
         return collector

@@ -7,7 +7,7 @@
 //! colours). With ground truth (`groundtruth.txt`, e.g. from `terrain_sim record`, a `--groundtruth`
 //! file, or a bag's ground-truth pose topic) the patches are also given in the dataset's world frame,
 //! to compare with the scene's footholds, and the trajectory's ATE is measured. `stats.json` holds
-//! the throughput and the ATE.
+//! the throughput, each stage's p50/p99 wall time and the ATE; `timings.csv` each frame's stage times.
 //!
 //! On a dataset directory the robot-scale configuration adapts to the recording unless `--no-adapt`
 //! is given: an accelerometer with the identity `mapper.acquire.camera_from_imu` gets a rotation
@@ -29,7 +29,7 @@ use patchwalk_fusion::trajectory::absolute_trajectory_rmse;
 use patchwalk_fusion::volume::{depth_points, initial_volume_from_camera, share_inside, size_volume_to_depth, VolumeSizing};
 use patchwalk_mapping::acquire::{gravity_from_accelerometer, gravity_from_ground_plane, ground_plane, organized_cloud};
 use patchwalk_mapping::mapper::FrameSummary;
-use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline};
+use patchwalk_mapping::pipeline::{birds_eye_points_in_map, Pipeline, PipelineTimings};
 use patchwalk_mapping::record::PatchRecord;
 use patchwalk_mapping::render::render_patches;
 use patchwalk_mapping::rig::RigEstimate;
@@ -67,7 +67,7 @@ pub struct ReplayArgs {
     /// Override `dotted.key=value` (YAML value), as for `patch_mapper run`.
     #[arg(short = 'p', long = "param", value_name = "KEY=VALUE")]
     pub params: Vec<String>,
-    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt, stats.json and pictures.
+    /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt, timings.csv, stats.json and pictures.
     #[arg(long, default_value = "replay_out")]
     pub out: PathBuf,
     /// Write a birds-eye picture every n frames (0: only the last frame).
@@ -117,9 +117,46 @@ struct Stats {
     seconds: f64,
     frames_per_s: f64,
     pipeline_median_ms: f64,
+    /// Per pipeline stage (in pipeline order): p50 and p99 of its wall time over the processed frames (ms).
+    stage_ms: Vec<StageLatency>,
     ate_m: Option<f64>,
     ate_frames: usize,
     patches: usize,
+}
+
+/// One pipeline stage's wall time over a replay (ms, nearest rank).
+#[derive(Serialize)]
+struct StageLatency {
+    stage: &'static str,
+    p50_ms: f64,
+    p99_ms: f64,
+    max_ms: f64,
+}
+
+/// p50/p99/max of every stage of `timings` (NaN when there are none).
+fn stage_latencies(timings: &[PipelineTimings]) -> Vec<StageLatency> {
+    let names = PipelineTimings::default().named().map(|(name, _)| name);
+    names
+        .iter()
+        .enumerate()
+        .map(|(i, &stage)| {
+            let mut ms: Vec<f64> = timings.iter().map(|t| t.named()[i].1).collect();
+            ms.sort_by(f64::total_cmp);
+            let rank = |q: f64| ms.get(((ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(f64::NAN);
+            StageLatency { stage, p50_ms: rank(0.5), p99_ms: rank(0.99), max_ms: rank(1.0) }
+        })
+        .collect()
+}
+
+/// One line per processed frame: its stamp and every stage's wall time (ms), with a header line.
+fn timings_csv(trajectory: &[StampedPose], timings: &[PipelineTimings]) -> String {
+    let header: Vec<&str> = PipelineTimings::default().named().iter().map(|(name, _)| *name).collect();
+    let mut text = format!("timestamp,{}\n", header.join(","));
+    for (pose, frame) in trajectory.iter().zip(timings) {
+        let ms: Vec<String> = frame.named().iter().map(|(_, ms)| format!("{ms:.3}")).collect();
+        text += &format!("{:.6},{}\n", pose.timestamp, ms.join(","));
+    }
+    text
 }
 
 /// The recorded input: a dataset directory or a bag, and what the replay loop needs of it.
@@ -350,7 +387,7 @@ struct Replay<'a> {
     trajectory: Vec<StampedPose>,
     summary: FrameSummary,
     skipped: usize,
-    total_ms: Vec<f64>,
+    timings: Vec<PipelineTimings>,
 }
 
 impl<'a> Replay<'a> {
@@ -388,7 +425,7 @@ impl<'a> Replay<'a> {
             trajectory: Vec::new(),
             summary: FrameSummary::default(),
             skipped: 0,
-            total_ms: Vec::new(),
+            timings: Vec::new(),
         })
     }
 
@@ -417,7 +454,7 @@ impl<'a> Replay<'a> {
         }
         self.trajectory.push(StampedPose { timestamp, world_from_camera: output.map_from_camera });
         self.summary.add(&output.mapped);
-        self.total_ms.push(output.timings.total_ms);
+        self.timings.push(output.timings);
         for outcome in &output.seeds {
             let Some(patch) = outcome.patch_in_camera.as_ref().and_then(|p| transform_patch(p, &output.map_from_birds_eye)) else {
                 continue;
@@ -468,6 +505,9 @@ impl<'a> Replay<'a> {
         self.bar.finish_and_clear();
         self.seeds_out.flush()?;
         write_tum_poses(&self.out.join("trajectory.txt"), &self.trajectory)?;
+        let timings_path = self.out.join("timings.csv");
+        std::fs::write(&timings_path, timings_csv(&self.trajectory, &self.timings))
+            .with_context(|| format!("writing {}", timings_path.display()))?;
         let map_path = self.out.join("patches.jsonl");
         let mut map_out =
             std::io::BufWriter::new(std::fs::File::create(&map_path).with_context(|| format!("creating {}", map_path.display()))?);
@@ -484,9 +524,8 @@ impl<'a> Replay<'a> {
             map_out.write_all(b"\n")?;
         }
         map_out.flush()?;
-        let mut total_ms = self.total_ms.clone();
-        total_ms.sort_by(f64::total_cmp);
-        let median = total_ms.get(total_ms.len() / 2).copied().unwrap_or(f64::NAN);
+        let stage_ms = stage_latencies(&self.timings);
+        let median = stage_ms.iter().find(|s| s.stage == "total").map_or(f64::NAN, |s| s.p50_ms);
         let (count, skipped, summary) = (self.count, self.skipped, &self.summary);
         println!(
             "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} tilt {} edge {} | failed {} skipped {}",
@@ -501,6 +540,8 @@ impl<'a> Replay<'a> {
             summary.failed,
             summary.skipped
         );
+        let stages: Vec<String> = stage_ms.iter().map(|s| format!("{} {:.1}/{:.1}", s.stage, s.p50_ms, s.p99_ms)).collect();
+        println!("stage ms p50/p99: {}", stages.join(", "));
         let (ate, ate_frames) = self.ate();
         let frames_per_s = count as f64 / elapsed_s.max(1e-9);
         let ate_text = ate.map_or_else(|| "no ground truth".to_string(), |a| format!("ATE {:.2} mm over {ate_frames} frames", a * 1e3));
@@ -514,6 +555,7 @@ impl<'a> Replay<'a> {
             seconds: elapsed_s,
             frames_per_s,
             pipeline_median_ms: median,
+            stage_ms,
             ate_m: ate,
             ate_frames,
             patches: self.pipeline.map().len(),

@@ -403,6 +403,19 @@ fn refine_crossing(
     let trilinear_tsdf = |t: f32| volume.trilinear_tsdf(&((origin + direction * t) * inv_voxel));
     // Both brackets must be fully observed, else the crossing is at the edge of the data: no hit.
     let (mut f_a, mut f_b) = (trilinear_tsdf(t_a)?, trilinear_tsdf(t_b)?);
+    // The march brackets on nearest-voxel values; within a voxel of the surface the trilinear value
+    // can still have the other sign. Widen the bracket by up to two voxels on that side.
+    let voxel = 1.0 / inv_voxel;
+    for _ in 0..2 {
+        if f_b > 0.0 {
+            t_b += voxel;
+            f_b = trilinear_tsdf(t_b)?;
+        }
+        if f_a <= 0.0 {
+            t_a -= voxel;
+            f_a = trilinear_tsdf(t_a)?;
+        }
+    }
     if !(f_a > 0.0 && f_b <= 0.0) {
         return None;
     }
@@ -495,6 +508,44 @@ mod tests {
         // The camera z axis is volume +y.
         let z_axis = view.volume_from_birds_eye.rotation * Vector3::z();
         assert!((z_axis - Vector3::y()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn birds_eye_rays_over_an_observed_floor_all_hit_it() {
+        // Nearest-voxel brackets whose trilinear value has not yet changed sign must still yield the
+        // crossing: every birds-eye ray over floor the camera saw (away from the image and cube
+        // borders) hits it, at any sub-voxel offset of the floor.
+        for (index, floor_y) in [1.0, 1.0013, 1.0027, 1.0041].into_iter().enumerate() {
+            let config = TsdfConfig { voxel_size_m: 0.005, size_m: 1.28, ..TsdfConfig::default() };
+            let mut volume = TsdfVolume::new(config).unwrap();
+            let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+            let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_4);
+            let pose = Isometry3::from_parts(Translation3::new(0.64, 0.55, 0.25), tilt);
+            volume.integrate(&render_plane(&intrinsics, &pose, Vector3::y(), floor_y), &intrinsics, &pose).unwrap();
+            let birds_eye = BirdsEyeConfig::default();
+            let view = raycast_birds_eye(&volume, &RaycastConfig::default(), &birds_eye, &pose);
+            let camera_from_volume = pose.inverse();
+            let (mut observed, mut hit) = (0, 0);
+            for v in 0..view.depth.height {
+                for u in 0..view.depth.width {
+                    // Where this ray meets the floor, and whether the camera saw that point well inside.
+                    let ray = view.intrinsics.back_project(u as f64, v as f64, 1.0);
+                    let ray_in_volume = view.volume_from_birds_eye.rotation * ray;
+                    let origin = view.volume_from_birds_eye.translation.vector;
+                    let floor = origin + ray_in_volume * ((floor_y - origin.y) / ray_in_volume.y);
+                    let inside_cube = floor.iter().all(|c| *c > 0.05 && *c < 1.23);
+                    let seen = intrinsics.project(&(camera_from_volume * Point3::from(floor)).coords).is_some_and(|(x, y)| {
+                        x > 8.0 && y > 8.0 && x < intrinsics.width as f64 - 8.0 && y < intrinsics.height as f64 - 8.0
+                    });
+                    if inside_cube && seen {
+                        observed += 1;
+                        hit += usize::from(view.depth.depth_m[v * view.depth.width + u].is_finite());
+                    }
+                }
+            }
+            assert!(observed > 5000, "{observed}");
+            assert!(hit as f64 >= 0.995 * observed as f64, "offset {index}: {hit} of {observed} observed floor rays hit");
+        }
     }
 
     #[test]

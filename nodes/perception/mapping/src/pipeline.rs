@@ -303,6 +303,13 @@ impl Pipeline {
         &self.mapper.map
     }
 
+    /// Raycasts the model the next frame's ICP aligns to (J 5.2 step 7). `process` returns without
+    /// it, so that the frame's outputs are not held up by work only the next frame needs: call this
+    /// once they are out (the ROS node does, after publishing), or let the next `process` do it.
+    pub fn prepare_next_frame(&mut self) {
+        self.tracker.prepare_model();
+    }
+
     /// The tracker (volume, pose).
     pub fn tracker(&self) -> &Tracker {
         &self.tracker

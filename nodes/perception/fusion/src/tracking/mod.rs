@@ -344,6 +344,11 @@ pub struct Tracker {
     map_from_volume: Isometry3<f64>,
     volume_from_camera: Isometry3<f64>,
     model: Option<ModelRaycast>,
+    /// The last integrated frame (its model-resolution image, if the pyramid has one, and the full
+    /// one) while the model for the next frame is not raycast yet (see [`Tracker::prepare_model`]).
+    pending_model: Option<(Option<DepthImage>, DepthImage)>,
+    /// Time of the last model raycast (ms), reported with the frame aligned to that model.
+    model_raycast_ms: f64,
     frames: usize,
     /// Tracked poses for the constant-velocity prediction.
     motion: MotionModel,
@@ -382,6 +387,8 @@ impl Tracker {
             map_from_volume: Isometry3::identity(),
             volume_from_camera: Isometry3::identity(),
             model: None,
+            pending_model: None,
+            model_raycast_ms: 0.0,
             frames: 0,
             motion: MotionModel::default(),
             recovery,
@@ -404,8 +411,10 @@ impl Tracker {
     pub fn map_from_camera(&self) -> Isometry3<f64> {
         self.map_from_volume * self.volume_from_camera
     }
-    /// The model raycast from the current pose (what the next frame is aligned to).
-    pub fn model(&self) -> Option<&ModelRaycast> {
+    /// The model raycast from the current pose (what the next frame is aligned to), raycast now if
+    /// it was still to do.
+    pub fn model(&mut self) -> Option<&ModelRaycast> {
+        self.prepare_model();
         self.model.as_ref()
     }
     /// Frames processed since construction.
@@ -421,8 +430,24 @@ impl Tracker {
     pub fn reset(&mut self) {
         self.volume.clear();
         self.model = None;
+        self.pending_model = None;
         self.motion.clear();
         self.recovery.reset();
+    }
+
+    /// Raycasts the model the next frame is aligned to (J 5.2 step 7) from the frame last
+    /// integrated, if that is still to do. `process` leaves it for later so that a caller who needs
+    /// the frame's outputs first (the ROS node publishes its patches) can call this once they are
+    /// out; otherwise the next `process` does it first. Either way the model is the same.
+    pub fn prepare_model(&mut self) {
+        let Some((hint_image, full)) = self.pending_model.take() else { return };
+        let started = Instant::now();
+        let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
+        // The frame just integrated at this pose tells where each model ray meets the surface; the
+        // full-resolution frame fills the holes (depth edges) of the downsampled one.
+        let hint = hint_image.as_ref().map(|depth| RayHint { depth, fine: Some(&full) });
+        self.model = Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
+        self.model_raycast_ms = elapsed_ms(started);
     }
 
     /// Birds-eye raycast at the current camera pose (J 5.2 step 8).
@@ -435,8 +460,9 @@ impl Tracker {
         self.map_from_volume * view.volume_from_birds_eye
     }
 
-    /// One frame of J 5.2 stage II: track (step 3), integrate (step 4), remap (step 5), then raycast
-    /// the model for the next frame. A frame of a short loss (`Relocalising`) is only tracked.
+    /// One frame of J 5.2 stage II: track (step 3), integrate (step 4), remap (step 5); the model for
+    /// the next frame is raycast by [`Tracker::prepare_model`] (by the caller, or first thing in the
+    /// next call). A frame of a short loss (`Relocalising`) is only tracked.
     pub fn process(&mut self, frame: Frame<'_>) -> Result<FrameReport, TrackingError> {
         let depth = frame.depth;
         if depth.width != self.intrinsics.width || depth.height != self.intrinsics.height {
@@ -448,6 +474,9 @@ impl Tracker {
             });
         }
         let mut timings = StageTimings::default();
+        // The model this frame is aligned to, unless the caller raycast it after the last frame.
+        self.prepare_model();
+        timings.raycast_ms = std::mem::take(&mut self.model_raycast_ms);
         self.frames += 1;
         let time = frame.timestamp.unwrap_or(self.frames as f64);
         let started = Instant::now();
@@ -502,16 +531,11 @@ impl Tracker {
         // The map frame does not move with remaps: the motion model keeps map poses.
         self.motion.push(time, self.map_from_camera());
 
-        let started = Instant::now();
+        // The model for the next frame is raycast by `prepare_model`: by the caller once it has
+        // used this frame's outputs, else at the start of the next frame.
         let model_intrinsics = self.intrinsics.scaled(self.config.model_scale);
-        // The frame just integrated at this pose tells where each model ray meets the surface; the
-        // full-resolution frame fills the holes (depth edges) of the downsampled one.
-        let hint = images
-            .into_iter()
-            .find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height)
-            .map(|image| RayHint { depth: image, fine: Some(depth) });
-        self.model = Some(raycast_guided(&self.volume, &self.config.raycast, &model_intrinsics, &self.volume_from_camera, hint));
-        timings.raycast_ms = elapsed_ms(started);
+        let hint = images.into_iter().find(|image| image.width == model_intrinsics.width && image.height == model_intrinsics.height);
+        self.pending_model = Some((hint.cloned(), depth.clone()));
 
         Ok(FrameReport {
             status,

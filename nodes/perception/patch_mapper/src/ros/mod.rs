@@ -598,6 +598,8 @@ impl Worker {
                 patch_holds,
             });
         }
+        // Work only the next frame needs comes after this frame's outputs.
+        pipeline.prepare_next_frame();
         with_status(&self.status, |s| {
             s.frames_processed += 1;
             s.patches_in_map = u32::try_from(patches).unwrap_or(u32::MAX);

@@ -842,6 +842,28 @@ mod tests {
     }
 
     #[test]
+    fn a_model_prepared_after_the_outputs_tracks_as_one_raycast_by_the_next_frame() {
+        let dataset = Dataset::open(&test_data_dir().join("open3d_rgbd")).unwrap();
+        let mut lazy = Tracker::new(tum_config(), dataset.intrinsics).unwrap();
+        let mut early = Tracker::new(tum_config(), dataset.intrinsics).unwrap();
+        for index in 0..dataset.frames.len() {
+            let depth = dataset.load_depth(index).unwrap();
+            let frame = Frame { depth: &depth, gravity_in_camera: None, external_map_from_camera: None, timestamp: None };
+            let (a, b) = (lazy.process(frame).unwrap(), early.process(frame).unwrap());
+            // The early tracker's caller prepares the model once it has the frame's outputs.
+            assert!(early.pending_model.is_some());
+            early.prepare_model();
+            assert!(early.pending_model.is_none() && early.model.is_some());
+            let jump = a.map_from_camera.inverse() * b.map_from_camera;
+            assert!(jump.translation.vector.norm() < 1e-6 && jump.rotation.angle() < 1e-6, "frame {index}: {jump:?}");
+            if index > 0 {
+                // The model raycast is timed with the frame aligned to it, whoever ran it.
+                assert!(a.timings.raycast_ms > 0.0 && b.timings.raycast_ms > 0.0);
+            }
+        }
+    }
+
+    #[test]
     fn the_wide_level_runs_first_on_large_predicted_motion_and_on_every_retry() {
         let config = TrackerConfig::default();
         let last = Isometry3::translation(0.5, 0.3, 0.5);

@@ -4,7 +4,9 @@
 Starts terrain_sim and patch_mapper (release binaries, DDS on loopback, a private ROS domain), waits
 until the patch map holds at least --min-patches patches, then for --seconds measures:
   - end to end: PatchArray arrival (wall clock) minus its header stamp (= the depth frame's stamp,
-    which terrain_sim sets when it renders the frame): render hand-off + DDS in + pipeline + DDS out;
+    terrain_sim's nominal frame time, before it renders the frame): render + DDS in + pipeline + DDS out;
+  - through DDS: PatchArray arrival minus the arrival of its depth frame at this process (which
+    subscribes to the images too): DDS in + pipeline + DDS out, without the simulator's rendering;
   - in node: MapperStatus `depth_in_to_patches_out` (depth message taken from DDS -> PatchArray
     published) and the per-stage timings, sampled from every status message;
   - CPU per node from /proc/<pid>/stat (utime + stime over the window, % of one core).
@@ -60,6 +62,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from patchwalk_msgs.msg import MapperStatus, PatchArray
+    from sensor_msgs.msg import Image
 
     mapper_params = {
         "ros.status_period_s": "0.05",
@@ -77,24 +80,37 @@ def main() -> int:
     lock = threading.Lock()
     arrivals: list[tuple[float, float, int]] = []  # (arrival wall s, stamp s, patches)
     statuses: list = []
+    depth_arrivals: dict[tuple[int, int], float] = {}  # depth stamp (sec, nanosec) -> arrival wall s
+    through_dds: list[float] = []  # PatchArray arrival - its depth frame's arrival (ms)
 
     def on_patches(msg):
         now = time.time()
         with lock:
             arrivals.append((now, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, len(msg.patches)))
+            depth_arrival = depth_arrivals.pop((msg.header.stamp.sec, msg.header.stamp.nanosec), None)
+            if depth_arrival is not None:
+                through_dds.append((now - depth_arrival) * 1e3)
+
+    def on_depth(msg):
+        now = time.time()
+        with lock:
+            depth_arrivals[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = now
+            while len(depth_arrivals) > 300:  # frames the mapper skipped
+                depth_arrivals.pop(next(iter(depth_arrivals)))
 
     def on_status(msg):
         with lock:
             statuses.append(msg)
 
     try:
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
         qos = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10,
                          durability=DurabilityPolicy.VOLATILE)
         with harness._lock:
             harness.node.create_subscription(PatchArray, "/patch_mapper/patches", on_patches, qos)
             harness.node.create_subscription(MapperStatus, "/patch_mapper/status", on_status, qos)
+            harness.node.create_subscription(Image, "/camera/depth/image_raw", on_depth, qos_profile_sensor_data)
         harness.wait_for_nodes("/patch_mapper", "/terrain_sim")
         deadline = time.monotonic() + 120.0
         print(f"waiting for >= {args.min_patches} patches in the map ...", flush=True)
@@ -110,13 +126,14 @@ def main() -> int:
         with lock:
             arrivals.clear()
             statuses.clear()
+            through_dds.clear()
         cpu0 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
         t0 = time.monotonic()
         time.sleep(args.seconds)
         wall = time.monotonic() - t0
         cpu1 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
         with lock:
-            window, status_window = list(arrivals), list(statuses)
+            window, status_window, dds_window = list(arrivals), list(statuses), list(through_dds)
     finally:
         for node in (mapper, sim):
             try:
@@ -129,6 +146,7 @@ def main() -> int:
     print(f"PatchArray messages: {len(window)} ({len(window) / wall:.1f} Hz); patches per message "
           f"min {min((a[2] for a in window), default=0)} max {max((a[2] for a in window), default=0)}")
     print("end to end (arrival - depth stamp):   " + percentiles([(a - s) * 1e3 for a, s, _ in window]))
+    print("through DDS (arrival - depth arrival): " + percentiles(dds_window))
     if status_window:
         last = status_window[-1]
         print(f"frames received {last.frames_received}, processed {last.frames_processed}, "

@@ -482,6 +482,8 @@ impl<'a> Replay<'a> {
             let path = self.out.join("birds_eye_last_in_map.csv");
             std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
         }
+        // As the node does after publishing: the stage times are those of its depth-to-patches path.
+        self.pipeline.prepare_next_frame();
         self.bar.set_message(format!("{} patches in the map", self.pipeline.map().len()));
         self.bar.inc(1);
         Ok(())

@@ -37,6 +37,7 @@ use patchwalk_spl::transform::transform_patch;
 use serde::Serialize;
 
 use super::bag_input::{BagInput, BagTopics};
+use crate::ros::diagnostics::quantile;
 use crate::ros::PatchMapperConfig;
 
 /// Arguments of `patch_mapper replay`.
@@ -142,7 +143,7 @@ fn stage_latencies(timings: &[PipelineTimings]) -> Vec<StageLatency> {
         .map(|(i, &stage)| {
             let mut ms: Vec<f64> = timings.iter().map(|t| t.named()[i].1).collect();
             ms.sort_by(f64::total_cmp);
-            let rank = |q: f64| ms.get(((ms.len() as f64 - 1.0) * q).round() as usize).copied().unwrap_or(f64::NAN);
+            let rank = |q: f64| quantile(&ms, q).unwrap_or(f64::NAN);
             StageLatency { stage, p50_ms: rank(0.5), p99_ms: rank(0.99), max_ms: rank(1.0) }
         })
         .collect()

@@ -120,7 +120,7 @@ fn status(level: u8, name: &str, message: impl Into<String>, values: Vec<KeyValu
 }
 
 /// The `q` quantile (0..1) of sorted values, nearest rank.
-fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+pub(crate) fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
     let last = sorted.len().checked_sub(1)?;
     let rank = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
     sorted.get(rank.min(last)).copied()

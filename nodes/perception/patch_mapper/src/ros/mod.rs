@@ -20,7 +20,7 @@
 //! keep-latest after publishing, and takes its predictions for the learned seed orders).
 
 mod camera_info;
-mod diagnostics;
+pub(crate) mod diagnostics;
 mod foothold_msgs;
 mod footholds;
 mod latest;

@@ -2,7 +2,7 @@
 //! raycast) to a map of validated foothold patches around the robot.
 //!
 //! Stages in the order of J 3.2: [`acquire`] (organized cloud, gravity) → [`preprocess`]
-//! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1) → [`seeds`] (J 3.2.1
+//! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1, with [`depth_edges`] keeping foot windows off depth discontinuities) → [`seeds`] (J 3.2.1
 //! steps 1–10) → [`neighbourhood`] (r-balls, nf subsets) → fit and validate (the Surface Patch
 //! Library; [`foot_column`] gathers the foot disc's terrain for its edge test) → [`patch_map`] (J 4.6),
 //! [`patch_fusion`] (re-observed patches fused with their Σ) and [`patch_tracking`] (J 5.2). [`mapper`] runs one frame,
@@ -12,6 +12,7 @@
 //! ROS-free; the `patch_mapper` node wraps it.
 
 pub mod acquire;
+pub mod depth_edges;
 pub mod foot_column;
 pub mod mapper;
 pub mod neighbourhood;

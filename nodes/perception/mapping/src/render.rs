@@ -187,6 +187,7 @@ pub fn label_colour(label: SaliencyLabel) -> [u8; 3] {
         SaliencyLabel::Irregular => [255, 140, 0],
         SaliencyLabel::Steep => [40, 120, 255],
         SaliencyLabel::Salient => [230, 20, 20],
+        SaliencyLabel::DepthEdge => [200, 0, 200],
     }
 }
 

@@ -5,7 +5,10 @@
 //! - 6.3 normals N (window 2rf/Z) and N_s (half window) by integral images (J \[76\], the
 //!   "average 3D gradient" variant: smoothed horizontal and vertical 3D gradients from box means),
 //! - 6.4 DoN: drop i when `N(i)ᵀN_s(i) < cos φ_d`,
-//! - 6.5 DoNG: drop i when `−N(i)ᵀĝ < cos φ_g`.
+//! - 6.5 DoNG: drop i when `−N(i)ᵀĝ < cos φ_g`;
+//!
+//! and, before the normals, drop i when a depth discontinuity lies inside its foot window
+//! ([`crate::depth_edges`]): the foot disc would span two surfaces and the box normals mix them.
 //!
 //! The output is a per-pixel label image of D (so the cloud stays organized), the coarse normals,
 //! and the sampled surface area S of the salient set (used by the ν termination of J eq 19).
@@ -14,6 +17,8 @@ use nalgebra::{Unit, Vector3};
 use rayon::prelude::*;
 
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+
+use crate::depth_edges::EdgeDistance;
 
 /// Configuration of step 6. Defaults from J 6.1.2 / Table 3 ("auto" = human mean + 3σ).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -36,6 +41,13 @@ pub struct SaliencyConfig {
     pub min_half_window_px: usize,
     /// Minimum fraction of valid pixels in each half-window box for a normal to be computed.
     pub min_support_fraction: f64,
+    /// Relative depth jump between neighbouring pixels of D that marks a depth discontinuity
+    /// ([`crate::depth_edges`]; 0.04: 4 cm at 1 m, above a Kinect-class camera's quantisation step
+    /// there and below the side of a 5 cm step seen from 1 m).
+    pub depth_edge_jump: f64,
+    /// Share of the foot window (half size `r·f/Z`) that must be free of depth discontinuities
+    /// (1: the whole window; 0 turns the check off, J's step 6 as written).
+    pub depth_edge_clearance: f64,
 }
 
 impl Default for SaliencyConfig {
@@ -48,6 +60,8 @@ impl Default for SaliencyConfig {
             dong_max_deg: 35.0,
             min_half_window_px: 2,
             min_support_fraction: 0.25,
+            depth_edge_jump: 0.04,
+            depth_edge_clearance: 1.0,
         }
     }
 }
@@ -68,6 +82,8 @@ pub enum SaliencyLabel {
     Steep = 4,
     /// In H.
     Salient = 5,
+    /// A depth discontinuity inside the foot window ([`crate::depth_edges`]).
+    DepthEdge = 6,
 }
 
 /// Result of step 6 on D.
@@ -204,7 +220,9 @@ pub fn hiking_saliency(
 ) -> Saliency {
     let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
     let integral = IntegralCloud::new(depth, intrinsics);
-    let pass = |radius_m: f64| label_pixels(depth, intrinsics, &integral, gravity_in_camera, &fixation, radius_m, foot_radius_m, config);
+    let edges = EdgeDistance::new(depth, if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 });
+    let frame = LabelInput { depth, intrinsics, integral: &integral, edges: &edges, gravity_in_camera, fixation: &fixation, foot_radius_m };
+    let pass = |radius_m: f64| label_pixels(&frame, radius_m, config);
     let first = pass(config.fixation_radius_m);
     if !config.fixation_radius_m.is_finite() || first.count(SaliencyLabel::Salient) > 0 || first.count(SaliencyLabel::Distant) == 0 {
         return first;
@@ -213,12 +231,13 @@ pub fn hiking_saliency(
     let in_ball = valid - first.count(SaliencyLabel::Distant);
     let reason = format!(
         "no salient point within R = {:.2} m of the fixation point ({:.2} m down, {:.2} m ahead): {in_ball} of {valid} valid points in the ball \
-         ({} steep, {} irregular, {} without a normal); saliency ran without DtFP",
+         ({} steep, {} irregular, {} beside a depth edge, {} without a normal); saliency ran without DtFP",
         config.fixation_radius_m,
         config.fixation_down_m,
         config.fixation_forward_m,
         first.count(SaliencyLabel::Steep),
         first.count(SaliencyLabel::Irregular),
+        first.count(SaliencyLabel::DepthEdge),
         first.count(SaliencyLabel::NoNormal),
     );
     let mut fallback = pass(f64::INFINITY);
@@ -226,18 +245,22 @@ pub fn hiking_saliency(
     fallback
 }
 
-/// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest).
-#[allow(clippy::too_many_arguments)]
-fn label_pixels(
-    depth: &DepthImage,
-    intrinsics: &Intrinsics,
-    integral: &IntegralCloud,
-    gravity_in_camera: &Unit<Vector3<f64>>,
-    fixation: &Vector3<f64>,
-    radius_m: f64,
+/// What [`label_pixels`] reads of the frame: D, its integral cloud and depth-jump distances,
+/// gravity, the fixation point and the foot radius r.
+struct LabelInput<'a> {
+    depth: &'a DepthImage,
+    intrinsics: &'a Intrinsics,
+    integral: &'a IntegralCloud,
+    edges: &'a EdgeDistance,
+    gravity_in_camera: &'a Unit<Vector3<f64>>,
+    fixation: &'a Vector3<f64>,
     foot_radius_m: f64,
-    config: &SaliencyConfig,
-) -> Saliency {
+}
+
+/// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest), and the
+/// depth-discontinuity check of the foot window before the normals.
+fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> Saliency {
+    let LabelInput { depth, intrinsics, integral, edges, gravity_in_camera, fixation, foot_radius_m } = *frame;
     let (width, height) = (depth.width, depth.height);
     let radius_sq = if radius_m.is_finite() { radius_m.powi(2) } else { f64::INFINITY };
     let cos_don = config.don_max_deg.to_radians().cos();
@@ -266,6 +289,10 @@ fn label_pixels(
                 }
                 // 6.3 normals: window 2rf/Z, i.e. half window rf/Z, and half of that.
                 let half = (foot_radius_m * focal / z).round().max(2.0 * config.min_half_window_px as f64) as usize;
+                if f64::from(edges.at(u, v)) < config.depth_edge_clearance * half as f64 {
+                    *label = SaliencyLabel::DepthEdge;
+                    continue;
+                }
                 let half_fine = (half / 2).max(config.min_half_window_px);
                 let (Some(n), Some(n_fine)) = (
                     integral.normal(u, v, half, &point, config.min_support_fraction),
@@ -400,7 +427,7 @@ pub(crate) mod tests {
         assert!(
             floor.0 as f64 > 0.95 * floor.1 as f64,
             "floor salient {floor:?} labels {:?}",
-            [0u8, 1, 2, 3, 4, 5].map(|l| saliency.labels.iter().filter(|x| **x as u8 == l).count())
+            [0u8, 1, 2, 3, 4, 5, 6].map(|l| saliency.labels.iter().filter(|x| **x as u8 == l).count())
         );
         assert_eq!(wall.0, 0);
         assert!(saliency.count(SaliencyLabel::Steep) > 1000);
@@ -408,6 +435,48 @@ pub(crate) mod tests {
         assert!(saliency.count(SaliencyLabel::Irregular) > 0);
         // Salient area ≈ visible floor area up to the crease region.
         assert!(saliency.salient_area_m2 > 0.5, "area {}", saliency.salient_area_m2);
+    }
+
+    #[test]
+    fn foot_windows_across_a_depth_edge_are_not_salient() {
+        // Looking straight down at a floor 1 m away with a 15 cm block (0.2 m square) on it.
+        let intrinsics = small_camera();
+        let inside_block = |p: &Vector3<f64>| p.x.abs() < 0.1 && p.y.abs() < 0.1;
+        let depth = render(&intrinsics, |p| if inside_block(p) { 0.85 - p.z } else { 1.0 - p.z });
+        let g = gravity_from_vector(Vector3::z()).unwrap();
+        let r = 0.05;
+        let config = SaliencyConfig { fixation_radius_m: f64::INFINITY, ..Default::default() };
+        let saliency = hiking_saliency(&depth, &intrinsics, &g, r, &config);
+        let (mut near, mut clear) = ((0, 0), (0, 0));
+        for (i, label) in saliency.labels.iter().enumerate() {
+            let (u, v) = (i % 160, i / 160);
+            let Some(z) = depth.get(u, v) else { continue };
+            let p = intrinsics.back_project(u as f64, v as f64, f64::from(z));
+            // Distance in the image plane's xy to the block's outline.
+            let to_edge = if inside_block(&p) { (0.1 - p.x.abs()).min(0.1 - p.y.abs()) } else { (p.x.abs() - 0.1).max(p.y.abs() - 0.1) };
+            let off_border = (12..148).contains(&u) && (12..108).contains(&v);
+            if to_edge < 0.6 * r {
+                near = (near.0 + usize::from(*label == SaliencyLabel::DepthEdge), near.1 + 1);
+            } else if to_edge > 1.3 * r && off_border {
+                clear = (clear.0 + usize::from(*label == SaliencyLabel::Salient), clear.1 + 1);
+            }
+        }
+        assert!(near.1 > 500 && clear.1 > 500, "{near:?} {clear:?}");
+        assert_eq!(near.0, near.1, "pixels by the edge not marked: {near:?}");
+        assert!(clear.0 as f64 > 0.98 * clear.1 as f64, "clear pixels salient: {clear:?}");
+        // The block's top, 2.5 r across, keeps salient pixels at its centre.
+        let centre = saliency.labels.get(60 * 160 + 80).copied();
+        assert_eq!(centre, Some(SaliencyLabel::Salient));
+        // Off (J's step 6 as written): nothing is a depth edge.
+        let off = hiking_saliency(&depth, &intrinsics, &g, r, &SaliencyConfig { depth_edge_clearance: 0.0, ..config });
+        assert_eq!(off.count(SaliencyLabel::DepthEdge), 0);
+        // There J's DoN and DoNG drop most windows across the step, but not all: the rest are seeds
+        // whose disc hangs over the edge.
+        let extra: Vec<_> = (0..off.labels.len())
+            .filter(|&i| off.labels[i] == SaliencyLabel::Salient && saliency.labels[i] != SaliencyLabel::Salient)
+            .collect();
+        assert!(extra.len() > 50, "{}", extra.len());
+        assert!(extra.iter().all(|&i| saliency.labels[i] == SaliencyLabel::DepthEdge));
     }
 
     #[test]

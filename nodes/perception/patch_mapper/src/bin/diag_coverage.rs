@@ -11,7 +11,9 @@
 //!   (the pixel is on the surface but further than r from the seed: the boundary reaches past the
 //!   r-ball), or `on the surface` (data there, yet not in the cell).
 //!
-//! It also counts the neighbourhood points that lie off the patch surface by more than 2 cm
+//! It also gives the coverage failures by surface type, the angle between each seed's saliency
+//! normal and its patch's normal (seeds whose box normals mix two surfaces disagree with their
+//! patch), and counts the neighbourhood points that lie off the patch surface by more than 2 cm
 //! (points of a second surface in the r-ball inflate N of J eq 17 and with it N_e).
 //!
 //! `cargo run --release -p patch_mapper --bin diag_coverage [-- DATASET] [--config FILE] [--max-frames N]`
@@ -47,6 +49,9 @@ fn main() -> Result<()> {
     let dataset = Dataset::open(&input).with_context(|| format!("opening {}", input.display()))?;
     let intrinsics = dataset.intrinsics;
     let mut causes: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut by_surface: BTreeMap<&str, [usize; 2]> = BTreeMap::new();
+    // Angle (degrees) between the seed's saliency normal and its patch's normal: [not valid, valid].
+    let mut normal_angles: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
     let (mut fitted, mut valid, mut coverage_failed, mut bad_cells, mut cut_at_border) = (0, 0, 0, 0, 0);
     let (mut off_surface_points, mut points_total) = (0usize, 0usize);
     let mut scratch = Vec::new();
@@ -60,6 +65,24 @@ fn main() -> Result<()> {
         let filtered = organized_cloud(&result.preprocessed.filtered, &intrinsics)?;
         fitted += result.summary().fitted;
         valid += result.summary().valid;
+        for outcome in &result.outcomes {
+            if let Some(patch) = &outcome.patch_in_camera {
+                let entry = by_surface.entry(patch.surface.name()).or_default();
+                entry[0] += 1;
+                entry[1] += usize::from(outcome.verdict == Verdict::Coverage);
+            }
+        }
+        for outcome in &result.outcomes {
+            let Some(patch) = &outcome.patch_in_camera else { continue };
+            let (u, v) = outcome.seed.pixel;
+            let Some(seed_normal) = result.saliency.normals_in_camera.get(v * result.saliency.width + u).map(|n| n.cast::<f64>()) else {
+                continue;
+            };
+            let angle = seed_normal.dot(&patch.normal()).abs().min(1.0).acos().to_degrees();
+            if angle.is_finite() {
+                normal_angles[usize::from(outcome.verdict.is_valid())].push(angle);
+            }
+        }
         for outcome in result.outcomes.iter().filter(|o| o.verdict == Verdict::Coverage) {
             let Some(patch) = &outcome.patch_in_camera else { continue };
             coverage_failed += 1;
@@ -103,6 +126,16 @@ fn main() -> Result<()> {
     println!("bad cells by cause:");
     for (cause, n) in &causes {
         println!("  {cause:<34} {n:>6}  ({:.0} %)", 100.0 * *n as f64 / bad_cells.max(1) as f64);
+    }
+    println!("coverage failures by surface type:");
+    for (surface, [n, failed]) in &by_surface {
+        println!("  {surface:<34} {failed:>6} of {n:>6}  ({:.0} %)", 100.0 * *failed as f64 / (*n).max(1) as f64);
+    }
+    let [mut not_valid, mut valid_angles] = normal_angles;
+    for (name, angles) in [("valid", &mut valid_angles), ("not valid", &mut not_valid)] {
+        angles.sort_by(f64::total_cmp);
+        let q = |p: f64| angles.get(((angles.len().max(1) - 1) as f64 * p).round() as usize).copied().unwrap_or(f64::NAN);
+        println!("seed normal vs patch normal, {name} patches: p50 {:.1}°, p90 {:.1}° ({} patches)", q(0.5), q(0.9), angles.len());
     }
     println!("coverage-failed patches with cells off the image: {cut_at_border}");
     println!(

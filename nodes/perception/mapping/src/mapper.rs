@@ -29,7 +29,7 @@ use patchwalk_spl::fit::FitConfig;
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::sensor::ErrorModel;
 use patchwalk_spl::transform::transform_patch;
-use patchwalk_spl::validate::{validate_foothold, Foothold, ValidateConfig, Validation};
+use patchwalk_spl::validate::{validate_foothold, Foothold, SampledBall, ValidateConfig, Validation};
 
 /// Configuration of the whole mapper; every default is J's value (see each stage's struct).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -662,7 +662,8 @@ fn process_seed(
             if config.validate.edge_max_offset_m < f64::INFINITY {
                 foot_column(cloud, intrinsics, &patch, up_in_camera, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, column);
             }
-            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()) };
+            let sampled = SampledBall { centre: seed.point_in_camera, radius: config.foot_radius_m };
+            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled) };
             let validation = validate_foothold(&patch, &validation_points, &foothold, &config.validate);
             outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);

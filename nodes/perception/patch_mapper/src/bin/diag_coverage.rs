@@ -92,7 +92,9 @@ fn main() -> Result<()> {
             points_total += points.len();
             off_surface_points += points.iter().filter(|q| query.distance(q) > 0.02).count();
             let mut cut = false;
-            for cell in coverage_cells(patch, &points, &config.validate) {
+            let ball = patchwalk_spl::validate::SampledBall { centre: outcome.seed.point_in_camera, radius: config.foot_radius_m };
+            let sampled = config.validate.coverage_within_sampled_ball.then_some((&ball, &[][..]));
+            for cell in coverage_cells(patch, &points, sampled, &config.validate) {
                 if !(cell.too_few_inside || cell.too_many_outside) {
                     continue;
                 }

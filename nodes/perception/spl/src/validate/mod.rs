@@ -13,7 +13,7 @@ pub mod edge;
 pub mod residual;
 pub mod tilt;
 
-pub use coverage::{coverage_bad_cells, coverage_cell_size, coverage_cells, CoverageCell};
+pub use coverage::{coverage_bad_cells, coverage_cell_size, coverage_cells, CoverageCell, SampledBall};
 pub use curvature::principal_curvature_range;
 pub use edge::{disc_offset, FootColumn};
 pub use residual::residual;
@@ -71,6 +71,10 @@ pub struct ValidateConfig {
     /// Half height (m) of the foot disc's column about the patch plane: points further along the
     /// normal are not part of the foothold ([`edge`]: 0.25 m, more than a stair riser).
     pub edge_column_height_m: f64,
+    /// Judge coverage only where the patch surface lies inside the ball the points were gathered
+    /// from, when the caller gives it ([`Foothold::sampled`], [`coverage`]'s module doc). False is
+    /// J eq 16–17 as written over the whole boundary.
+    pub coverage_within_sampled_ball: bool,
 }
 
 impl Default for ValidateConfig {
@@ -90,15 +94,18 @@ impl Default for ValidateConfig {
             edge_max_offset_m: 0.02,
             edge_quantile: 0.98,
             edge_column_height_m: 0.25,
+            coverage_within_sampled_ball: true,
         }
     }
 }
 
 impl ValidateConfig {
-    /// J 3.3 as written: fixed w_c cells, J eq 16's counts without tolerance, no tilt or edge test.
+    /// J 3.3 as written: fixed w_c cells over the whole boundary, J eq 16's counts without
+    /// tolerance, no tilt or edge test.
     pub fn j33() -> Self {
         Self {
             min_points_per_cell: 0.0,
+            coverage_within_sampled_ball: false,
             count_tolerance_sigmas: 0.0,
             tilt_max_deg: f64::INFINITY,
             edge_max_offset_m: f64::INFINITY,
@@ -133,6 +140,10 @@ pub struct Foothold<'a> {
     pub up: Option<Vector3<f64>>,
     /// The points of the foot disc's column (see [`edge`]); `None`: the neighbourhood itself.
     pub column: Option<&'a [Vector3<f64>]>,
+    /// The ball the neighbourhood was gathered from (the seed and r), for the coverage test (the
+    /// boundary beyond it is judged on `column`); `None`: the points are taken to cover the whole
+    /// boundary.
+    pub sampled: Option<SampledBall>,
 }
 
 /// One test's outcome: the measured value against its threshold.
@@ -223,7 +234,16 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
     let local: Vec<Vector3<f64>> = neighbourhood.iter().map(|q| query.to_local(q)).collect();
     let rho = residual::residual_local(&query, &local);
     let residual = TestResult { passed: rho <= config.residual_threshold, value: rho, threshold: config.residual_threshold };
-    let (bad, allowed) = coverage::coverage_bad_cells_local(patch, query.shape(), &local, config);
+    let sampled = foothold
+        .sampled
+        .filter(|_| config.coverage_within_sampled_ball)
+        .map(|ball| SampledBall { centre: query.to_local(&ball.centre), ..ball });
+    let column_local: Vec<Vector3<f64>> = match (&sampled, foothold.column) {
+        (Some(_), Some(column)) => column.iter().map(|q| query.to_local(q)).collect(),
+        _ => Vec::new(),
+    };
+    let sampled = sampled.as_ref().map(|ball| (ball, column_local.as_slice()));
+    let (bad, allowed) = coverage::coverage_bad_cells_local(patch, query.shape(), &local, sampled, config);
     let coverage = TestResult { passed: bad as f64 <= allowed, value: bad as f64, threshold: allowed };
     let (kmin, kmax) = principal_curvature_range(patch);
     let tilt = foothold.up.map(|up| {
@@ -261,7 +281,12 @@ pub(crate) mod tests {
     fn good_patch_passes() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
         let pts = disk(0.1).sample_points(&mut rng, 3000);
-        let v = validate_foothold(&disk(0.1), &pts, &Foothold { up: Some(Vector3::z()), column: None }, &ValidateConfig::default());
+        let v = validate_foothold(
+            &disk(0.1),
+            &pts,
+            &Foothold { up: Some(Vector3::z()), column: None, sampled: None },
+            &ValidateConfig::default(),
+        );
         assert!(v.is_valid(), "{:?}", v.failures());
         assert!(v.residual.value < 1e-9);
         assert!(v.tilt.unwrap().value < 1e-9 && v.edge.unwrap().value < 1e-9);
@@ -277,7 +302,8 @@ pub(crate) mod tests {
     fn j33_runs_only_j_tests_and_bad_configs_are_refused() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(5);
         let pts = disk(0.1).sample_points(&mut rng, 3000);
-        let v = validate_foothold(&disk(0.1), &pts, &Foothold { up: Some(Vector3::x()), column: None }, &ValidateConfig::j33());
+        let v =
+            validate_foothold(&disk(0.1), &pts, &Foothold { up: Some(Vector3::x()), column: None, sampled: None }, &ValidateConfig::j33());
         assert!(v.is_valid() && v.edge.is_none() && v.tilt.is_some_and(|t| t.passed && (t.value - 90.0).abs() < 1e-9), "{v:?}");
         assert!(ValidateConfig::default().check().is_ok() && ValidateConfig::j33().check().is_ok());
         let bad = ValidateConfig { edge_quantile: 0.0, ..ValidateConfig::default() };

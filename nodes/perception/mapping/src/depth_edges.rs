@@ -9,6 +9,7 @@
 //! the saliency filter that distance.
 
 use patchwalk_fusion::camera::DepthImage;
+use rayon::prelude::*;
 
 /// Chessboard distance (pixels) from every pixel of D to the nearest pixel beside a depth jump.
 #[derive(Debug, Clone)]
@@ -28,21 +29,24 @@ impl EdgeDistance {
             return Self { width, distance_px };
         }
         let jump = relative_jump as f32;
-        let is_jump = |a: f32, b: f32| a.is_finite() && b.is_finite() && (a - b).abs() > jump * a.min(b);
-        for v in 0..height {
-            for u in 0..width {
-                let i = v * width + u;
-                let z = depth.depth_m[i];
-                if u + 1 < width && is_jump(z, depth.depth_m[i + 1]) {
-                    distance_px[i] = 0;
-                    distance_px[i + 1] = 0;
-                }
-                if v + 1 < height && is_jump(z, depth.depth_m[i + width]) {
-                    distance_px[i] = 0;
-                    distance_px[i + width] = 0;
+        // NaN (no depth) compares false, so holes mark nothing.
+        let is_jump = |a: f32, b: f32| (a - b).abs() > jump * a.min(b);
+        let z = &depth.depth_m;
+        distance_px.par_chunks_mut(width.max(1)).enumerate().for_each(|(v, out)| {
+            let row = &z[v * width..(v + 1) * width];
+            let above = (v > 0).then(|| &z[(v - 1) * width..v * width]);
+            let below = (v + 1 < height).then(|| &z[(v + 1) * width..(v + 2) * width]);
+            for (u, d) in out.iter_mut().enumerate() {
+                let c = row[u];
+                let marked = (u > 0 && is_jump(c, row[u - 1]))
+                    || (u + 1 < width && is_jump(c, row[u + 1]))
+                    || above.is_some_and(|a| is_jump(c, a[u]))
+                    || below.is_some_and(|b| is_jump(c, b[u]));
+                if marked {
+                    *d = 0;
                 }
             }
-        }
+        });
         chamfer_chessboard(&mut distance_px, width, height);
         Self { width, distance_px }
     }
@@ -60,43 +64,41 @@ impl EdgeDistance {
 /// In-place chessboard distance transform: forward pass over the upper-left neighbours, backward
 /// pass over the lower-right ones (`u32::MAX` = no source yet; saturating so it stays so).
 fn chamfer_chessboard(d: &mut [u32], width: usize, height: usize) {
-    let step = |d: &[u32], j: usize| d.get(j).map_or(u32::MAX, |x| x.saturating_add(1));
+    if width == 0 || d.len() < width * height {
+        return;
+    }
+    let d = &mut d[..width * height];
+    // Forward: left neighbour in the row, then the three above.
     for v in 0..height {
-        for u in 0..width {
-            let i = v * width + u;
-            let mut best = d[i];
-            if u > 0 {
-                best = best.min(step(d, i - 1));
+        let (done, rest) = d.split_at_mut(v * width);
+        let row = &mut rest[..width];
+        if v > 0 {
+            let above = &done[(v - 1) * width..];
+            for u in 0..width {
+                let lo = u.saturating_sub(1);
+                let hi = (u + 1).min(width - 1);
+                let best = above[lo].min(above[u]).min(above[hi]).saturating_add(1);
+                row[u] = row[u].min(best);
             }
-            if v > 0 {
-                best = best.min(step(d, i - width));
-                if u > 0 {
-                    best = best.min(step(d, i - width - 1));
-                }
-                if u + 1 < width {
-                    best = best.min(step(d, i - width + 1));
-                }
-            }
-            d[i] = best;
+        }
+        for u in 1..width {
+            row[u] = row[u].min(row[u - 1].saturating_add(1));
         }
     }
+    // Backward: right neighbour in the row, then the three below.
     for v in (0..height).rev() {
-        for u in (0..width).rev() {
-            let i = v * width + u;
-            let mut best = d[i];
-            if u + 1 < width {
-                best = best.min(step(d, i + 1));
+        let (head, below) = d.split_at_mut((v + 1) * width);
+        let row = &mut head[v * width..];
+        if v + 1 < height {
+            for u in 0..width {
+                let lo = u.saturating_sub(1);
+                let hi = (u + 1).min(width - 1);
+                let best = below[lo].min(below[u]).min(below[hi]).saturating_add(1);
+                row[u] = row[u].min(best);
             }
-            if v + 1 < height {
-                best = best.min(step(d, i + width));
-                if u + 1 < width {
-                    best = best.min(step(d, i + width + 1));
-                }
-                if u > 0 {
-                    best = best.min(step(d, i + width - 1));
-                }
-            }
-            d[i] = best;
+        }
+        for u in (0..width - 1).rev() {
+            row[u] = row[u].min(row[u + 1].saturating_add(1));
         }
     }
 }

@@ -219,8 +219,9 @@ pub fn hiking_saliency(
     config: &SaliencyConfig,
 ) -> Saliency {
     let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
-    let integral = IntegralCloud::new(depth, intrinsics);
-    let edges = EdgeDistance::new(depth, if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 });
+    // Both are serial scans of D: side by side.
+    let jump = if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 };
+    let (integral, edges) = rayon::join(|| IntegralCloud::new(depth, intrinsics), || EdgeDistance::new(depth, jump));
     let frame = LabelInput { depth, intrinsics, integral: &integral, edges: &edges, gravity_in_camera, fixation: &fixation, foot_radius_m };
     let pass = |radius_m: f64| label_pixels(&frame, radius_m, config);
     let first = pass(config.fixation_radius_m);

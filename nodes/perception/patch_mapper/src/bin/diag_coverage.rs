@@ -3,6 +3,8 @@
 //! every bad cell of every coverage-rejected patch by cause:
 //!
 //! - `outside`: too many points outside the boundary (eq 16's second clause);
+//! - `beyond the ball`: the boundary's part beyond the neighbourhood's r-ball holds too few of the
+//!   foot column's points (the camera did not see it);
 //! - `inside, sparse`: too few inside, but some (point density below ζ_i·N_e);
 //! - `inside, empty`, by what the camera has where the cell's centre (lifted onto the surface)
 //!   projects: `no depth` (a hole of the sensor: a depth edge's shadow, a dark or shiny surface),
@@ -23,6 +25,7 @@ use std::collections::BTreeMap;
 use anyhow::{Context, Result};
 use patchwalk_fusion::dataset::{test_data_dir, Dataset};
 use patchwalk_mapping::acquire::{gravity_from_dominant_plane, organized_cloud};
+use patchwalk_mapping::foot_column::{foot_column, DEFAULT_MAX_PIXELS};
 use patchwalk_mapping::mapper::{default_volume_from_map, single_frame_volume_from_camera, FrameInput, Mapper, MapperConfig, Verdict};
 use patchwalk_mapping::neighbourhood::{ball_neighbourhood, gather};
 use patchwalk_spl::patch::PatchQuery;
@@ -55,6 +58,7 @@ fn main() -> Result<()> {
     let (mut fitted, mut valid, mut coverage_failed, mut bad_cells, mut cut_at_border) = (0, 0, 0, 0, 0);
     let (mut off_surface_points, mut points_total) = (0usize, 0usize);
     let mut scratch = Vec::new();
+    let mut column = Vec::new();
     for index in (0..dataset.frames.len()).take(max_frames) {
         let depth = dataset.load_depth(index)?;
         let cloud = organized_cloud(&depth, &intrinsics)?;
@@ -93,13 +97,17 @@ fn main() -> Result<()> {
             off_surface_points += points.iter().filter(|q| query.distance(q) > 0.02).count();
             let mut cut = false;
             let ball = patchwalk_spl::validate::SampledBall { centre: outcome.seed.point_in_camera, radius: config.foot_radius_m };
-            let sampled = config.validate.coverage_within_sampled_ball.then_some((&ball, &[][..]));
+            let up = -result.gravity_in_camera.into_inner();
+            foot_column(&filtered, &intrinsics, patch, &up, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, &mut column);
+            let sampled = config.validate.coverage_within_sampled_ball.then_some((&ball, column.as_slice()));
             for cell in coverage_cells(patch, &points, sampled, &config.validate) {
                 if !(cell.too_few_inside || cell.too_many_outside) {
                     continue;
                 }
                 bad_cells += 1;
-                let cause = if cell.too_many_outside {
+                let cause = if cell.too_few_beyond_ball && !cell.too_few_inside && !cell.too_many_outside {
+                    "beyond the ball: too few column points"
+                } else if cell.too_many_outside {
                     "outside"
                 } else if cell.inside > 0 {
                     "inside, sparse"

@@ -400,7 +400,7 @@ impl Mapper {
             &preprocessed.auxiliary_intrinsics,
             &gravity_in_camera,
             config.foot_radius_m,
-            &config.saliency,
+            &seed_saliency_config(config),
         );
         let t_sal = Instant::now();
         // Stage iii.
@@ -502,6 +502,14 @@ impl MapperConfig {
             plane_boundary_j_step5: self.plane_boundary_j_step5,
         }
     }
+}
+
+/// The saliency configuration step 6 runs with: φ_g (step 6.5) is capped by the foothold tilt limit
+/// `validate.tilt_max_deg` when that test is on, since a seed whose surface normal is steeper than the
+/// limit can only fit a patch the tilt test rejects (fitting it costs time and takes the place of a
+/// seed that could stand). With the tilt test off (`ValidateConfig::j33`) φ_g is J's as configured.
+pub fn seed_saliency_config(config: &MapperConfig) -> SaliencyConfig {
+    SaliencyConfig { dong_max_deg: config.saliency.dong_max_deg.min(config.validate.tilt_max_deg), ..config.saliency.clone() }
 }
 
 /// The checks [`Mapper::new`] makes on a configuration.
@@ -723,6 +731,18 @@ mod tests {
         assert!(!coverage_passes(0.045) && !coverage_passes(0.055));
         // J 3.2.1 step 5 for planes: λ√v = 0.98 r here, IROS eq 30: 1.22 r.
         assert!((patchwalk_spl::fit::neighbourhood::plane_boundary_factor(0.95) - 1.96 / 2.4477).abs() < 1e-3);
+    }
+
+    #[test]
+    fn seed_dong_is_capped_by_the_tilt_limit_only_when_the_tilt_test_is_on() {
+        let config = MapperConfig::default();
+        assert!(config.validate.tilt_max_deg < config.saliency.dong_max_deg);
+        assert_eq!(seed_saliency_config(&config).dong_max_deg, config.validate.tilt_max_deg);
+        let j33 = MapperConfig { validate: ValidateConfig::j33(), ..MapperConfig::default() };
+        assert_eq!(seed_saliency_config(&j33), j33.saliency);
+        let loose =
+            MapperConfig { validate: ValidateConfig { tilt_max_deg: 60.0, ..ValidateConfig::default() }, ..MapperConfig::default() };
+        assert_eq!(seed_saliency_config(&loose).dong_max_deg, loose.saliency.dong_max_deg);
     }
 
     /// Camera 0.5 m above a floor, pitched down by 40°, a spherical rock (radius 0.15 m) ahead.

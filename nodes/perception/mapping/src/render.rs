@@ -188,6 +188,7 @@ pub fn label_colour(label: SaliencyLabel) -> [u8; 3] {
         SaliencyLabel::Steep => [40, 120, 255],
         SaliencyLabel::Salient => [230, 20, 20],
         SaliencyLabel::DepthEdge => [200, 0, 200],
+        SaliencyLabel::ImageBorder => [120, 60, 0],
     }
 }
 

@@ -45,8 +45,9 @@ pub struct SaliencyConfig {
     /// ([`crate::depth_edges`]; 0.04: 4 cm at 1 m, above a Kinect-class camera's quantisation step
     /// there and below the side of a 5 cm step seen from 1 m).
     pub depth_edge_jump: f64,
-    /// Share of the foot window (half size `r·f/Z`) that must be free of depth discontinuities
-    /// (1: the whole window; 0 turns the check off, J's step 6 as written).
+    /// Share of the foot window (half size `r·f/Z`) that must be free of depth discontinuities and
+    /// inside the image, so that the foothold is seen whole (1: the whole window; 0 turns both
+    /// checks off, J's step 6 as written).
     pub depth_edge_clearance: f64,
 }
 
@@ -84,6 +85,8 @@ pub enum SaliencyLabel {
     Salient = 5,
     /// A depth discontinuity inside the foot window ([`crate::depth_edges`]).
     DepthEdge = 6,
+    /// The foot window reaches past the image border: the foothold cannot be seen whole.
+    ImageBorder = 7,
 }
 
 /// Result of step 6 on D.
@@ -294,6 +297,11 @@ fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> S
                     *label = SaliencyLabel::DepthEdge;
                     continue;
                 }
+                let to_border = u.min(v).min(width - 1 - u).min(height - 1 - v);
+                if (to_border as f64) < config.depth_edge_clearance * half as f64 {
+                    *label = SaliencyLabel::ImageBorder;
+                    continue;
+                }
                 let half_fine = (half / 2).max(config.min_half_window_px);
                 let (Some(n), Some(n_fine)) = (
                     integral.normal(u, v, half, &point, config.min_support_fraction),
@@ -470,14 +478,35 @@ pub(crate) mod tests {
         assert_eq!(centre, Some(SaliencyLabel::Salient));
         // Off (J's step 6 as written): nothing is a depth edge.
         let off = hiking_saliency(&depth, &intrinsics, &g, r, &SaliencyConfig { depth_edge_clearance: 0.0, ..config });
-        assert_eq!(off.count(SaliencyLabel::DepthEdge), 0);
+        assert_eq!(off.count(SaliencyLabel::DepthEdge) + off.count(SaliencyLabel::ImageBorder), 0);
         // There J's DoN and DoNG drop most windows across the step, but not all: the rest are seeds
-        // whose disc hangs over the edge.
+        // whose disc hangs over the edge or past the image border.
         let extra: Vec<_> = (0..off.labels.len())
             .filter(|&i| off.labels[i] == SaliencyLabel::Salient && saliency.labels[i] != SaliencyLabel::Salient)
             .collect();
         assert!(extra.len() > 50, "{}", extra.len());
-        assert!(extra.iter().all(|&i| saliency.labels[i] == SaliencyLabel::DepthEdge));
+        assert!(extra.iter().all(|&i| matches!(saliency.labels[i], SaliencyLabel::DepthEdge | SaliencyLabel::ImageBorder)));
+    }
+
+    #[test]
+    fn foot_windows_past_the_image_border_are_not_salient() {
+        // A floor 1 m below a camera looking straight down: the foot window's half size is
+        // r·f/Z = 0.05 · 131.25 ≈ 7 pixels.
+        let intrinsics = small_camera();
+        let depth = render(&intrinsics, |p| 1.0 - p.z);
+        let g = gravity_from_vector(Vector3::z()).unwrap();
+        let config = SaliencyConfig { fixation_radius_m: f64::INFINITY, ..Default::default() };
+        let saliency = hiking_saliency(&depth, &intrinsics, &g, 0.05, &config);
+        let half = 7;
+        for (i, &label) in saliency.labels.iter().enumerate() {
+            let (u, v) = (i % 160, i / 160);
+            let to_border = u.min(v).min(159 - u).min(119 - v);
+            let expected = if to_border < half { SaliencyLabel::ImageBorder } else { SaliencyLabel::Salient };
+            assert_eq!(label, expected, "pixel ({u}, {v})");
+        }
+        let off = hiking_saliency(&depth, &intrinsics, &g, 0.05, &SaliencyConfig { depth_edge_clearance: 0.0, ..config });
+        assert_eq!(off.count(SaliencyLabel::ImageBorder), 0);
+        assert!(off.count(SaliencyLabel::Salient) > saliency.count(SaliencyLabel::Salient));
     }
 
     #[test]

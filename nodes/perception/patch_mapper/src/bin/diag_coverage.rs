@@ -18,7 +18,10 @@
 //! patch), and counts the neighbourhood points that lie off the patch surface by more than 2 cm
 //! (points of a second surface in the r-ball inflate N of J eq 17 and with it N_e).
 //!
-//! `cargo run --release -p patch_mapper --bin diag_coverage [-- DATASET] [--config FILE] [--max-frames N]`
+//! `cargo run --release -p patch_mapper --bin diag_coverage [-- DATASET] [--config FILE] [--max-frames N] [--gravity-from-groundtruth]`
+//!
+//! `--gravity-from-groundtruth` takes gravity from the dataset's ground-truth poses (world z up, as
+//! `terrain_sim record` writes them) instead of the dominant plane.
 
 use std::collections::BTreeMap;
 
@@ -35,6 +38,8 @@ fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flag = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
     let input = args.first().filter(|a| !a.starts_with("--")).map_or_else(|| test_data_dir().join("tum_fr1_xyz"), Into::into);
+    // A simulator's dataset (terrain_sim record): gravity from the ground-truth pose (world z up).
+    let from_groundtruth = args.iter().any(|a| a == "--gravity-from-groundtruth");
     let max_frames: usize = flag("--max-frames").map(|s| s.parse()).transpose().context("--max-frames N")?.unwrap_or(usize::MAX);
     let config = match flag("--config") {
         Some(path) => {
@@ -62,7 +67,12 @@ fn main() -> Result<()> {
     for index in (0..dataset.frames.len()).take(max_frames) {
         let depth = dataset.load_depth(index)?;
         let cloud = organized_cloud(&depth, &intrinsics)?;
-        let gravity = gravity_from_dominant_plane(&cloud, 0.02, index as u64).context("no dominant plane")?;
+        let gravity = if from_groundtruth {
+            let pose = dataset.groundtruth_near(dataset.frames[index].timestamp, 0.05).context("no ground-truth pose near the frame")?;
+            nalgebra::Unit::new_normalize(pose.world_from_camera.inverse().rotation * -nalgebra::Vector3::z())
+        } else {
+            gravity_from_dominant_plane(&cloud, 0.02, index as u64).context("no dominant plane")?
+        };
         let volume_from_camera = single_frame_volume_from_camera(&gravity, config.volume_edge_m);
         let mut mapper = Mapper::new(config.clone(), "camera_optical", default_volume_from_map())?;
         let result = mapper.process(&FrameInput { depth: &depth, intrinsics: &intrinsics, volume_from_camera, timestamp: 0.0 })?;

@@ -2,7 +2,7 @@
 //! raycast) to a map of validated foothold patches around the robot.
 //!
 //! Stages in the order of J 3.2: [`acquire`] (organized cloud, gravity) → [`preprocess`]
-//! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1, with [`depth_edges`] keeping foot windows off depth discontinuities) → [`seeds`] (J 3.2.1
+//! (bilateral filter, normals) → [`saliency`] (hiking saliency, J 3.1, with [`depth_edges`] keeping foot windows off depth discontinuities and [`window_flatness`] off steps and bumps) → [`seeds`] (J 3.2.1
 //! steps 1–10) → [`neighbourhood`] (r-balls, nf subsets) → fit and validate (the Surface Patch
 //! Library; [`foot_column`] gathers the foot disc's terrain for its edge test) → [`patch_map`] (J 4.6),
 //! [`patch_fusion`] (re-observed patches fused with their Σ) and [`patch_tracking`] (J 5.2). [`mapper`] runs one frame,
@@ -26,3 +26,4 @@ pub mod render;
 pub mod rig;
 pub mod saliency;
 pub mod seeds;
+pub mod window_flatness;

@@ -189,6 +189,7 @@ pub fn label_colour(label: SaliencyLabel) -> [u8; 3] {
         SaliencyLabel::Salient => [230, 20, 20],
         SaliencyLabel::DepthEdge => [200, 0, 200],
         SaliencyLabel::ImageBorder => [120, 60, 0],
+        SaliencyLabel::Uneven => [255, 220, 0],
     }
 }
 

@@ -8,7 +8,9 @@
 //! - 6.5 DoNG: drop i when `−N(i)ᵀĝ < cos φ_g`;
 //!
 //! and, before the normals, drop i when a depth discontinuity lies inside its foot window
-//! ([`crate::depth_edges`]): the foot disc would span two surfaces and the box normals mix them.
+//! ([`crate::depth_edges`]): the foot disc would span two surfaces and the box normals mix them;
+//! when the window reaches past the image border (the foothold is not seen whole); and after them
+//! when the window's points spread off their plane ([`crate::window_flatness`]: a step or a bump).
 //!
 //! The output is a per-pixel label image of D (so the cloud stays organized), the coarse normals,
 //! and the sampled surface area S of the salient set (used by the ν termination of J eq 19).
@@ -19,6 +21,7 @@ use rayon::prelude::*;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 
 use crate::depth_edges::EdgeDistance;
+use crate::window_flatness::{summed_area_table, WindowMoments};
 
 /// Configuration of step 6. Defaults from J 6.1.2 / Table 3 ("auto" = human mean + 3σ).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -49,6 +52,12 @@ pub struct SaliencyConfig {
     /// inside the image, so that the foothold is seen whole (1: the whole window; 0 turns both
     /// checks off, J's step 6 as written).
     pub depth_edge_clearance: f64,
+    /// Largest RMS distance (m) of the foot window's points from the plane through their mean
+    /// along the coarse normal N ([`crate::window_flatness`]): a window spread further holds a step
+    /// or a bump a foot disc cannot stand on (a paraboloid at J's κ_max = 19.7 m⁻¹ over r = 5 cm
+    /// spreads 7 mm; a 2 cm step through the window's middle, 1 cm). Infinite turns the check off,
+    /// J's step 6 as written.
+    pub window_rms_max_m: f64,
 }
 
 impl Default for SaliencyConfig {
@@ -63,6 +72,7 @@ impl Default for SaliencyConfig {
             min_support_fraction: 0.25,
             depth_edge_jump: 0.04,
             depth_edge_clearance: 1.0,
+            window_rms_max_m: 0.005,
         }
     }
 }
@@ -87,6 +97,9 @@ pub enum SaliencyLabel {
     DepthEdge = 6,
     /// The foot window reaches past the image border: the foothold cannot be seen whole.
     ImageBorder = 7,
+    /// The foot window's points spread too far off their plane (`window_rms_max_m`): a step or a
+    /// bump under the foot.
+    Uneven = 8,
 }
 
 /// Result of step 6 on D.
@@ -136,37 +149,10 @@ pub struct IntegralCloud {
 }
 
 impl IntegralCloud {
-    /// Builds the sums from D and its intrinsics (points back-projected on the fly). The
-    /// per-row prefix sums run in parallel; each table entry is then `above + row prefix`, the
-    /// same additions in the same order as a single sequential pass.
+    /// Builds the sums from D and its intrinsics (points back-projected on the fly).
     pub fn new(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
-        let (width, height) = (depth.width, depth.height);
-        let stride = width + 1;
-        let mut sums = vec![[0.0f64; 4]; stride * (height + 1)];
-        // Row prefix sums into rows 1..=height.
-        sums.par_chunks_mut(stride).skip(1).zip(depth.depth_m.par_chunks(width.max(1))).enumerate().for_each(|(v, (out, src))| {
-            let mut row = [0.0f64; 4];
-            for (u, (o, &z)) in out.iter_mut().skip(1).zip(src).enumerate() {
-                let z = f64::from(z);
-                if z.is_finite() {
-                    let p = intrinsics.back_project(u as f64, v as f64, z);
-                    row[0] += p.x;
-                    row[1] += p.y;
-                    row[2] += p.z;
-                    row[3] += 1.0;
-                }
-                *o = row;
-            }
-        });
-        // Column accumulation, row by row (vectorised adds).
-        for v in 1..height {
-            let (done, rest) = sums.split_at_mut((v + 1) * stride);
-            let (above, row) = (&done[v * stride..], &mut rest[..stride]);
-            for (r, a) in row.iter_mut().zip(above) {
-                *r = [a[0] + r[0], a[1] + r[1], a[2] + r[2], a[3] + r[3]];
-            }
-        }
-        Self { width, height, sums }
+        let sums = summed_area_table(depth, intrinsics, |p| [p.x, p.y, p.z, 1.0]);
+        Self { width: depth.width, height: depth.height, sums }
     }
 
     /// The four half-window box sums of [`IntegralCloud::normal`] at `(u, v)`: `[right, left,
@@ -224,8 +210,20 @@ pub fn hiking_saliency(
     let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
     // Both are serial scans of D: side by side.
     let jump = if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 };
-    let (integral, edges) = rayon::join(|| IntegralCloud::new(depth, intrinsics), || EdgeDistance::new(depth, jump));
-    let frame = LabelInput { depth, intrinsics, integral: &integral, edges: &edges, gravity_in_camera, fixation: &fixation, foot_radius_m };
+    let ((integral, edges), moments) = rayon::join(
+        || rayon::join(|| IntegralCloud::new(depth, intrinsics), || EdgeDistance::new(depth, jump)),
+        || config.window_rms_max_m.is_finite().then(|| WindowMoments::new(depth, intrinsics)),
+    );
+    let frame = LabelInput {
+        depth,
+        intrinsics,
+        integral: &integral,
+        edges: &edges,
+        moments: moments.as_ref(),
+        gravity_in_camera,
+        fixation: &fixation,
+        foot_radius_m,
+    };
     let pass = |radius_m: f64| label_pixels(&frame, radius_m, config);
     let first = pass(config.fixation_radius_m);
     if !config.fixation_radius_m.is_finite() || first.count(SaliencyLabel::Salient) > 0 || first.count(SaliencyLabel::Distant) == 0 {
@@ -235,13 +233,15 @@ pub fn hiking_saliency(
     let in_ball = valid - first.count(SaliencyLabel::Distant);
     let reason = format!(
         "no salient point within R = {:.2} m of the fixation point ({:.2} m down, {:.2} m ahead): {in_ball} of {valid} valid points in the ball \
-         ({} steep, {} irregular, {} beside a depth edge, {} without a normal); saliency ran without DtFP",
+         ({} steep, {} irregular, {} uneven, {} beside a depth edge, {} at the image border, {} without a normal); saliency ran without DtFP",
         config.fixation_radius_m,
         config.fixation_down_m,
         config.fixation_forward_m,
         first.count(SaliencyLabel::Steep),
         first.count(SaliencyLabel::Irregular),
+        first.count(SaliencyLabel::Uneven),
         first.count(SaliencyLabel::DepthEdge),
+        first.count(SaliencyLabel::ImageBorder),
         first.count(SaliencyLabel::NoNormal),
     );
     let mut fallback = pass(f64::INFINITY);
@@ -256,6 +256,7 @@ struct LabelInput<'a> {
     intrinsics: &'a Intrinsics,
     integral: &'a IntegralCloud,
     edges: &'a EdgeDistance,
+    moments: Option<&'a WindowMoments>,
     gravity_in_camera: &'a Unit<Vector3<f64>>,
     fixation: &'a Vector3<f64>,
     foot_radius_m: f64,
@@ -264,7 +265,7 @@ struct LabelInput<'a> {
 /// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest), and the
 /// depth-discontinuity check of the foot window before the normals.
 fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> Saliency {
-    let LabelInput { depth, intrinsics, integral, edges, gravity_in_camera, fixation, foot_radius_m } = *frame;
+    let LabelInput { depth, intrinsics, integral, edges, moments, gravity_in_camera, fixation, foot_radius_m } = *frame;
     let (width, height) = (depth.width, depth.height);
     let radius_sq = if radius_m.is_finite() { radius_m.powi(2) } else { f64::INFINITY };
     let cos_don = config.don_max_deg.to_radians().cos();
@@ -315,6 +316,11 @@ fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> S
                     SaliencyLabel::Irregular // 6.4 DoN
                 } else if -n.dot(&g) < cos_dong {
                     SaliencyLabel::Steep // 6.5 DoNG
+                } else if moments
+                    .and_then(|m| m.rms_off_plane(u, v, half, &n, config.min_support_fraction * ((2 * half + 1) as f64).powi(2)))
+                    .is_some_and(|rms| rms > config.window_rms_max_m)
+                {
+                    SaliencyLabel::Uneven
                 } else {
                     let cos_view = (n.dot(&point) / point.norm()).abs().max(0.1);
                     area += z * z * pixel_area_per_z2 / cos_view;

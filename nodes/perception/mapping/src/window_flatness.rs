@@ -80,7 +80,7 @@ impl WindowMoments {
         let (a, b, c, d) = (at(v1, u1), at(v1, u0), at(v0, u1), at(v0, u0));
         let s: [f64; 10] = std::array::from_fn(|i| a[i] - b[i] - c[i] + d[i]);
         let n = s[3];
-        if !(n >= min_points.max(3.0)) {
+        if n.is_nan() || n < min_points.max(3.0) {
             return None;
         }
         let mean = Vector3::new(s[0], s[1], s[2]) / n;

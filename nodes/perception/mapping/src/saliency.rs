@@ -262,8 +262,9 @@ struct LabelInput<'a> {
     foot_radius_m: f64,
 }
 
-/// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest), and the
-/// depth-discontinuity check of the foot window before the normals.
+/// Steps 6.2–6.5 with DtFP radius `radius_m` (non-finite: no region of interest), the foot
+/// window's depth-discontinuity and image-border checks before the normals and its flatness check
+/// after them.
 fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> Saliency {
     let LabelInput { depth, intrinsics, integral, edges, moments, gravity_in_camera, fixation, foot_radius_m } = *frame;
     let (width, height) = (depth.width, depth.height);

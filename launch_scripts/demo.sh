@@ -135,8 +135,11 @@ if available step_executor sim-bus; then
     if forget_if_dead sim_bus; then
         if [ -n "$PTY" ]; then
             echo "simulated MX-28 chain on $PTY"
-            # The simulated chain is a user process behind a pty: allow 500 ms per answer (RS-485: 34).
-            EXECUTOR_ARGS+=(--param "bus.port=$PTY" --param "bus.response_timeout_ms=500")
+            # The simulated chain is a user process behind a pty, sharing the CPU with the simulator and
+            # the mapper: allow 500 ms per answer (RS-485: 34), and call it too slow only after 25 late
+            # cycles in a row or below 20 % of the cycle rate (a real bus: 5 cycles, 50 %).
+            EXECUTOR_ARGS+=(--param "bus.port=$PTY" --param "bus.response_timeout_ms=500"
+                --param "bus.slow_bus.consecutive_misses=25" --param "bus.slow_bus.min_rate_percent=20")
         else
             echo "sim_bus printed no pty path (log: $RUN_DIR/sim_bus.log); step_executor runs without a bus"
         fi

@@ -50,7 +50,7 @@ from typing import Callable, IO, Optional
 
 import numpy as np
 
-from experiment_robot import (JOINTS, REPO, SERVO_ID, SIM_MAPPER_CONFIG, SURFACE_NAMES, Rock, load_scene,  # noqa: F401
+from experiment_robot import (JOINTS, REPO, SERVO_ID, SIM_BUS_PARAMS, SIM_MAPPER_CONFIG, SURFACE_NAMES, Rock, load_scene,  # noqa: F401
                               patch_normal, stepping_motion, ticks_from_rad)
 
 sys.path.insert(0, str(REPO / "tests"))
@@ -338,6 +338,23 @@ class Experiment:
         count = self.joints.count
         self.joints.wait(lambda _: self.joints.count > count + 2, 5.0, "joint_states after the hand pose")
 
+    def record_pose(self, pose: dict[str, float], move_s: float, pause_s: float) -> None:
+        """Pose by hand and record the keyframe. A bus fault latched in between (the executor then refuses
+        to record positions that are not current) is cleared as while posing: torque off, pose again."""
+        from patchwalk_msgs.srv import RecordKeyframe
+        for attempt in range(3):
+            self.pose_by_hand(pose)
+            response = self.services.call(RecordKeyframe, "/step_executor/record_keyframe",
+                                          RecordKeyframe.Request(duration=move_s, pause=pause_s))
+            if response.success:
+                return
+            problem = f"/step_executor/record_keyframe: {response.message}"
+            if "positions not current" not in response.message or attempt == 2:
+                raise RuntimeError(problem)
+            self.faults.append(problem)
+            self.log(f"  recording again after a bus fault: {problem}")
+            self.set_torque(False)
+
     @staticmethod
     def _close_to(msg, target: list[float], tol: float = 0.01) -> bool:
         order = {n: i for i, n in enumerate(msg.name)}
@@ -377,7 +394,7 @@ class Experiment:
     # -- training (J 6.3 "Foot Placement Training") ------------------------------------------------------
 
     def train(self, rock: Rock) -> str:
-        from patchwalk_msgs.srv import RecordKeyframe, SaveMotion, SelectTarget
+        from patchwalk_msgs.srv import SaveMotion, SelectTarget
 
         name = rock.name
         self.arm(False)
@@ -416,9 +433,7 @@ class Experiment:
         order = sum(r.trained for r in self.rocks[: rock.index])
         keyframes = stepping_motion(np.array(target.center), patch_normal(target), 0.03 + 0.01 * order, 1.0 + 0.15 * order)
         for pose, move_s, pause_s in keyframes:
-            self.pose_by_hand(pose)
-            self._call(RecordKeyframe, "/step_executor/record_keyframe",
-                       RecordKeyframe.Request(duration=move_s, pause=pause_s))
+            self.record_pose(pose, move_s, pause_s)
         self._call(SaveMotion, "/step_executor/save_motion", SaveMotion.Request(name=name))
         self.trained_targets[name] = target
         self.training_snapshots[name] = (self.patches.msg, self.cloud.msg)

@@ -59,6 +59,13 @@ AS_DEG = 20.0
 # patch_mapper's configuration for the simulated rig (terrain_sim's IMU mount).
 SIM_MAPPER_CONFIG = REPO / "config" / "patch_mapper_sim.yaml"
 
+# step_executor's bus settings for the simulated chain (`step_executor sim-bus`), as launch_scripts/demo.sh
+# passes them: a user process behind a pty, sharing the CPU with the simulator and the mapper, gets 500 ms per
+# answer (RS-485: 34) and is too slow only after 25 late cycles in a row or below 20 % of the cycle rate (a real
+# bus: 5 cycles, 50 %).
+SIM_BUS_PARAMS = ["--param", "bus.response_timeout_ms=500", "--param", "bus.slow_bus.consecutive_misses=25",
+                  "--param", "bus.slow_bus.min_rate_percent=20"]
+
 SURFACE_NAMES = ["elliptic_paraboloid", "hyperbolic_paraboloid", "cylindric_paraboloid", "circular_paraboloid",
                  "plane", "sphere", "circular_cylinder"]
 

@@ -252,7 +252,7 @@ def main() -> int:
         processes["patch_mapper"] = pw.NodeProcess("patch_mapper", ["run", "--config", str(ex.SIM_MAPPER_CONFIG)], env, args.out)
         harness.wait_for_nodes("/patch_mapper", timeout=60)
         processes["step_executor"] = pw.NodeProcess(
-            "step_executor", ["run", "--param", f"bus.port={pty}", "--param", "bus.response_timeout_ms=500",
+            "step_executor", ["run", "--param", f"bus.port={pty}", *ex.SIM_BUS_PARAMS,
                               "--param", f"library_path={args.out / 'motions.yaml'}", "--param", "ros.status_rate_hz=20"],
             env, args.out)
         harness.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor", timeout=60)

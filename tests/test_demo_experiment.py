@@ -35,8 +35,8 @@ def test_four_rock_experiment_matches_every_trained_rock_and_nothing_else(ros, s
         ros.wait_for_nodes("/terrain_sim", timeout=60)
         start_node("patch_mapper", "--config", str(ex.SIM_MAPPER_CONFIG))
         ros.wait_for_nodes("/patch_mapper", timeout=60)
-        # A pty served by a user process on a loaded host: 500 ms per answer (the RS-485 default is 34).
-        executor = start_node("step_executor", "--param", f"bus.port={pty}", "--param", "bus.response_timeout_ms=500",
+        # A pty served by a user process on a loaded host: the demo's simulated-bus settings.
+        executor = start_node("step_executor", "--param", f"bus.port={pty}", *ex.SIM_BUS_PARAMS,
                               "--param", f"library_path={log_dir / 'motions.yaml'}",
                               "--param", "ros.status_rate_hz=20")
         ros.wait_for_nodes("/terrain_sim", "/patch_mapper", "/step_executor", timeout=60)

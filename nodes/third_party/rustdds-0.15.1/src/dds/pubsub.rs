@@ -537,7 +537,7 @@ impl InnerPublisher {
       }
       _ => resource_max.unwrap_or(DEFAULT_WRITER_MAX_SAMPLES),
     };
-    let send_buffer = WriterSendBuffer::new(
+    let mut send_buffer = WriterSendBuffer::new(
       guid,
       topic.name(),
       writer_qos.is_reliable(),
@@ -546,6 +546,9 @@ impl InnerPublisher {
       backlog_limit,
       max_retain,
     );
+    if let Some(policy::History::KeepLast { .. }) = writer_qos.history() {
+      send_buffer = send_buffer.keep_last();
+    }
     // Doorbell: enqueue this writer's entity id and wake the participant poll.
     let doorbell = Doorbell::new(guid.entity_id, self.writer_ready.clone());
 

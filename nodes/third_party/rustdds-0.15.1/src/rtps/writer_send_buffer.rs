@@ -83,6 +83,14 @@ struct Shared {
   writer_guid: GUID,
   reliable_writer: bool,
   is_builtin: bool,
+  // HISTORY KEEP_LAST (DDS 1.4 2.2.3.18): a reliable write never waits for
+  // acknowledgements; samples beyond the depth (`max_retain`) are dropped oldest
+  // first, acknowledged or not, and a reader that still needs one is sent a GAP.
+  // Only KEEP_ALL writers are throttled by the acknowledgement window. Without
+  // this, one matched reader that stops acknowledging (a wedged process before
+  // its lease ends, a reader behind a lossy link) blocked every write of the
+  // writer for `max_blocking_time` once the window filled.
+  keep_last: bool,
   topic_name: String,
 }
 
@@ -129,9 +137,20 @@ impl WriterSendBuffer {
         writer_guid,
         reliable_writer,
         is_builtin,
+        keep_last: false,
         topic_name,
       }),
     }
+  }
+
+  /// Marks the buffer as a HISTORY KEEP_LAST writer's (see `Shared::keep_last`):
+  /// writes are not throttled by unacknowledged samples and at most `max_retain`
+  /// samples are kept. Call before the buffer is shared.
+  pub fn keep_last(mut self) -> Self {
+    if let Some(shared) = Arc::get_mut(&mut self.shared) {
+      shared.keep_last = true;
+    }
+    self
   }
 
   // --- predicates (must be called while holding the lock) ---
@@ -163,9 +182,10 @@ impl WriterSendBuffer {
       return false;
     }
 
-    if !shared.reliable_writer || !inner.reliable_readers_present {
-      // Best-effort and "no reliable reader yet" writers have no acknowledgement
-      // window to wait on; the backlog limit above is their only throttle.
+    if !shared.reliable_writer || !inner.reliable_readers_present || shared.keep_last {
+      // Best-effort, "no reliable reader yet" and KeepLast writers have no
+      // acknowledgement window to wait on; the backlog limit above is their only
+      // throttle.
       return true;
     }
     // Number of unacknowledged samples in [acked_before, last_seq].
@@ -285,7 +305,9 @@ impl WriterSendBuffer {
     //    again for repair.
     // Built-in (discovery) writers are always exempt to never lose discovery data.
     let trim_keep_last = !shared.is_builtin
-      && (!may_block || (shared.reliable_writer && !inner.reliable_readers_present));
+      && (!may_block
+        || shared.keep_last
+        || (shared.reliable_writer && !inner.reliable_readers_present));
     if trim_keep_last {
       while inner.changes.len() > inner.max_retain {
         // BTreeMap keeps keys sorted, so the first entry is the oldest SN.
@@ -652,5 +674,48 @@ mod tests {
       assert!(admit_now(&buf, WriteOptions::default()));
     }
     assert_eq!(buf.retained_len(), max_retain + 10);
+  }
+
+  // A KeepLast reliable writer is not throttled by a matched reader that never
+  // acknowledges: writes go on at once, the buffer keeps the newest `depth`
+  // samples (older ones, acknowledged or not, are dropped for a GAP), while a
+  // KeepAll writer with the same window blocks once the window is full.
+  #[test]
+  fn keep_last_reliable_writer_is_not_throttled_by_a_silent_reader() {
+    let make = || {
+      WriterSendBuffer::new(
+        GUID::GUID_UNKNOWN,
+        "t".to_string(),
+        /* reliable_writer */ true,
+        /* is_builtin */ false,
+        /* window_limit */ 8,
+        /* backlog_limit */ 1000,
+        /* max_retain */ 4,
+      )
+    };
+    let keep_last = make().keep_last();
+    let keep_all = make();
+    for buf in [&keep_last, &keep_all] {
+      // A reader matched that never sends an ACKNACK.
+      buf.set_acked_frontier(Some(SequenceNumber::zero()));
+    }
+    for n in 1..=100 {
+      assert!(admit_now(&keep_last, WriteOptions::default()), "write {n}");
+      // The Writer transmits as it goes (the unsent backlog stays empty).
+      keep_last.set_sent_frontier(SequenceNumber::new(n));
+    }
+    assert_eq!(keep_last.retained_len(), 4);
+    assert_eq!(
+      keep_last.first_change_sequence_number(),
+      SequenceNumber::new(97)
+    );
+    assert_eq!(
+      keep_last.last_change_sequence_number(),
+      SequenceNumber::new(100)
+    );
+    let admitted = (0..20)
+      .take_while(|_| admit_now(&keep_all, WriteOptions::default()))
+      .count();
+    assert_eq!(admitted, 8, "KeepAll: blocked once the window of 8 is full");
   }
 }

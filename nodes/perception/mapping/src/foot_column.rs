@@ -9,11 +9,13 @@
 //! the eight projected corners, and only that rectangle is scanned. Each pixel's point is then tested
 //! against the column. Large rectangles (a column seen along its axis from close by) are scanned on
 //! a regular sub-grid of at most `max_pixels` pixels, which keeps the point density uniform.
+//! The same scan gives the visibility test (`patchwalk_spl::validate::visibility`) its pixels: the
+//! disc lies inside the column, so every pixel whose ray enters it lies in the rectangle.
 
 use nalgebra::Vector3;
 use patchwalk_fusion::camera::Intrinsics;
 use patchwalk_spl::patch::Patch;
-use patchwalk_spl::validate::FootColumn;
+use patchwalk_spl::validate::{DiscView, FootColumn};
 
 use crate::acquire::OrganizedCloud;
 
@@ -31,6 +33,36 @@ pub fn foot_column(
     half_height_m: f64,
     max_pixels: usize,
     out: &mut Vec<Vector3<f64>>,
+) {
+    scan_column(cloud, intrinsics, patch, up, half_height_m, max_pixels, out, None);
+}
+
+/// [`foot_column`], and every scanned pixel's ray and depth added to `view` (the disc lies inside the
+/// column, so its image inside the scanned rectangle): what the camera measured over the foot disc.
+#[allow(clippy::too_many_arguments)]
+pub fn foot_column_and_view(
+    cloud: &OrganizedCloud,
+    intrinsics: &Intrinsics,
+    patch: &Patch,
+    up: &Vector3<f64>,
+    half_height_m: f64,
+    max_pixels: usize,
+    out: &mut Vec<Vector3<f64>>,
+    view: &mut DiscView,
+) {
+    scan_column(cloud, intrinsics, patch, up, half_height_m, max_pixels, out, Some(view));
+}
+
+#[allow(clippy::too_many_arguments)]
+fn scan_column(
+    cloud: &OrganizedCloud,
+    intrinsics: &Intrinsics,
+    patch: &Patch,
+    up: &Vector3<f64>,
+    half_height_m: f64,
+    max_pixels: usize,
+    out: &mut Vec<Vector3<f64>>,
+    mut view: Option<&mut DiscView>,
 ) {
     out.clear();
     if !(half_height_m.is_finite() && half_height_m >= 0.0 && patch.boundary_half_extents().iter().all(|v| v.is_finite())) {
@@ -70,6 +102,10 @@ pub fn foot_column(
         for u in (u0..=u1).step_by(stride) {
             let Some(p) = cloud.points_in_camera.get(v * cloud.width + u) else { continue };
             let p = p.cast::<f64>();
+            if let Some(view) = view.as_deref_mut() {
+                let ray = Vector3::new((u as f64 - intrinsics.cx) / intrinsics.fx, (v as f64 - intrinsics.cy) / intrinsics.fy, 1.0);
+                view.add(&Vector3::zeros(), &ray, Some(p.z));
+            }
             if column.local_if_inside(&p).is_some() {
                 out.push(p);
             }

@@ -16,7 +16,7 @@ use rand::{rngs::StdRng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
-use crate::foot_column::{foot_column, DEFAULT_MAX_PIXELS};
+use crate::foot_column::{foot_column, foot_column_and_view, DEFAULT_MAX_PIXELS};
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
 use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobserved};
 use crate::patch_map::{PatchMap, VolumeGrid};
@@ -29,7 +29,7 @@ use patchwalk_spl::fit::FitConfig;
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::sensor::ErrorModel;
 use patchwalk_spl::transform::transform_patch;
-use patchwalk_spl::validate::{validate_foothold, Foothold, SampledBall, ValidateConfig, Validation};
+use patchwalk_spl::validate::{validate_foothold, DiscView, Foothold, SampledBall, ValidateConfig, Validation};
 
 /// Configuration of the whole mapper; every default is J's value (see each stage's struct).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -129,6 +129,9 @@ pub enum Verdict {
     Tilt,
     /// The terrain inside the foot disc lies off the surface (an edge or fold under the foot).
     Edge,
+    /// Too much of the foot disc was not seen by the camera (no depth, or free space or an occluder
+    /// where the surface should be).
+    Unseen,
     /// Fewer neighbourhood points than `neighbourhood.min_points`.
     TooFewPoints,
     /// The fit failed (message of the patch core's error).
@@ -139,7 +142,7 @@ pub enum Verdict {
 
 impl Verdict {
     /// Short name for reports and JSON (`valid`, `residual`, `coverage`, `curvature`, `tilt`,
-    /// `edge`, `too_few_points`, `fit_failed`, `skipped`).
+    /// `edge`, `unseen`, `too_few_points`, `fit_failed`, `skipped`).
     pub fn name(&self) -> &'static str {
         match self {
             Verdict::Valid { .. } => "valid",
@@ -148,6 +151,7 @@ impl Verdict {
             Verdict::Curvature => "curvature",
             Verdict::Tilt => "tilt",
             Verdict::Edge => "edge",
+            Verdict::Unseen => "unseen",
             Verdict::TooFewPoints => "too_few_points",
             Verdict::FitFailed(_) => "fit_failed",
             Verdict::Skipped => "skipped",
@@ -155,7 +159,7 @@ impl Verdict {
     }
 
     /// The verdict of a validated patch: the first failed test in J's order (steps 14–16), then
-    /// the foothold tests (tilt, edge), or valid (with the placeholder id `u64::MAX` until the patch
+    /// the foothold tests (tilt, edge, unseen), or valid (with the placeholder id `u64::MAX` until the patch
     /// map assigns one).
     pub fn from_validation(validation: &Validation) -> Self {
         if !validation.residual.passed {
@@ -168,6 +172,8 @@ impl Verdict {
             Verdict::Tilt
         } else if !validation.edge_ok() {
             Verdict::Edge
+        } else if !validation.unseen_ok() {
+            Verdict::Unseen
         } else {
             Verdict::Valid { id: u64::MAX }
         }
@@ -263,12 +269,13 @@ impl FrameResult {
                 Verdict::Curvature => s.curvature += 1,
                 Verdict::Tilt => s.tilt += 1,
                 Verdict::Edge => s.edge += 1,
+                Verdict::Unseen => s.unseen += 1,
                 Verdict::TooFewPoints | Verdict::FitFailed(_) => s.failed += 1,
                 Verdict::Skipped => s.skipped += 1,
             }
         }
         s.seeds = self.outcomes.len();
-        s.fitted = s.valid + s.residual + s.coverage + s.curvature + s.tilt + s.edge;
+        s.fitted = s.valid + s.residual + s.coverage + s.curvature + s.tilt + s.edge + s.unseen;
         s.fusion.revisited = self.revisited.len();
         for fused in self.revisited.iter().filter_map(|r| r.fused.as_ref()) {
             s.fusion.count(fused);
@@ -291,6 +298,8 @@ pub struct FrameSummary {
     pub tilt: usize,
     /// An edge or fold under the foot disc (`validate.edge_max_offset_m`).
     pub edge: usize,
+    /// Too much of the foot disc unseen (`validate.unseen_max_fraction`).
+    pub unseen: usize,
     /// Fit errors and too-small neighbourhoods.
     pub failed: usize,
     pub skipped: usize,
@@ -313,6 +322,7 @@ impl FrameSummary {
         self.curvature += other.curvature;
         self.tilt += other.tilt;
         self.edge += other.edge;
+        self.unseen += other.unseen;
         self.failed += other.failed;
         self.skipped += other.skipped;
         self.residual_sum_m += other.residual_sum_m;
@@ -667,11 +677,17 @@ fn process_seed(
         Ok(patch) => {
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
-            if config.validate.edge_max_offset_m < f64::INFINITY {
-                foot_column(cloud, intrinsics, &patch, up_in_camera, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, column);
+            let half_height = config.validate.edge_column_height_m;
+            let mut view = None;
+            if config.validate.unseen_max_fraction < f64::INFINITY {
+                let mut disc = DiscView::new(&patch, config.validate.edge_max_offset_m);
+                foot_column_and_view(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column, &mut disc);
+                view = Some(disc);
+            } else if config.validate.edge_max_offset_m < f64::INFINITY {
+                foot_column(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column);
             }
             let sampled = SampledBall { centre: seed.point_in_camera, radius: config.foot_radius_m };
-            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled) };
+            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled), view };
             let validation = validate_foothold(&patch, &validation_points, &foothold, &config.validate);
             outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);

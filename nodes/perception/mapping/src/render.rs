@@ -37,6 +37,8 @@ pub const COVERAGE: [u8; 3] = [30, 200, 60];
 pub const TILT: [u8; 3] = [255, 140, 0];
 /// Failed the edge test (beyond J Fig. 6): cyan.
 pub const EDGE: [u8; 3] = [0, 200, 230];
+/// Failed the visibility test (beyond J Fig. 6): grey.
+pub const UNSEEN: [u8; 3] = [150, 150, 150];
 
 impl Rgb {
     /// Depth as grey levels (near = bright), invalid black.
@@ -133,6 +135,7 @@ pub fn verdict_colour(verdict: &Verdict) -> Option<[u8; 3]> {
         Verdict::Coverage => Some(COVERAGE),
         Verdict::Tilt => Some(TILT),
         Verdict::Edge => Some(EDGE),
+        Verdict::Unseen => Some(UNSEEN),
         Verdict::TooFewPoints | Verdict::FitFailed(_) | Verdict::Skipped => None,
     }
 }

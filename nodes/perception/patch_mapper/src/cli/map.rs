@@ -334,7 +334,7 @@ fn write_patches(out: &mut impl Write, frame: usize, timestamp: f64, result: &Fr
         let Some(patch) = &outcome.patch_in_camera else { continue };
         let id = match &outcome.verdict {
             Verdict::Valid { id } => Some(*id),
-            Verdict::Residual | Verdict::Coverage | Verdict::Curvature | Verdict::Tilt | Verdict::Edge => None,
+            Verdict::Residual | Verdict::Coverage | Verdict::Curvature | Verdict::Tilt | Verdict::Edge | Verdict::Unseen => None,
             _ => continue,
         };
         let line = PatchLine {
@@ -371,7 +371,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
         );
     }
     println!(
-        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>8} {:>9} {:>7} {:>7} {:>8}",
+        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>11} {:>6} {:>8} {:>9} {:>7} {:>7} {:>8}",
         "frame",
         "seeds",
         "total",
@@ -381,6 +381,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
         "drop:curv",
         "drop:tilt",
         "drop:edge",
+        "drop:unseen",
         "failed",
         "avg res",
         "area",
@@ -397,7 +398,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
         times.fit_stage_ms += t.fit_stage_ms;
         if rows.len() <= 40 {
             println!(
-                "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
+                "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>11} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
                 index,
                 s.seeds,
                 s.fitted,
@@ -407,6 +408,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
                 s.curvature,
                 s.tilt,
                 s.edge,
+                s.unseen,
                 s.failed,
                 s.mean_residual_m() * 1e3,
                 s.area_m2,
@@ -418,7 +420,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
     }
     let n = rows.len().max(1) as f64;
     println!(
-        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
+        "{:>6} {:>6} {:>6} {:>6} {:>8} {:>8} {:>9} {:>9} {:>9} {:>11} {:>6} {:>6.2}mm {:>7.4}m² {:>7.1} {:>7.1} {:>8.1}",
         "total",
         total.seeds,
         total.fitted,
@@ -428,6 +430,7 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
         total.curvature,
         total.tilt,
         total.edge,
+        total.unseen,
         total.failed,
         total.mean_residual_m() * 1e3,
         total.area_m2,
@@ -437,13 +440,14 @@ fn print_table(args: &MapArgs, source: &str, rows: &[FrameRow]) {
     );
     if total.fitted > 0 {
         println!(
-            "valid {:.0} %; dropped by residual {:.0} %, coverage {:.0} %, curvature {:.0} %, tilt {:.0} %, edge {:.0} % (times: per-frame means)",
+            "valid {:.0} %; dropped by residual {:.0} %, coverage {:.0} %, curvature {:.0} %, tilt {:.0} %, edge {:.0} %, unseen {:.0} % (times: per-frame means)",
             100.0 * total.valid as f64 / total.fitted as f64,
             100.0 * total.residual as f64 / total.fitted as f64,
             100.0 * total.coverage as f64 / total.fitted as f64,
             100.0 * total.curvature as f64 / total.fitted as f64,
             100.0 * total.tilt as f64 / total.fitted as f64,
-            100.0 * total.edge as f64 / total.fitted as f64
+            100.0 * total.edge as f64 / total.fitted as f64,
+            100.0 * total.unseen as f64 / total.fitted as f64
         );
     }
 }

@@ -531,7 +531,7 @@ impl<'a> Replay<'a> {
         let median = stage_ms.iter().find(|s| s.stage == "total").map_or(f64::NAN, |s| s.p50_ms);
         let (count, skipped, summary) = (self.count, self.skipped, &self.summary);
         println!(
-            "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} tilt {} edge {} | failed {} skipped {}",
+            "{count} frames ({skipped} skipped), pipeline median {median:.1} ms/frame; seeds {} fitted {} valid {} | dropped: residual {} coverage {} curvature {} tilt {} edge {} unseen {} | failed {} skipped {}",
             summary.seeds,
             summary.fitted,
             summary.valid,
@@ -540,6 +540,7 @@ impl<'a> Replay<'a> {
             summary.curvature,
             summary.tilt,
             summary.edge,
+            summary.unseen,
             summary.failed,
             summary.skipped
         );

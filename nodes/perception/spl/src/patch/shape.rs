@@ -225,6 +225,36 @@ impl PatchQuery {
     pub fn distance(&self, point_in_world: &Vector3<f64>) -> f64 {
         self.distance_local(&self.to_local(point_in_world))
     }
+
+    /// Where the ray `origin + t·direction` (world frame, any `direction` length) enters the bounded
+    /// surface from its front (the side its normal faces): the parameter `t > 0`, or `None` when the
+    /// ray meets the surface from behind, misses the boundary or runs parallel to the tangent plane.
+    /// Newton steps on the explicit form `z = h(u)` (eq 13, 23, 27) from the tangent plane's crossing.
+    pub fn ray_entry(&self, origin: &Vector3<f64>, direction: &Vector3<f64>) -> Option<f64> {
+        let o = self.to_local(origin);
+        let d = self.rot_t * direction;
+        // The front side is local +z: the ray must come down onto the surface.
+        if d.z >= -1e-12 * d.norm() {
+            return None;
+        }
+        let mut t = -o.z / d.z;
+        for _ in 0..4 {
+            let u = o.xy() + d.xy() * t;
+            let (h, dh) = explicit_height(self.shape.surface, &self.shape.curvatures, &u)?;
+            // g(t) = z(t) − h(u(t)), g'(t) = d_z − ∇h·d_xy.
+            let slope = d.z - dh.dot(&d.xy());
+            if slope >= 0.0 {
+                return None;
+            }
+            let step = (o.z + d.z * t - h) / slope;
+            t -= step;
+            if step.abs() <= 1e-9 * t.abs().max(1.0) {
+                break;
+            }
+        }
+        let u = o.xy() + d.xy() * t;
+        (t > 0.0 && t.is_finite() && self.shape.contains_uv(&u)).then_some(t)
+    }
 }
 
 /// Height `z(u)` of the explicit form of `surface` with curvatures `k` and its gradient `∂z/∂u`

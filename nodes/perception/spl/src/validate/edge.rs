@@ -150,7 +150,12 @@ mod tests {
         let patch = disk(0.05);
         let fitted = ball(&ground, &Vector3::zeros(), 0.05);
         let config = ValidateConfig::default();
-        let v = validate_foothold(&patch, &fitted, &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None }, &config);
+        let v = validate_foothold(
+            &patch,
+            &fitted,
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &config,
+        );
         assert!(v.residual.value < 1e-9 && v.residual.passed, "{v:?}");
         let edge = v.edge.unwrap();
         assert!(!edge.passed && (edge.value - 0.12).abs() < 1e-9 && edge.threshold == 0.02, "{edge:?}");
@@ -158,13 +163,22 @@ mod tests {
         assert!(v.failures().iter().any(|f| f.starts_with("edge: 0.120 m off the surface inside the foot disc")), "{:?}", v.failures());
         // The same disc away from the edge passes.
         let away = Patch { center: Vector3::new(-0.06, 0.0, 0.0), ..patch.clone() };
-        let v = validate_foothold(&away, &fitted, &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None }, &config);
+        let v = validate_foothold(
+            &away,
+            &fitted,
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &config,
+        );
         assert!(v.edge.unwrap().passed, "{v:?}");
         // Switched off: the step passes.
         let off = ValidateConfig { edge_max_offset_m: f64::INFINITY, ..config };
-        assert!(
-            validate_foothold(&patch, &fitted, &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None }, &off).is_valid()
-        );
+        assert!(validate_foothold(
+            &patch,
+            &fitted,
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &off
+        )
+        .is_valid());
     }
 
     /// A roof-shaped fold (two faces at ±30°) under a flat disc: every point is within 2 cm of the
@@ -178,7 +192,8 @@ mod tests {
         let (offset, _) = disc_offset(&patch, &fold, None, &config);
         // The 98 % quantile of |z| = slope·|x| over the disc, above 2 cm.
         assert!(offset > 0.02 && offset < slope * 0.05, "{offset}");
-        let v = validate_foothold(&patch, &fold, &Foothold { up: Some(Vector3::z()), column: Some(&fold), sampled: None }, &config);
+        let v =
+            validate_foothold(&patch, &fold, &Foothold { up: Some(Vector3::z()), column: Some(&fold), sampled: None, view: None }, &config);
         assert!(!v.edge.unwrap().passed);
         // A gentle 5° fold stays under 5 mm and passes.
         let gentle = terrain(0.1, |x, _| -5f64.to_radians().tan() * x.abs());
@@ -198,7 +213,10 @@ mod tests {
         assert!(disc_offset(&patch, &cloud, None, &config).0 < 1e-9);
         cloud.extend(wall(0.03));
         assert!(
-            !validate_foothold(&patch, &cloud, &Foothold { up: None, column: Some(&cloud), sampled: None }, &config).edge.unwrap().passed
+            !validate_foothold(&patch, &cloud, &Foothold { up: None, column: Some(&cloud), sampled: None, view: None }, &config)
+                .edge
+                .unwrap()
+                .passed
         );
     }
 
@@ -229,7 +247,7 @@ mod tests {
         let fitted = ball(&stair, &seed, 0.05);
         let fit = NeighbourhoodFit { sensor: ErrorModel::Constant { sigma_m: 0.001 }, ..NeighbourhoodFit::default() };
         let patch = fit_neighbourhood(&fitted, &fitted, &fit).unwrap();
-        let foothold = Foothold { up: Some(Vector3::z()), column: Some(&stair), sampled: None };
+        let foothold = Foothold { up: Some(Vector3::z()), column: Some(&stair), sampled: None, view: None };
         let v = validate_foothold(&patch, &fitted, &foothold, &ValidateConfig::default());
         assert_eq!(patch.surface, SurfaceType::CylindricParaboloid);
         assert!((-13.6..-10.0).contains(&patch.curvatures.y), "{:?}", patch.curvatures);

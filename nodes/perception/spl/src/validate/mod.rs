@@ -1,7 +1,7 @@
-//! Patch validation: J 3.3's residual (eq 15), coverage (eq 16–17) and curvature tests, and two
-//! foothold tests beyond them, tilt against gravity and edges/folds under the foot disc. Every
-//! rejection names the failed test, the measured value and its threshold. One test per file:
-//! [`residual`], [`coverage`], [`curvature`], [`tilt`], [`edge`].
+//! Patch validation: J 3.3's residual (eq 15), coverage (eq 16–17) and curvature tests, and three
+//! foothold tests beyond them: tilt against gravity, edges/folds under the foot disc, and the disc
+//! seen by the camera. Every rejection names the failed test, the measured value and its threshold.
+//! One test per file: [`residual`], [`coverage`], [`curvature`], [`tilt`], [`edge`], [`visibility`].
 //!
 //! [`validate_patch`] runs J's tests and the edge test on the neighbourhood alone;
 //! [`validate_foothold`] also takes gravity (the tilt test) and the points of the foot disc's
@@ -12,12 +12,14 @@ pub mod curvature;
 pub mod edge;
 pub mod residual;
 pub mod tilt;
+pub mod visibility;
 
 pub use coverage::{coverage_bad_cells, coverage_cell_size, coverage_cells, CoverageCell, SampledBall};
 pub use curvature::principal_curvature_range;
 pub use edge::{disc_offset, FootColumn};
 pub use residual::residual;
 pub use tilt::tilt_deg;
+pub use visibility::DiscView;
 
 use crate::patch::{Patch, PatchQuery};
 use nalgebra::Vector3;
@@ -71,6 +73,11 @@ pub struct ValidateConfig {
     /// Half height (m) of the foot disc's column about the patch plane: points further along the
     /// normal are not part of the foothold ([`edge`]: 0.25 m, more than a stair riser).
     pub edge_column_height_m: f64,
+    /// Largest share of the foot disc's pixels (those whose ray enters the fitted patch inside its
+    /// boundary) that did not measure its surface: no depth, or depth more than `edge_max_offset_m`
+    /// behind or in front of it ([`visibility`]). Infinite (the default) switches the test off;
+    /// [`visibility::SUGGESTED_UNSEEN_MAX_FRACTION`] (0.02) switches it on.
+    pub unseen_max_fraction: f64,
     /// Judge coverage only where the patch surface lies inside the ball the points were gathered
     /// from, when the caller gives it ([`Foothold::sampled`], [`coverage`]'s module doc). False is
     /// J eq 16–17 as written over the whole boundary.
@@ -94,6 +101,7 @@ impl Default for ValidateConfig {
             edge_max_offset_m: 0.02,
             edge_quantile: 0.98,
             edge_column_height_m: 0.25,
+            unseen_max_fraction: f64::INFINITY,
             coverage_within_sampled_ball: true,
         }
     }
@@ -109,6 +117,7 @@ impl ValidateConfig {
             count_tolerance_sigmas: 0.0,
             tilt_max_deg: f64::INFINITY,
             edge_max_offset_m: f64::INFINITY,
+            unseen_max_fraction: f64::INFINITY,
             ..Self::default()
         }
     }
@@ -123,6 +132,7 @@ impl ValidateConfig {
         positive("tilt_max_deg", self.tilt_max_deg)?;
         positive("edge_max_offset_m", self.edge_max_offset_m)?;
         positive("edge_column_height_m", self.edge_column_height_m)?;
+        positive("unseen_max_fraction", self.unseen_max_fraction)?;
         if !(0.0..=1.0).contains(&self.edge_quantile) || self.edge_quantile == 0.0 {
             return Err(format!("validate.edge_quantile must be in (0, 1], got {}", self.edge_quantile));
         }
@@ -144,6 +154,8 @@ pub struct Foothold<'a> {
     /// boundary beyond it is judged on `column`); `None`: the points are taken to cover the whole
     /// boundary.
     pub sampled: Option<SampledBall>,
+    /// What the pixels over the foot disc measured (see [`visibility`]); `None`: no visibility test.
+    pub view: Option<DiscView>,
 }
 
 /// One test's outcome: the measured value against its threshold.
@@ -172,12 +184,15 @@ pub struct Validation {
     pub tilt: Option<TestResult>,
     /// Quantile distance (m) of the foot disc's terrain off the surface vs its limit ([`edge`]).
     pub edge: Option<TestResult>,
+    /// Share of the foot disc's pixels that did not measure its surface vs its limit ([`visibility`]).
+    #[serde(default)]
+    pub unseen: Option<TestResult>,
 }
 
 impl Validation {
     /// Whether the patch passed every test.
     pub fn is_valid(&self) -> bool {
-        self.residual.passed && self.coverage.passed && self.curvature_ok() && self.tilt_ok() && self.edge_ok()
+        self.residual.passed && self.coverage.passed && self.curvature_ok() && self.tilt_ok() && self.edge_ok() && self.unseen_ok()
     }
 
     /// Whether the tilt test passed (or was not run).
@@ -188,6 +203,11 @@ impl Validation {
     /// Whether the edge test passed (or was not run).
     pub fn edge_ok(&self) -> bool {
         self.edge.is_none_or(|t| t.passed)
+    }
+
+    /// Whether the visibility test passed (or was not run).
+    pub fn unseen_ok(&self) -> bool {
+        self.unseen.is_none_or(|t| t.passed)
     }
 
     /// Whether both curvature bounds hold.
@@ -216,6 +236,13 @@ impl Validation {
         if let Some(t) = self.edge.filter(|t| !t.passed) {
             out.push(format!("edge: {:.3} m off the surface inside the foot disc > {:.3} m", t.value, t.threshold));
         }
+        if let Some(t) = self.unseen.filter(|t| !t.passed) {
+            out.push(format!(
+                "unseen: {:.1} % of the foot disc's pixels did not measure its surface > {:.1} %",
+                100.0 * t.value,
+                100.0 * t.threshold
+            ));
+        }
         out
     }
 }
@@ -227,7 +254,8 @@ pub fn validate_patch(patch: &Patch, neighbourhood: &[Vector3<f64>], config: &Va
 }
 
 /// Validate a fitted patch as a foothold: J 3.3 on its neighbourhood, the tilt against
-/// `foothold.up` and the edge test on `foothold.column` (the neighbourhood when `None`).
+/// `foothold.up`, the edge test on `foothold.column` (the neighbourhood when `None`) and the
+/// visibility test on `foothold.view`.
 pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold: &Foothold, config: &ValidateConfig) -> Validation {
     // The points in the patch frame once (eq 4), for both the residual and the coverage grid.
     let query = PatchQuery::new(patch);
@@ -254,6 +282,10 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         let (value, _) = disc_offset(patch, foothold.column.unwrap_or(neighbourhood), foothold.up.as_ref(), config);
         TestResult { passed: value <= config.edge_max_offset_m, value, threshold: config.edge_max_offset_m }
     });
+    let unseen = foothold.view.filter(|_| config.unseen_max_fraction < f64::INFINITY).map(|view| {
+        let value = view.unseen_fraction();
+        TestResult { passed: value <= config.unseen_max_fraction, value, threshold: config.unseen_max_fraction }
+    });
     Validation {
         residual,
         coverage,
@@ -261,6 +293,7 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         curvature_max: TestResult { passed: kmax <= config.curvature_max, value: kmax, threshold: config.curvature_max },
         tilt,
         edge,
+        unseen,
     }
 }
 
@@ -284,7 +317,7 @@ pub(crate) mod tests {
         let v = validate_foothold(
             &disk(0.1),
             &pts,
-            &Foothold { up: Some(Vector3::z()), column: None, sampled: None },
+            &Foothold { up: Some(Vector3::z()), column: None, sampled: None, view: None },
             &ValidateConfig::default(),
         );
         assert!(v.is_valid(), "{:?}", v.failures());
@@ -302,8 +335,12 @@ pub(crate) mod tests {
     fn j33_runs_only_j_tests_and_bad_configs_are_refused() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(5);
         let pts = disk(0.1).sample_points(&mut rng, 3000);
-        let v =
-            validate_foothold(&disk(0.1), &pts, &Foothold { up: Some(Vector3::x()), column: None, sampled: None }, &ValidateConfig::j33());
+        let v = validate_foothold(
+            &disk(0.1),
+            &pts,
+            &Foothold { up: Some(Vector3::x()), column: None, sampled: None, view: None },
+            &ValidateConfig::j33(),
+        );
         assert!(v.is_valid() && v.edge.is_none() && v.tilt.is_some_and(|t| t.passed && (t.value - 90.0).abs() < 1e-9), "{v:?}");
         assert!(ValidateConfig::default().check().is_ok() && ValidateConfig::j33().check().is_ok());
         let bad = ValidateConfig { edge_quantile: 0.0, ..ValidateConfig::default() };

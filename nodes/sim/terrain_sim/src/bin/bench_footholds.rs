@@ -5,47 +5,107 @@
 //! single-frame mapper (J's defaults as `patch_mapper map --no-dtfp` runs them, gravity from the
 //! camera pose) and every fitted patch is checked against the terrain's exact surface.
 //!
-//! Printed per scene, for J 3.3's tests alone and with the foothold tests (the defaults): fitted
-//! patches, valid share, mean residual of the valid ones, the share of valid patches lying across an
-//! edge (ground-truth terrain more than 2 cm off the patch surface inside the foot disc's column
+//! Printed per scene, for J 3.3's tests alone, with the default foothold tests (tilt, edge) and with
+//! the visibility test switched on too (`--unseen-max`, 0.02 unless given): fitted patches, valid
+//! share, mean residual of the valid ones, the share of valid patches lying across an edge
+//! (ground-truth terrain more than 2 cm off the patch surface inside the foot disc's column
 //! along gravity), and walls accepted (valid patches where the true surface under the centre is
 //! tilted more than 45°).
 //!
-//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12]`
+//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12] [--detail] [--edge-quantile Q] [--unseen-max F]`
 
 use anyhow::{Context, Result};
 use nalgebra::{Unit, Vector3};
 use patchwalk_mapping::mapper::{default_volume_from_map, single_frame_volume_from_camera, FrameInput, Mapper, MapperConfig, Verdict};
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::transform::transform_patch;
-use patchwalk_spl::validate::{FootColumn, ValidateConfig};
+use patchwalk_spl::validate::visibility::SUGGESTED_UNSEEN_MAX_FRACTION;
+use patchwalk_spl::validate::{DiscView, FootColumn, ValidateConfig};
 use terrain_sim::config::SimConfig;
 use terrain_sim::scene::Heightfield;
 use terrain_sim::sim::Simulator;
 
+/// The true terrain in the foot disc's column of one valid patch (world frame, z up).
+#[derive(Debug, Default)]
+struct Truth {
+    /// Terrain samples in the column.
+    samples: usize,
+    /// Of them more than 2 cm off the patch surface, below it (a drop) and above it (a bump).
+    below: usize,
+    above: usize,
+    /// Largest distance off the surface (m).
+    max_offset: f64,
+    /// The true surface under the centre is tilted more than 45°.
+    wall: bool,
+}
+
+impl Truth {
+    fn across(&self) -> bool {
+        self.below + self.above > 0
+    }
+}
+
 /// Ground truth's verdict on one valid patch (world frame, z up).
-fn ground_truth(patch: &Patch, terrain: &Heightfield) -> (bool, bool) {
+fn ground_truth(patch: &Patch, terrain: &Heightfield) -> Truth {
     let up = Vector3::z();
     let column = FootColumn::new(patch, Some(&up), ValidateConfig::default().edge_column_height_m);
     // The terrain under the disc on a 4 mm grid over the boundary's reach (tilted discs reach further).
     let reach = patch.boundary_half_extents().max() + 0.05;
     let step = 0.004;
     let n = (reach / step).ceil() as i64;
-    let mut across = false;
-    'grid: for i in -n..=n {
+    let mut truth = Truth::default();
+    for i in -n..=n {
         for j in -n..=n {
             let (x, y) = (patch.center.x + i as f64 * step, patch.center.y + j as f64 * step);
             let Some(z) = terrain.height_at(x, y) else { continue };
             if let Some(local) = column.local_if_inside(&Vector3::new(x, y, z)) {
-                if column.distance_local(&local) > 0.02 {
-                    across = true;
-                    break 'grid;
+                truth.samples += 1;
+                let distance = column.distance_local(&local);
+                truth.max_offset = truth.max_offset.max(distance);
+                if distance > 0.02 {
+                    if local.z < 0.0 {
+                        truth.below += 1;
+                    } else {
+                        truth.above += 1;
+                    }
                 }
             }
         }
     }
-    let wall = terrain.normal_at(patch.center.x, patch.center.y).is_some_and(|n| n.z.abs() < 45f64.to_radians().cos());
-    (across, wall)
+    truth.wall = terrain.normal_at(patch.center.x, patch.center.y).is_some_and(|n| n.z.abs() < 45f64.to_radians().cos());
+    truth
+}
+
+/// Pixels of the full-resolution depth image whose points lie in the foot disc's column of `patch`
+/// (world frame), and of them more than 2 cm off its surface.
+fn depth_in_column(
+    patch: &Patch,
+    depth: &patchwalk_fusion::camera::DepthImage,
+    intrinsics: &patchwalk_fusion::camera::Intrinsics,
+    world_from_camera: &nalgebra::Isometry3<f64>,
+) -> (usize, usize, Option<DiscView>) {
+    let column = FootColumn::new(patch, Some(&Vector3::z()), ValidateConfig::default().edge_column_height_m);
+    let in_camera = transform_patch(patch, &world_from_camera.inverse());
+    let mut view = in_camera.as_ref().map(|p| DiscView::new(p, 0.02));
+    let (mut inside, mut off) = (0, 0);
+    for v in 0..depth.height {
+        for u in 0..depth.width {
+            let z = f64::from(depth.depth_m[v * depth.width + u]);
+            let ray = Vector3::new((u as f64 - intrinsics.cx) / intrinsics.fx, (v as f64 - intrinsics.cy) / intrinsics.fy, 1.0);
+            if let Some(view) = view.as_mut() {
+                view.add(&Vector3::zeros(), &ray, Some(z));
+            }
+            if !z.is_finite() {
+                continue;
+            }
+            let q = world_from_camera * nalgebra::Point3::from(ray * z);
+            if let Some(local) = column.local_if_inside(&q.coords) {
+                inside += 1;
+                off += usize::from(column.distance_local(&local) > 0.02);
+            }
+        }
+    }
+    (inside, off, view)
 }
 
 #[derive(Default)]
@@ -78,6 +138,8 @@ impl Tally {
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flag = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
+    // --detail: one line per valid patch across an edge or on a wall.
+    let detail = args.iter().any(|a| a == "--detail");
     let frames: usize = flag("--frames").map(|s| s.parse()).transpose().context("--frames N")?.unwrap_or(12);
     let seeds: Vec<u64> =
         flag("--seeds").unwrap_or_else(|| "11,12".into()).split(',').map(|s| s.parse()).collect::<Result<_, _>>().context("--seeds a,b")?;
@@ -90,10 +152,22 @@ fn main() -> Result<()> {
     let mut footholds = j33.clone();
     j33.validate.tilt_max_deg = f64::INFINITY;
     j33.validate.edge_max_offset_m = f64::INFINITY;
+    j33.validate.unseen_max_fraction = f64::INFINITY;
     footholds.validate = ValidateConfig::default();
+    footholds.validate.unseen_max_fraction = SUGGESTED_UNSEEN_MAX_FRACTION;
+    // --edge-quantile Q, --unseen-max F: the edge and visibility tests' thresholds (default ValidateConfig's).
+    if let Some(q) = flag("--edge-quantile") {
+        footholds.validate.edge_quantile = q.parse().context("--edge-quantile Q")?;
+    }
+    if let Some(f) = flag("--unseen-max") {
+        footholds.validate.unseen_max_fraction = f.parse().context("--unseen-max F")?;
+    }
+    let mut tilt_edge = footholds.clone();
+    tilt_edge.validate.unseen_max_fraction = f64::INFINITY;
+    let configs = [("J 3.3 tests only", &j33), ("+ tilt, edge", &tilt_edge), ("+ tilt, edge, unseen", &footholds)];
     println!("bench_footholds: {frames} frames per path, seeds {seeds:?}, {} threads", rayon::current_num_threads());
     for (name, path, height_max) in &scenes {
-        let mut tallies = [Tally::default(), Tally::default()];
+        let mut tallies = [Tally::default(), Tally::default(), Tally::default()];
         for &seed in &seeds {
             let mut config = SimConfig { seed, ..SimConfig::default() };
             config.scene.terrain.path = path.clone();
@@ -114,7 +188,7 @@ fn main() -> Result<()> {
             for frame in 0..frames as u64 {
                 let rendered = sim.depth_frame(frame);
                 let gravity = Unit::new_normalize(rendered.world_from_camera.inverse().rotation * -Vector3::z());
-                for (tally, mapper_config) in tallies.iter_mut().zip([&j33, &footholds]) {
+                for (row, (tally, (config_name, mapper_config))) in tallies.iter_mut().zip(configs).enumerate() {
                     let volume_from_camera = single_frame_volume_from_camera(&gravity, mapper_config.volume_edge_m);
                     let mut mapper = Mapper::new(mapper_config.clone(), "camera_optical", default_volume_from_map())?;
                     let result = mapper.process(&FrameInput {
@@ -134,18 +208,58 @@ fn main() -> Result<()> {
                             continue;
                         }
                         let Some(world) = transform_patch(patch, &rendered.world_from_camera) else { continue };
-                        let (across, wall) = ground_truth(&world, &terrain);
+                        let truth = ground_truth(&world, &terrain);
                         tally.valid += 1;
                         tally.residual_sum += patch.residual;
-                        tally.across += usize::from(across);
-                        tally.walls += usize::from(wall);
+                        tally.across += usize::from(truth.across());
+                        tally.walls += usize::from(truth.wall);
+                        // The disc's view where the visibility test did not judge it; the verdicts where it did.
+                        if detail && row > 0 {
+                            let (seen, seen_off, view) =
+                                depth_in_column(&world, &rendered.depth, &sim.camera.intrinsics, &rendered.world_from_camera);
+                            let view_text = view.map_or("no view".to_string(), |v| {
+                                format!(
+                                    "disc pixels {} through {} ({:.2} %) occluded {} missing {}",
+                                    v.pixels,
+                                    v.through,
+                                    100.0 * v.through_fraction(),
+                                    v.occluded,
+                                    v.missing
+                                )
+                            });
+                            if row == 1 {
+                                let unseen = view.map_or(f64::NAN, |v| 100.0 * v.unseen_fraction());
+                                println!("    view: across {} unseen {unseen:.2} % ({view_text})", truth.across());
+                                continue;
+                            }
+                            if !(truth.across() || truth.wall) {
+                                continue;
+                            }
+                            let edge = outcome.validation.as_ref().and_then(|v| v.edge.as_ref()).map_or(f64::NAN, |t| t.value);
+                            println!(
+                                "    seed {seed} frame {frame} {}: {:?}/{:?} r {:.3} m at {:.2} m, {} of {} terrain samples > 2 cm off ({} below, {} above), max {:.1} mm{}; depth pixels in the column {seen}, > 2 cm off {seen_off}; edge test {:.1} mm",
+                                config_name,
+                                patch.surface,
+                                patch.boundary,
+                                patch.boundary_half_extents().max(),
+                                patch.center.norm(),
+                                truth.below + truth.above,
+                                truth.samples,
+                                truth.below,
+                                truth.above,
+                                1e3 * truth.max_offset,
+                                if truth.wall { ", wall" } else { "" },
+                                1e3 * edge
+                            );
+                        }
                     }
                 }
             }
         }
         println!("{name}:");
-        println!("  {}", tallies[0].line("J 3.3 tests only"));
-        println!("  {}", tallies[1].line("with tilt + edge"));
+        for (tally, (config_name, _)) in tallies.iter().zip(configs) {
+            println!("  {}", tally.line(config_name));
+        }
     }
     Ok(())
 }

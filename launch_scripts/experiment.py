@@ -42,6 +42,7 @@ import argparse
 import json
 import random
 import sys
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -99,6 +100,48 @@ class Latest:
 
     def describe(self) -> str:
         return "nothing received" if self.msg is None else f"{self.count} received"
+
+
+class LatestSerialized(Latest):
+    """`Latest` for a subscription taking serialized messages (`raw=True`): a message is deserialized only
+    when it is looked at (`msg`), so following a topic of large messages at 30 Hz costs a copy of its bytes,
+    not a Python object per field. `on_message` gets the header stamp in s, read from the CDR bytes."""
+
+    def __init__(self, msg_type, on_message: Optional[Callable[[float], None]] = None):
+        super().__init__(on_message)
+        self.msg_type = msg_type
+        self._raw: Optional[bytes] = None
+        self._decoded = None
+
+    @property
+    def msg(self):
+        raw = self._raw
+        if raw is None:
+            return None
+        if self._decoded is None or self._decoded[0] is not raw:
+            from rclpy.serialization import deserialize_message
+            self._decoded = (raw, deserialize_message(raw, self.msg_type))
+        return self._decoded[1]
+
+    @msg.setter
+    def msg(self, raw) -> None:
+        self._raw = raw
+
+    def __call__(self, raw: bytes) -> None:
+        with self.cond:
+            self._raw = raw
+            self.count += 1
+            self.received_at = time.monotonic()
+            if self.on_message:
+                self.on_message(header_stamp_s(raw))
+            self.cond.notify_all()
+
+
+def header_stamp_s(raw: bytes) -> float:
+    """`header.stamp` of a serialized message whose first field is a std_msgs/Header (CDR after the 4-byte
+    encapsulation header, whose second byte says the byte order)."""
+    sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+    return sec + nanosec * 1e-9
 
 
 class Hand:
@@ -230,16 +273,16 @@ class Experiment:
         self.played_windows: list[tuple[float, float, str]] = []
         # (header.stamp, wall time of arrival) of every patch map, in arrival order.
         self.map_arrivals: list[tuple[float, float]] = []
-        self.patches = Latest(on_message=lambda m: self.map_arrivals.append((stamp_s(m.header.stamp), time.time())))
-        self.cloud = Latest()
+        self.patches = LatestSerialized(PatchArray, on_message=lambda stamp: self.map_arrivals.append((stamp, time.time())))
+        self.cloud = LatestSerialized(PointCloud2)
         self.status = Latest()
         self.rock_now = Latest()
         self.joints = Latest(on_message=self._on_joints)
         node = harness.node
         with harness._lock:
             self._subs = [
-                node.create_subscription(PatchArray, "/patch_mapper/patches", self.patches, reliable),
-                node.create_subscription(PointCloud2, "/patch_mapper/birds_eye_cloud", self.cloud, reliable),
+                node.create_subscription(PatchArray, "/patch_mapper/patches", self.patches, reliable, raw=True),
+                node.create_subscription(PointCloud2, "/patch_mapper/birds_eye_cloud", self.cloud, reliable, raw=True),
                 node.create_subscription(ExecutorStatus, "/step_executor/status", self.status, reliable),
                 node.create_subscription(UInt32, "/terrain_sim/rock", self.rock_now, reliable),
                 node.create_subscription(JointState, "/joint_states", self.joints, reliable),

@@ -84,7 +84,9 @@ class Sampler:
     def __init__(self, harness: pw.RosHarness, nodes: dict[str, int], logs: dict[str, Path], period: float, out: Path):
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from patchwalk_msgs.msg import ExecutorStatus, MapperStatus, PatchArray
+        from experiment import header_stamp_s
 
+        self.header_stamp_s = header_stamp_s
         self.nodes, self.logs, self.period = nodes, logs, period
         self.lock = threading.Lock()
         self.maps = 0
@@ -96,7 +98,8 @@ class Sampler:
         node = harness.node
         with harness._lock:
             self.subs = [
-                node.create_subscription(PatchArray, "/patch_mapper/patches", self._on_map, qos),
+                # Serialized: only the stamp is read, so the sampler costs no per-field Python objects.
+                node.create_subscription(PatchArray, "/patch_mapper/patches", self._on_map, qos, raw=True),
                 node.create_subscription(MapperStatus, "/patch_mapper/status", self._on_mapper, qos),
                 node.create_subscription(ExecutorStatus, "/step_executor/status", self._on_executor, qos),
             ]
@@ -105,8 +108,8 @@ class Sampler:
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="soak-sampler", daemon=True)
 
-    def _on_map(self, msg) -> None:
-        latency = time.time() - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+    def _on_map(self, raw: bytes) -> None:
+        latency = time.time() - self.header_stamp_s(raw)
         with self.lock:
             self.maps += 1
             self.latencies.append(latency)
@@ -122,6 +125,7 @@ class Sampler:
     def _run(self) -> None:
         start = time.monotonic()
         last_cpu = {name: proc_sample(pid)[1] for name, pid in self.nodes.items()}
+        last_own_cpu = proc_sample(os.getpid())[1]
         fields = None
         with open(self.csv_path, "w", newline="") as f:
             writer = None
@@ -147,6 +151,9 @@ class Sampler:
                     errors, warnings = log_problems(self.logs[name])
                     row[f"{name}_log_errors"] = errors
                     row[f"{name}_log_warnings"] = warnings
+                own_cpu = proc_sample(os.getpid())[1]
+                row["harness_cpu_pct"] = round(100.0 * (own_cpu - last_own_cpu) / elapsed, 2)
+                last_own_cpu = own_cpu
                 m = self.mapper_status
                 row["mapper_frames_processed"] = m.frames_processed if m else 0
                 row["mapper_frames_skipped"] = m.frames_skipped if m else 0

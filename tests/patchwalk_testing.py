@@ -91,6 +91,20 @@ def binary(name: str) -> Path:
     return path
 
 
+def thread_stacks(pid: int) -> str:
+    """Every thread's backtrace of a live process (gdb, when installed), to show where a hang is."""
+    import shutil
+
+    if shutil.which("gdb") is None:
+        return "(gdb not installed: no backtraces)"
+    try:
+        out = subprocess.run(["gdb", "-p", str(pid), "-batch", "-nx", "-ex", "set pagination off",
+                              "-ex", "thread apply all bt 30"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        return f"(gdb failed: {e})"
+    return "\n".join(line for line in out.stdout.splitlines() if line.startswith(("Thread ", "#"))) or out.stderr
+
+
 class NodeProcess:
     """A patchwalk node binary (`<name> run ...`) with its log captured to a file."""
 
@@ -123,9 +137,11 @@ class NodeProcess:
             try:
                 self.proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
+                stacks = thread_stacks(self.proc.pid)
                 self.proc.kill()
                 self.proc.wait()
-                raise AssertionError(f"{self.name} did not exit within {timeout} s of {sig!r}:\n{self.log()}")
+                raise AssertionError(f"{self.name} did not exit within {timeout} s of {sig!r}:\n{self.log()}\n"
+                                     f"its threads then:\n{stacks}")
         self._log.close()
         log = self.log_path.read_text(errors="replace")
         assert self.proc.returncode == 0, f"{self.name} exited with {self.proc.returncode}:\n{log}"

@@ -24,37 +24,11 @@ use crate::acquire::OrganizedCloud;
 pub const DEFAULT_MAX_PIXELS: usize = 16_384;
 
 /// Points of C in the column of `patch` along `up` (both in the camera frame) of half height
-/// `half_height_m`, appended to `out` (cleared first).
+/// `half_height_m`, appended to `out` (cleared first); with `view`, every scanned pixel's ray and
+/// depth are added to it too (the disc lies inside the column, so its image inside the scanned
+/// rectangle): what the camera measured over the foot disc.
+#[allow(clippy::too_many_arguments)]
 pub fn foot_column(
-    cloud: &OrganizedCloud,
-    intrinsics: &Intrinsics,
-    patch: &Patch,
-    up: &Vector3<f64>,
-    half_height_m: f64,
-    max_pixels: usize,
-    out: &mut Vec<Vector3<f64>>,
-) {
-    scan_column(cloud, intrinsics, patch, up, half_height_m, max_pixels, out, None);
-}
-
-/// [`foot_column`], and every scanned pixel's ray and depth added to `view` (the disc lies inside the
-/// column, so its image inside the scanned rectangle): what the camera measured over the foot disc.
-#[allow(clippy::too_many_arguments)]
-pub fn foot_column_and_view(
-    cloud: &OrganizedCloud,
-    intrinsics: &Intrinsics,
-    patch: &Patch,
-    up: &Vector3<f64>,
-    half_height_m: f64,
-    max_pixels: usize,
-    out: &mut Vec<Vector3<f64>>,
-    view: &mut DiscView,
-) {
-    scan_column(cloud, intrinsics, patch, up, half_height_m, max_pixels, out, Some(view));
-}
-
-#[allow(clippy::too_many_arguments)]
-fn scan_column(
     cloud: &OrganizedCloud,
     intrinsics: &Intrinsics,
     patch: &Patch,
@@ -154,7 +128,7 @@ mod tests {
         let patch = disc_at(Vector3::new(0.0, 0.0, 0.5));
         let mut out = Vec::new();
         let up = -Vector3::z();
-        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out);
+        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, None);
         let column = FootColumn::new(&patch, Some(&up), 0.25);
         let brute: Vec<_> =
             cloud.points_in_camera.iter().map(|p| p.cast::<f64>()).filter(|p| column.local_if_inside(p).is_some()).collect();
@@ -162,9 +136,9 @@ mod tests {
         let lower = out.iter().filter(|p| (p.z - 0.62).abs() < 1e-6).count();
         assert!(lower > 10 && lower < out.len(), "{lower} of {}", out.len());
         // A band lower than the step leaves the tread out; a capped scan keeps a uniform subset.
-        foot_column(&cloud, &intrinsics, &patch, &up, 0.1, usize::MAX, &mut out);
+        foot_column(&cloud, &intrinsics, &patch, &up, 0.1, usize::MAX, &mut out, None);
         assert!(out.iter().all(|p| (p.z - 0.5).abs() < 1e-6));
-        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, 100, &mut out);
+        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, 100, &mut out, None);
         assert!(!out.is_empty() && out.len() < brute.len() / 2);
     }
 
@@ -174,12 +148,33 @@ mod tests {
         let cloud = step_cloud(&intrinsics);
         let mut out = vec![Vector3::zeros()];
         let up = -Vector3::z();
-        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(5.0, 0.0, 0.5)), &up, 0.25, usize::MAX, &mut out);
+        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(5.0, 0.0, 0.5)), &up, 0.25, usize::MAX, &mut out, None);
         assert!(out.is_empty());
         // A column reaching the camera plane scans the whole image.
-        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(0.0, 0.0, 0.2)), &up, 0.4, usize::MAX, &mut out);
+        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(0.0, 0.0, 0.2)), &up, 0.4, usize::MAX, &mut out, None);
         assert!(!out.is_empty());
-        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(0.0, 0.0, 0.5)), &up, f64::NAN, usize::MAX, &mut out);
+        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(0.0, 0.0, 0.5)), &up, f64::NAN, usize::MAX, &mut out, None);
         assert!(out.is_empty());
+    }
+
+    #[test]
+    fn the_view_sees_through_the_rim_over_the_step_and_counts_the_disc_on_the_tread_whole() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let cloud = step_cloud(&intrinsics);
+        let up = -Vector3::z();
+        let mut out = Vec::new();
+        // A disc centred on the step's edge: the rays over its far half pass the upper floor and land
+        // on the lower one, 12 cm behind the disc.
+        let mut over = DiscView::new(&disc_at(Vector3::new(0.02, 0.0, 0.5)), 0.02);
+        foot_column(&cloud, &intrinsics, &disc_at(Vector3::new(0.02, 0.0, 0.5)), &up, 0.25, usize::MAX, &mut out, Some(&mut over));
+        assert!(over.pixels > 100 && (over.through_fraction() - 0.5).abs() < 0.1, "{over:?}");
+        // A disc wholly on the upper floor is seen whole; the view does not change the column.
+        let patch = disc_at(Vector3::new(-0.05, 0.0, 0.5));
+        let mut on = DiscView::new(&patch, 0.02);
+        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, Some(&mut on));
+        let with_view = out.clone();
+        foot_column(&cloud, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, None);
+        assert_eq!(with_view, out);
+        assert!(on.pixels > 100 && on.unseen_fraction() == 0.0, "{on:?}");
     }
 }

@@ -16,7 +16,7 @@ use rand::{rngs::StdRng, SeedableRng};
 use rayon::prelude::*;
 
 use crate::acquire::{organized_cloud, AcquireConfig, AcquireError, OrganizedCloud};
-use crate::foot_column::{foot_column, foot_column_and_view, DEFAULT_MAX_PIXELS};
+use crate::foot_column::{foot_column, DEFAULT_MAX_PIXELS};
 use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, NeighbourhoodConfig};
 use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobserved};
 use crate::patch_map::{PatchMap, VolumeGrid};
@@ -678,13 +678,10 @@ fn process_seed(
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
             let half_height = config.validate.edge_column_height_m;
-            let mut view = None;
-            if config.validate.unseen_max_fraction < f64::INFINITY {
-                let mut disc = DiscView::new(&patch, config.validate.edge_max_offset_m);
-                foot_column_and_view(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column, &mut disc);
-                view = Some(disc);
-            } else if config.validate.edge_max_offset_m < f64::INFINITY {
-                foot_column(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column);
+            let mut view =
+                (config.validate.unseen_max_fraction < f64::INFINITY).then(|| DiscView::new(&patch, config.validate.edge_max_offset_m));
+            if view.is_some() || config.validate.edge_max_offset_m < f64::INFINITY {
+                foot_column(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column, view.as_mut());
             }
             let sampled = SampledBall { centre: seed.point_in_camera, radius: config.foot_radius_m };
             let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled), view };

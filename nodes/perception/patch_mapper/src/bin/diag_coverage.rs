@@ -108,7 +108,7 @@ fn main() -> Result<()> {
             let mut cut = false;
             let ball = patchwalk_spl::validate::SampledBall { centre: outcome.seed.point_in_camera, radius: config.foot_radius_m };
             let up = -result.gravity_in_camera.into_inner();
-            foot_column(&filtered, &intrinsics, patch, &up, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, &mut column);
+            foot_column(&filtered, &intrinsics, patch, &up, config.validate.edge_column_height_m, DEFAULT_MAX_PIXELS, &mut column, None);
             let sampled = config.validate.coverage_within_sampled_ball.then_some((&ball, column.as_slice()));
             for cell in coverage_cells(patch, &points, sampled, &config.validate) {
                 if !(cell.too_few_inside || cell.too_many_outside) {

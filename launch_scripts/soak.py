@@ -249,6 +249,7 @@ def main() -> int:
     harness = pw.RosHarness("soak")
     sampler = None
     experiment = None
+    aborted: str | None = None  # why the trial loop ended early, if it did
     trials = {"correct": 0, "wrong": 0, "no_match": 0, "untrained_no_execution": 0, "executed_untrained": 0}
     try:
         pty = (bus.stdout.readline() if bus.stdout else "").strip()
@@ -275,20 +276,25 @@ def main() -> int:
         end = time.monotonic() + 60.0 * args.minutes
         order = [*trained, *[r for r in rocks if not r.trained]]
         i = 0
-        while time.monotonic() < end and not stop_requested.is_set():
-            if not all(p.alive() for p in processes.values()):
-                dead = [n for n, p in processes.items() if not p.alive()]
-                raise RuntimeError(f"node(s) exited during the soak: {dead}")
-            rock = order[i % len(order)]
-            i += 1
-            expected = motion_of.get(rock.index) if rock.trained else None
-            trial = experiment.trial(rock, expected)
-            if rock.trained:
-                key = {"correct": "correct", "wrong": "wrong"}.get(trial.outcome, "no_match")
-                trials[key] += 1
-            else:
-                trials["executed_untrained" if trial.played else "untrained_no_execution"] += 1
-        experiment.arm(False)
+        try:
+            while time.monotonic() < end and not stop_requested.is_set():
+                if not all(p.alive() for p in processes.values()):
+                    dead = [n for n, p in processes.items() if not p.alive()]
+                    raise RuntimeError(f"node(s) exited during the soak: {dead}")
+                rock = order[i % len(order)]
+                i += 1
+                expected = motion_of.get(rock.index) if rock.trained else None
+                trial = experiment.trial(rock, expected)
+                if rock.trained:
+                    key = {"correct": "correct", "wrong": "wrong"}.get(trial.outcome, "no_match")
+                    trials[key] += 1
+                else:
+                    trials["executed_untrained" if trial.played else "untrained_no_execution"] += 1
+            experiment.arm(False)
+        except (RuntimeError, TimeoutError) as e:
+            # What was sampled up to here is still summarised; the run counts as failed.
+            aborted = f"{type(e).__name__}: {e}"
+            print(f"soak: aborted after {sampler.rows[-1]['t_s'] if sampler.rows else 0:.0f} s: {aborted}", file=sys.stderr)
     finally:
         if sampler is not None:
             sampler.stop.set()
@@ -310,6 +316,8 @@ def main() -> int:
         return 1
     nodes = list(sampler.nodes)
     summary = summarise(sampler.rows, nodes, args.warmup, sampler.faults, trials)
+    summary["aborted"] = aborted
+    summary["goals"]["ran_to_the_end"] = aborted is None
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     plot(sampler.rows, nodes, args.out / "soak.png")
     print(json.dumps(summary, indent=2))

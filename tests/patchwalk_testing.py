@@ -217,6 +217,7 @@ class RosHarness:
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self.callback_errors = 0  # exceptions raised by callbacks (printed; spinning goes on)
         self._thread = threading.Thread(target=self._spin, name="rclpy-spin", daemon=True)
         self._thread.start()
         self._lock = threading.Lock()
@@ -224,10 +225,23 @@ class RosHarness:
         self._heartbeats: list = []  # heartbeats started in the current test
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # context shut down
-            pass
+        """Spin until the context shuts down. An exception raised by a callback is printed and spinning
+        goes on: one bad callback must not leave the harness deaf to everything after it."""
+        import traceback
+
+        from rclpy.executors import ExternalShutdownException, ShutdownException
+
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except (ShutdownException, ExternalShutdownException):
+                break
+            except Exception:
+                if not self.context.ok():
+                    break
+                self.callback_errors += 1
+                print(f"rclpy harness {self.node.get_name()}: a callback raised (spinning on):", flush=True)
+                traceback.print_exc()
 
     def destroy_entities(self) -> None:
         """Destroy the subscriptions and publishers created since the last call (end of a test), and

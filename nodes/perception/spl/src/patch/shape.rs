@@ -231,8 +231,17 @@ impl PatchQuery {
     /// ray meets the surface from behind, misses the boundary or runs parallel to the tangent plane.
     /// Newton steps on the explicit form `z = h(u)` (eq 13, 23, 27) from the tangent plane's crossing.
     pub fn ray_entry(&self, origin: &Vector3<f64>, direction: &Vector3<f64>) -> Option<f64> {
-        let o = self.to_local(origin);
-        let d = self.rot_t * direction;
+        self.ray_entry_local(&self.to_local(origin), &self.direction_to_local(direction))
+    }
+
+    /// A world direction in the patch frame (rotation only).
+    #[inline]
+    pub fn direction_to_local(&self, direction_in_world: &Vector3<f64>) -> Vector3<f64> {
+        self.rot_t * direction_in_world
+    }
+
+    /// [`PatchQuery::ray_entry`] with the ray's origin `o` and direction `d` in the patch frame.
+    pub fn ray_entry_local(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<f64> {
         // The front side is local +z: the ray must come down onto the surface.
         if d.z >= -1e-12 * d.norm() {
             return None;

@@ -53,15 +53,15 @@ impl DiscView {
     /// (`None` or non-finite without a depth). With `origin` the camera centre and `direction` the
     /// pixel's ray scaled to z = 1, `t` is the pixel's depth.
     pub fn add(&mut self, origin: &Vector3<f64>, direction: &Vector3<f64>, t_measured: Option<f64>) {
-        let Some(t_surface) = self.query.ray_entry(origin, direction) else { return };
+        let (o, d) = (self.query.to_local(origin), self.query.direction_to_local(direction));
+        let Some(t_surface) = self.query.ray_entry_local(&o, &d) else { return };
         self.pixels += 1;
         let Some(t) = t_measured.filter(|t| t.is_finite()) else {
             self.missing += 1;
             return;
         };
-        // Distance along the patch normal per unit of t (the ray comes down onto the surface).
-        let descent = self.query.to_local(origin).z - self.query.to_local(&(origin + direction)).z;
-        let off = (t - t_surface) * descent;
+        // Distance along the patch normal: −d.z per unit of t (the ray comes down onto the surface).
+        let off = (t - t_surface) * -d.z;
         if off > self.offset_m {
             self.through += 1;
         } else if off < -self.offset_m {
@@ -99,9 +99,8 @@ mod tests {
     use crate::patch::{BoundaryType, SurfaceType};
     use nalgebra::Vector2;
 
-    /// A plane disc of radius 5 cm, `depth` m in front of a camera looking down its optical axis (+z),
-    /// facing the camera, centred `x` m off the axis.
-    fn disc_facing_the_camera(depth: f64, x: f64) -> Patch {
+    /// A plane disc of radius 5 cm, 1 m in front of a camera on its optical axis (+z), facing the camera.
+    fn disc_facing_the_camera() -> Patch {
         // Rotation π about x turns local +z into camera −z: the normal faces the camera.
         Patch::new(
             SurfaceType::Plane,
@@ -109,7 +108,7 @@ mod tests {
             vec![0.05],
             Vector2::zeros(),
             Vector3::new(std::f64::consts::PI, 0.0, 0.0),
-            Vector3::new(x, 0.0, depth),
+            Vector3::new(0.0, 0.0, 1.0),
         )
         .unwrap()
     }
@@ -121,7 +120,7 @@ mod tests {
 
     #[test]
     fn a_disc_on_the_surface_it_was_fitted_to_is_seen_whole() {
-        let patch = disc_facing_the_camera(1.0, 0.0);
+        let patch = disc_facing_the_camera();
         let mut view = DiscView::new(&patch, 0.02);
         for d in rays() {
             // The measured surface is the disc's plane z = 1 everywhere.
@@ -134,7 +133,7 @@ mod tests {
 
     #[test]
     fn a_rim_over_a_drop_is_seen_through_and_an_occluder_in_front_is_not() {
-        let patch = disc_facing_the_camera(1.0, 0.0);
+        let patch = disc_facing_the_camera();
         let mut view = DiscView::new(&patch, 0.02);
         for d in rays() {
             // A ledge ending at x = 4 cm; beyond it the floor lies 10 cm deeper. Over x < −4 cm an
@@ -155,7 +154,7 @@ mod tests {
 
     #[test]
     fn rays_from_behind_or_past_the_boundary_do_not_count() {
-        let patch = disc_facing_the_camera(1.0, 0.0);
+        let patch = disc_facing_the_camera();
         let mut view = DiscView::new(&patch, 0.02);
         // From behind the disc (a camera at z = 2 looking back along −z).
         view.add(&Vector3::new(0.0, 0.0, 2.0), &Vector3::new(0.0, 0.0, -1.0), Some(1.0));
@@ -169,7 +168,7 @@ mod tests {
     #[test]
     fn the_test_rejects_a_disc_whose_rim_the_camera_did_not_see() {
         use crate::validate::{validate_foothold, Foothold, ValidateConfig};
-        let patch = disc_facing_the_camera(1.0, 0.0);
+        let patch = disc_facing_the_camera();
         // The fitted points: the disc itself.
         let points: Vec<Vector3<f64>> = rays().filter(|d| d.x.hypot(d.y) < 0.045).collect();
         let config = ValidateConfig { unseen_max_fraction: SUGGESTED_UNSEEN_MAX_FRACTION, ..ValidateConfig::default() };

@@ -12,7 +12,13 @@ until the patch map holds at least --min-patches patches, then for --seconds mea
   - CPU per node from /proc/<pid>/stat (utime + stime over the window, % of one core).
 Prints p50/p99; asserts nothing.
 
-Usage: .venv/bin/python launch_scripts/bench_patch_mapper.py [--seconds 20] [--min-patches 100]
+With --bag, a recorded rosbag2 MCAP bag (e.g. `terrain_sim record --terrain <heightmap.png> --mcap
+walk.mcap --compression none`) is played instead of running terrain_sim: this process publishes its
+depth images, camera infos and IMU samples at the recorded pace, restamped to the wall clock, so the
+rendering of a large terrain does not take the CPU the mapper is measured on. "Through DDS" is then
+PatchArray arrival minus the publication of its depth frame.
+
+Usage: .venv/bin/python launch_scripts/bench_patch_mapper.py [--seconds 20] [--min-patches 100] [--bag walk.mcap]
 (build first: cargo build --release -p patch_mapper -p terrain_sim).
 """
 
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import struct
 import sys
 import tempfile
 import threading
@@ -52,6 +59,38 @@ def percentiles(values: list[float]) -> str:
     return f"p50 {pick(0.5):7.2f} ms  p99 {pick(0.99):7.2f} ms  max {ordered[-1]:7.2f} ms  (n = {len(ordered)})"
 
 
+def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
+    """Publishes the bag's depth images, camera infos and IMU samples at their recorded pace, each
+    stamp replaced by the wall-clock time of its slot (the CDR header's stamp, bytes 4..12, patched
+    in the serialized message), and reports each depth frame's stamp when it is out."""
+    from rclpy.qos import qos_profile_sensor_data
+    from rosbags.highlevel import AnyReader
+    from sensor_msgs.msg import CameraInfo, Image, Imu
+
+    types = {"sensor_msgs/msg/Image": Image, "sensor_msgs/msg/CameraInfo": CameraInfo, "sensor_msgs/msg/Imu": Imu}
+    publishers = {}
+    with AnyReader([bag]) as reader:
+        connections = [c for c in reader.connections if c.msgtype in types]
+        with harness._lock:
+            for c in connections:
+                publishers[c.topic] = harness.node.create_publisher(types[c.msgtype], c.topic, qos_profile_sensor_data)
+        time.sleep(1.0)  # discovery of the mapper's subscriptions
+        start_wall, start_bag = time.time() + 0.1, None
+        for connection, bag_ns, raw in reader.messages(connections=connections):
+            if stop.is_set():
+                return
+            start_bag = bag_ns if start_bag is None else start_bag
+            slot = start_wall + (bag_ns - start_bag) * 1e-9
+            delay = slot - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            sec, nanosec = int(slot), int((slot - int(slot)) * 1e9)
+            data = bytes(raw[:4]) + struct.pack("<iI" if raw[1] & 1 else ">iI", sec, nanosec) + bytes(raw[12:])
+            publishers[connection.topic].publish(data)
+            if connection.msgtype == "sensor_msgs/msg/Image":
+                published((sec, nanosec))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=20.0)
@@ -59,6 +98,8 @@ def main() -> int:
     parser.add_argument("--param", action="append", default=[], help="extra patch_mapper --param")
     parser.add_argument("--sim-param", action="append", default=[],
                         help="extra terrain_sim -p, e.g. scene.terrain.path=<heightmap.png> to walk over a terrain")
+    parser.add_argument("--bag", type=Path, help="play this MCAP bag instead of running terrain_sim")
+    parser.add_argument("--cells-per-side", type=int, default=16, help="mapper.seeds.cells_per_side")
     args = parser.parse_args()
 
     from patchwalk_msgs.msg import MapperStatus, PatchArray
@@ -67,7 +108,7 @@ def main() -> int:
     mapper_params = {
         "ros.status_period_s": "0.05",
         # More cells than J's Vg = 8 (8 cm instead of 16 cm) so the map holds >= 100 foot-size patches.
-        "mapper.seeds.cells_per_side": "16",
+        "mapper.seeds.cells_per_side": str(args.cells_per_side),
         "mapper.seeds.per_cell": "2",
         "mapper.seeds.max_seeds": "128",
     }
@@ -75,19 +116,26 @@ def main() -> int:
     mapper_args += [a for k, v in mapper_params.items() for a in ("--param", f"{k}={v}")]
     mapper_args += [a for p in args.param for a in ("--param", p)]
     harness = pw.RosHarness("bench_patch_mapper")
-    sim = pw.NodeProcess("terrain_sim", ["run", *[a for p in args.sim_param for a in ("-p", p)]], ENV, LOG_DIR)
+    sim = None if args.bag else pw.NodeProcess("terrain_sim", ["run", *[a for p in args.sim_param for a in ("-p", p)]], ENV, LOG_DIR)
     mapper = pw.NodeProcess("patch_mapper", ["run", *mapper_args], ENV, LOG_DIR)
+    nodes = [n for n in (sim, mapper) if n is not None]
+    player_stop = threading.Event()
     lock = threading.Lock()
     arrivals: list[tuple[float, float, int]] = []  # (arrival wall s, stamp s, patches)
     statuses: list = []
     depth_arrivals: dict[tuple[int, int], float] = {}  # depth stamp (sec, nanosec) -> arrival wall s
     through_dds: list[float] = []  # PatchArray arrival - its depth frame's arrival (ms)
 
-    def on_patches(msg):
+    patches_in_map = [0]  # from the latest status message
+
+    def on_patches(raw: bytes):
+        # Serialized (raw=True): the arrival is not delayed by building a Python object per field of
+        # every patch, which is this process's cost, not the mapper's. Stamp from the CDR header.
         now = time.time()
+        sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
         with lock:
-            arrivals.append((now, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, len(msg.patches)))
-            depth_arrival = depth_arrivals.pop((msg.header.stamp.sec, msg.header.stamp.nanosec), None)
+            arrivals.append((now, sec + nanosec * 1e-9, patches_in_map[0]))
+            depth_arrival = depth_arrivals.pop((sec, nanosec), None)
             if depth_arrival is not None:
                 through_dds.append((now - depth_arrival) * 1e3)
 
@@ -98,9 +146,17 @@ def main() -> int:
             while len(depth_arrivals) > 300:  # frames the mapper skipped
                 depth_arrivals.pop(next(iter(depth_arrivals)))
 
+    def on_depth_published(stamp: tuple[int, int]):
+        now = time.time()
+        with lock:
+            depth_arrivals[stamp] = now
+            while len(depth_arrivals) > 300:
+                depth_arrivals.pop(next(iter(depth_arrivals)))
+
     def on_status(msg):
         with lock:
             statuses.append(msg)
+            patches_in_map[0] = msg.patches_in_map
 
     try:
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -108,10 +164,16 @@ def main() -> int:
         qos = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST, depth=10,
                          durability=DurabilityPolicy.VOLATILE)
         with harness._lock:
-            harness.node.create_subscription(PatchArray, "/patch_mapper/patches", on_patches, qos)
+            harness.node.create_subscription(PatchArray, "/patch_mapper/patches", on_patches, qos, raw=True)
             harness.node.create_subscription(MapperStatus, "/patch_mapper/status", on_status, qos)
-            harness.node.create_subscription(Image, "/camera/depth/image_raw", on_depth, qos_profile_sensor_data)
-        harness.wait_for_nodes("/patch_mapper", "/terrain_sim")
+            if not args.bag:
+                harness.node.create_subscription(Image, "/camera/depth/image_raw", on_depth, qos_profile_sensor_data)
+        if args.bag:
+            harness.wait_for_nodes("/patch_mapper")
+            player = threading.Thread(target=play_bag, args=(harness, args.bag, player_stop, on_depth_published), daemon=True)
+            player.start()
+        else:
+            harness.wait_for_nodes("/patch_mapper", "/terrain_sim")
         deadline = time.monotonic() + 120.0
         print(f"waiting for >= {args.min_patches} patches in the map ...", flush=True)
         while True:
@@ -119,31 +181,35 @@ def main() -> int:
                 patches = arrivals[-1][2] if arrivals else 0
             if patches >= args.min_patches:
                 break
-            if time.monotonic() > deadline or not (sim.alive() and mapper.alive()):
-                print(f"only {patches} patches after 120 s (sim alive {sim.alive()}, mapper alive {mapper.alive()})")
+            if time.monotonic() > deadline or not all(n.alive() for n in nodes):
+                print(f"only {patches} patches after 120 s (" + ", ".join(f"{n.name} alive {n.alive()}" for n in nodes) + ")")
                 break
             time.sleep(0.2)
         with lock:
             arrivals.clear()
             statuses.clear()
             through_dds.clear()
-        cpu0 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
+        cpu0 = {n.name: cpu_seconds(n.proc.pid) for n in nodes}
+        cpu0["this process"] = cpu_seconds(os.getpid())
         t0 = time.monotonic()
         time.sleep(args.seconds)
         wall = time.monotonic() - t0
-        cpu1 = {n.name: cpu_seconds(n.proc.pid) for n in (sim, mapper)}
+        cpu1 = {n.name: cpu_seconds(n.proc.pid) for n in nodes}
+        cpu1["this process"] = cpu_seconds(os.getpid())
         with lock:
             window, status_window, dds_window = list(arrivals), list(statuses), list(through_dds)
     finally:
-        for node in (mapper, sim):
+        player_stop.set()
+        for node in reversed(nodes):
             try:
                 node.stop()
             except AssertionError as e:
                 print(f"{node.name}: {e}".splitlines()[0])
         harness.shutdown()
 
-    print(f"\npatch_mapper on terrain_sim (640x480 @ 30 Hz), {wall:.1f} s window, {os.cpu_count()} cores")
-    print(f"PatchArray messages: {len(window)} ({len(window) / wall:.1f} Hz); patches per message "
+    source = f"the bag {args.bag}" if args.bag else "terrain_sim (640x480 @ 30 Hz)"
+    print(f"\npatch_mapper on {source}, {wall:.1f} s window, {os.cpu_count()} cores")
+    print(f"PatchArray messages: {len(window)} ({len(window) / wall:.1f} Hz); patches in the map "
           f"min {min((a[2] for a in window), default=0)} max {max((a[2] for a in window), default=0)}")
     print("end to end (arrival - depth stamp):   " + percentiles([(a - s) * 1e3 for a, s, _ in window]))
     print("through DDS (arrival - depth arrival): " + percentiles(dds_window))

@@ -71,3 +71,58 @@ fn test_domain_base_parsing() {
   }
   assert!(test_domain_base(Err(VarError::NotUnicode("x".into()))).is_err());
 }
+
+// A loopback-only participant reading its own reliable topic: the writer reaches
+// its own reader through the reader's loopback locator, so the reader gets every
+// sample and the writer hears it acknowledge them (the writer once had no route
+// to its own participant's readers, which advertise only loopback locators, so
+// they never acknowledged and a KEEP_ALL writer filled its window).
+#[test]
+fn loopback_only_participant_reads_and_acknowledges_its_own_writer() -> Result<()> {
+  use std::net::Ipv4Addr;
+
+  use crate::DomainParticipantBuilder;
+
+  let participant = DomainParticipantBuilder::new(test_domain_id(19))
+    .with_only_networks([Ipv4Addr::LOCALHOST])
+    .build()?;
+  let qos = QosPolicyBuilder::new()
+    .history(History::KeepAll)
+    .reliability(Reliability::Reliable {
+      max_blocking_time: Duration::from_millis(100).into(),
+    })
+    .durability(Durability::Volatile)
+    .build();
+  let topic = participant.create_topic(
+    "own_topic".to_string(),
+    "TestType".to_string(),
+    &qos,
+    TopicKind::NoKey,
+  )?;
+  let mut reader = participant
+    .create_subscriber(&qos)?
+    .create_datareader_no_key_cdr::<TestType>(&topic, None)?;
+  let writer = participant
+    .create_publisher(&qos)?
+    .create_datawriter_no_key_cdr::<TestType>(&topic, None)?;
+  // Local endpoints match at once; give the event loop a moment to set the routes.
+  thread::sleep(Duration::from_millis(300));
+  const SAMPLES: usize = 20;
+  for _ in 0..SAMPLES {
+    writer.write(TestType, None)?;
+  }
+  let mut received = 0;
+  let deadline = std::time::Instant::now() + Duration::from_secs(10);
+  while received < SAMPLES && std::time::Instant::now() < deadline {
+    match reader.take_next_sample() {
+      Ok(Some(_)) => received += 1,
+      _ => thread::sleep(Duration::from_millis(20)),
+    }
+  }
+  assert_eq!(received, SAMPLES, "samples the participant's own reader got");
+  assert!(
+    writer.wait_for_acknowledgments(Duration::from_secs(10))?,
+    "the writer did not hear its own reader acknowledge"
+  );
+  Ok(())
+}

@@ -15,7 +15,7 @@ use patchwalk_msgs::geometry_msgs::msg::{Quaternion as QuaternionMsg, Transform,
 use patchwalk_msgs::std_msgs::msg::Header;
 use patchwalk_msgs::tf2_msgs::msg::TFMessage;
 use ros2_client::qos::{Durability, History, QosProfile, WhenFull};
-use ros2_client::{Publisher, Subscription};
+use ros2_client::{Gid, Publisher, Subscription};
 
 use crate::clock::stamp_ns;
 use crate::node::{self, NodeError, RateLimitedLog, RosNode};
@@ -107,13 +107,23 @@ pub struct TfListener {
     pub statics: Subscription<TFMessage>,
     buffer: SharedTf,
     log: RateLimitedLog,
+    /// The node's own broadcaster, whose messages are not taken (see [`TfListener::ignore_own`]).
+    own: Option<Gid>,
 }
 
 impl TfListener {
     pub fn new(ros: &mut RosNode, buffer: SharedTf) -> Result<Self, NodeError> {
         let dynamic = ros.subscription::<TFMessage>(TF_TOPIC, tf_qos())?;
         let statics = ros.subscription::<TFMessage>(TF_STATIC_TOPIC, tf_static_qos())?;
-        Ok(Self { dynamic, statics, buffer, log: RateLimitedLog::default() })
+        Ok(Self { dynamic, statics, buffer, log: RateLimitedLog::default(), own: None })
+    }
+
+    /// Leave out what the node's own `broadcaster` publishes: the node computes those transforms
+    /// and must not look them up again. (A hand-held camera's pose published as `odom → camera`
+    /// would otherwise re-parent the camera frame in the node's own buffer, away from the driver's
+    /// static tree it takes the IMU mount from.)
+    pub fn ignore_own(&mut self, broadcaster: &TfBroadcaster) {
+        self.own = Some(broadcaster.publisher.gid());
     }
 
     /// Register both subscriptions with the loop's wake-up.
@@ -129,7 +139,12 @@ impl TfListener {
         let mut more = false;
         for (sub, topic, is_static) in [(&self.statics, TF_STATIC_TOPIC, true), (&self.dynamic, TF_TOPIC, false)] {
             let mut messages = Vec::new();
-            more |= node::drain(sub, topic, MAX, &mut self.log, |msg, _| messages.push(msg)) >= MAX;
+            let own = self.own;
+            more |= node::drain(sub, topic, MAX, &mut self.log, |msg, info| {
+                if own != Some(info.publisher_gid()) {
+                    messages.push(msg);
+                }
+            }) >= MAX;
             if messages.is_empty() {
                 continue;
             }

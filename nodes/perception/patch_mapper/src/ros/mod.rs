@@ -686,6 +686,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let tf_tree = SharedTf::default();
     let mut tf_listener = TfListener::new(&mut ros, tf_tree.clone())?;
     let tf_broadcaster = if params.tf.publish == tf::TfPublish::Off { None } else { Some(TfBroadcaster::new(&mut ros)?) };
+    if let Some(broadcaster) = &tf_broadcaster {
+        tf_listener.ignore_own(broadcaster);
+    }
     let mut clock_listener = ClockListener::new(&mut ros, &clock)?;
     // The loop sleeps until an input is ready or the status is due.
     let mut wakeup = Wakeup::new()?;

@@ -220,11 +220,6 @@ impl DPEventLoop {
     let security_plugins_opt = security_plugins_opt.and(None); // make sure it is None an consume value
 
     let interface_observations = Rc::new(RefCell::new(InterfaceObservations::new()));
-    // Our own readers are on this host: writers reach them through their
-    // loopback locators (a loopback-only participant advertises no others).
-    interface_observations
-      .borrow_mut()
-      .mark_same_host(participant_guid_prefix);
     let local_interfaces: Rc<[IfAddr]> = Rc::from(local_interface_table());
 
     Ok(Self {

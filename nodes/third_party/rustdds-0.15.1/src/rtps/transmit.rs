@@ -230,17 +230,6 @@ impl InterfaceObservations {
     self.by_participant.get(&prefix)
   }
 
-  /// Marks `prefix` as a participant on this host without having seen its
-  /// traffic: our own participant, whose traffic `record` never sees (the
-  /// message receiver ignores it). Its readers are then reached through their
-  /// advertised loopback locators, like any confirmed same-host peer's; without
-  /// this a loopback-only participant (which advertises nothing else) had no
-  /// route to its own readers, so a reliable writer never heard them
-  /// acknowledge.
-  pub fn mark_same_host(&mut self, prefix: GuidPrefix) {
-    self.by_participant.entry(prefix).or_default().seen_from_loopback = true;
-  }
-
   pub fn remove(&mut self, prefix: GuidPrefix) {
     self.by_participant.remove(&prefix);
   }
@@ -637,25 +626,6 @@ mod tests {
     assert!(obs.is_same_host());
     obs.record(Some(iface([10, 0, 0, 1])), sockaddr([10, 0, 0, 5], 7410));
     assert!(obs.is_same_host());
-  }
-
-  #[test]
-  fn a_participant_marked_same_host_is_reached_through_its_loopback_locator() {
-    let prefix = GuidPrefix::new(&[7; 12]);
-    let mut observations = InterfaceObservations::new();
-    assert!(observations.get(prefix).is_none());
-    observations.mark_same_host(prefix);
-    let observed = observations.get(prefix);
-    assert!(observed.is_some_and(ObservedRoutes::is_same_host));
-    // A loopback-only participant advertises only loopback unicast locators.
-    let loopback = udp([127, 0, 0, 1], 7411);
-    let route = DefaultRouteSelector::default().select(&[], &[], &[loopback], observed, &[]);
-    assert_eq!(route.unicast, Some(loopback));
-    assert!(!route.fallback);
-    // Unmarked, the same locators give only the fallback route, which has no
-    // destination for a reader that advertises nothing but loopback.
-    let route = DefaultRouteSelector::default().select(&[], &[], &[loopback], None, &[]);
-    assert!(route.fallback);
   }
 
   #[test]

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import struct
 import sys
 import tempfile
 import threading
@@ -63,6 +62,7 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
     """Publishes the bag's depth images, camera infos and IMU samples at their recorded pace, each
     stamp replaced by the wall-clock time of its slot (the CDR header's stamp, bytes 4..12, patched
     in the serialized message), and reports each depth frame's stamp when it is out."""
+    from experiment import with_header_stamp
     from rclpy.qos import qos_profile_sensor_data
     from rosbags.highlevel import AnyReader
     from sensor_msgs.msg import CameraInfo, Image, Imu
@@ -85,8 +85,7 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
             if delay > 0:
                 time.sleep(delay)
             sec, nanosec = int(slot), int((slot - int(slot)) * 1e9)
-            data = bytes(raw[:4]) + struct.pack("<iI" if raw[1] & 1 else ">iI", sec, nanosec) + bytes(raw[12:])
-            publishers[connection.topic].publish(data)
+            publishers[connection.topic].publish(with_header_stamp(raw, sec, nanosec))
             if connection.msgtype == "sensor_msgs/msg/Image":
                 published((sec, nanosec))
 
@@ -102,6 +101,7 @@ def main() -> int:
     parser.add_argument("--cells-per-side", type=int, default=16, help="mapper.seeds.cells_per_side")
     args = parser.parse_args()
 
+    from experiment import header_stamp
     from patchwalk_msgs.msg import MapperStatus, PatchArray
     from sensor_msgs.msg import Image
 
@@ -132,26 +132,23 @@ def main() -> int:
         # Serialized (raw=True): the arrival is not delayed by building a Python object per field of
         # every patch, which is this process's cost, not the mapper's. Stamp from the CDR header.
         now = time.time()
-        sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+        sec, nanosec = header_stamp(raw)
         with lock:
             arrivals.append((now, sec + nanosec * 1e-9, patches_in_map[0]))
             depth_arrival = depth_arrivals.pop((sec, nanosec), None)
             if depth_arrival is not None:
                 through_dds.append((now - depth_arrival) * 1e3)
 
-    def on_depth(msg):
-        now = time.time()
-        with lock:
-            depth_arrivals[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = now
-            while len(depth_arrivals) > 300:  # frames the mapper skipped
-                depth_arrivals.pop(next(iter(depth_arrivals)))
-
-    def on_depth_published(stamp: tuple[int, int]):
+    def depth_seen(stamp: tuple[int, int]):
+        """A depth frame arrived here (from terrain_sim) or was published (from the bag)."""
         now = time.time()
         with lock:
             depth_arrivals[stamp] = now
-            while len(depth_arrivals) > 300:
+            while len(depth_arrivals) > 300:  # frames the mapper skipped
                 depth_arrivals.pop(next(iter(depth_arrivals)))
+
+    def on_depth(msg):
+        depth_seen((msg.header.stamp.sec, msg.header.stamp.nanosec))
 
     def on_status(msg):
         with lock:
@@ -170,7 +167,7 @@ def main() -> int:
                 harness.node.create_subscription(Image, "/camera/depth/image_raw", on_depth, qos_profile_sensor_data)
         if args.bag:
             harness.wait_for_nodes("/patch_mapper")
-            player = threading.Thread(target=play_bag, args=(harness, args.bag, player_stop, on_depth_published), daemon=True)
+            player = threading.Thread(target=play_bag, args=(harness, args.bag, player_stop, depth_seen), daemon=True)
             player.start()
         else:
             harness.wait_for_nodes("/patch_mapper", "/terrain_sim")

@@ -137,11 +137,25 @@ class LatestSerialized(Latest):
             self.cond.notify_all()
 
 
+def _stamp_format(raw: bytes) -> str:
+    # CDR after the 4-byte encapsulation header, whose second byte says the byte order.
+    return "<iI" if raw[1] & 1 else ">iI"
+
+
+def header_stamp(raw: bytes) -> tuple[int, int]:
+    """`header.stamp` (sec, nanosec) of a serialized message whose first field is a std_msgs/Header."""
+    return struct.unpack_from(_stamp_format(raw), raw, 4)
+
+
 def header_stamp_s(raw: bytes) -> float:
-    """`header.stamp` of a serialized message whose first field is a std_msgs/Header (CDR after the 4-byte
-    encapsulation header, whose second byte says the byte order)."""
-    sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+    """`header_stamp` in s."""
+    sec, nanosec = header_stamp(raw)
     return sec + nanosec * 1e-9
+
+
+def with_header_stamp(raw: bytes, sec: int, nanosec: int) -> bytes:
+    """The serialized message `raw` (first field a std_msgs/Header) with its stamp replaced."""
+    return bytes(raw[:4]) + struct.pack(_stamp_format(raw), sec, nanosec) + bytes(raw[12:])
 
 
 class Hand:

@@ -648,6 +648,44 @@ mod tests {
     }
 
     #[test]
+    fn frames_before_the_first_imu_sample_are_mapped_again_once_gravity_is_known() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let (depth, down) = robot_scene(&intrinsics);
+        let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
+        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        // Depth before any IMU sample (a driver that starts its IMU stream late): camera y is taken as
+        // down, so the map frame is tilted by the camera's pitch.
+        for frame in 0..3 {
+            let output = pipeline.process(&depth, frame as f64 / 30.0).unwrap();
+            assert!(output.gravity_in_camera.is_none());
+        }
+        let tilted = pipeline.process(&depth, 0.1).unwrap().map_from_camera.rotation * down;
+        assert!(tilted.z > -0.9, "{tilted:?}");
+        // The first frame with gravity starts the volume and the map frame again, gravity-aligned.
+        let mut outputs = Vec::new();
+        for frame in 4..8 {
+            let t = frame as f64 / 30.0;
+            pipeline.push_imu(t - 0.005, -down * 9.81).unwrap();
+            outputs.push(pipeline.process(&depth, t).unwrap());
+        }
+        assert_eq!(outputs[0].tracking, TrackingStatus::Initialized);
+        assert!(
+            outputs[1..].iter().all(|o| o.tracking == TrackingStatus::Tracked),
+            "{:?}",
+            outputs.iter().map(|o| &o.tracking).collect::<Vec<_>>()
+        );
+        let last = &outputs[3];
+        let down_in_map = last.map_from_camera.rotation * down;
+        assert!((down_in_map + Vector3::z()).norm() < 2e-3, "{down_in_map:?}");
+        // Every patch is in the aligned map: the floor's are horizontal.
+        let camera_in_map = last.map_from_camera.translation.vector;
+        let floor: Vec<_> =
+            pipeline.map().patches().iter().filter(|m| (m.patch.center.z - (camera_in_map.z - 0.45)).abs() < 0.005).collect();
+        assert!(floor.len() >= 5, "{} floor patches of {}", floor.len(), pipeline.map().len());
+        assert!(floor.iter().all(|m| m.patch.normal().z.abs() > 0.99));
+    }
+
+    #[test]
     fn bad_input_is_rejected_and_the_pipeline_keeps_working() {
         let intrinsics = Intrinsics::primesense_default().scaled(0.5);
         let (depth, down) = robot_scene(&intrinsics);

@@ -474,6 +474,12 @@ impl Tracker {
             });
         }
         let mut timings = StageTimings::default();
+        if self.awaits_gravity(&frame) {
+            // The volume and the map frame were set up before the IMU's gravity was known (camera y
+            // taken as down): the first frame with gravity starts both again, gravity-aligned (J 5.2).
+            self.reset();
+            self.frames = 0;
+        }
         // The model this frame is aligned to, unless the caller raycast it after the last frame.
         self.prepare_model();
         timings.raycast_ms = std::mem::take(&mut self.model_raycast_ms);
@@ -545,6 +551,13 @@ impl Tracker {
             icp,
             timings,
         })
+    }
+
+    /// Whether the volume was initialised without gravity and this frame brings it.
+    fn awaits_gravity(&self, frame: &Frame<'_>) -> bool {
+        let volume_exists = self.model.is_some() || self.pending_model.is_some();
+        let gravity = frame.gravity_in_camera.is_some_and(|g| g.norm() > 1e-9 && g.iter().all(|v| v.is_finite()));
+        volume_exists && !self.gravity_aligned && gravity
     }
 
     /// (Re)initialises the volume around the camera (J 5.2): y along gravity, z forward, camera at

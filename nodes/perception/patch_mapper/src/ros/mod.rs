@@ -536,6 +536,12 @@ impl Worker {
                 return;
             }
         };
+        if output.gravity_in_camera.is_none() {
+            self.log.warn(
+                "no_imu",
+                format_args!("no IMU sample yet: camera y is taken as down; the first sample starts the map again, gravity-aligned"),
+            );
+        }
         if self.reset_request.lock().is_ok_and(|r| r.is_some()) {
             // A reset came while this frame was processed: its map shows the world before it.
             with_status(&self.status, |s| s.frames_skipped += 1);

@@ -32,7 +32,12 @@ if ! cargo +nightly fuzz --version >/dev/null 2>&1; then
     echo "fuzz.sh: installing cargo-fuzz (cargo install cargo-fuzz --locked)"
     cargo install cargo-fuzz --locked || { echo "fuzz.sh: cannot install cargo-fuzz" >&2; exit 2; }
 fi
-fuzz() { cargo +nightly fuzz "$@" --fuzz-dir "$FUZZ_DIR"; }
+# `--fuzz-dir` right after the subcommand: what follows `--` in `run` goes to libFuzzer.
+fuzz() {
+    local subcommand="$1"
+    shift
+    cargo +nightly fuzz "$subcommand" --fuzz-dir "$FUZZ_DIR" "$@"
+}
 
 if [ $# -gt 0 ]; then TARGETS=("$@"); else mapfile -t TARGETS < <(fuzz list); fi
 [ ${#TARGETS[@]} -gt 0 ] || { echo "fuzz.sh: no fuzz targets" >&2; exit 2; }

@@ -63,6 +63,9 @@ use crate::{
 #[cfg(not(feature = "security"))]
 use crate::no_security::security_plugins::SecurityPluginsHandle;
 
+/// Datagrams read from a socket before they are handled (then the next ones).
+const RECEIVE_BATCH: usize = 64;
+
 #[derive(Clone, Debug)]
 pub struct DomainInfo {
   pub domain_participant_guid: GUID,
@@ -329,19 +332,26 @@ impl DPEventLoop {
               | DISCOVERY_MUL_LISTENER_TOKEN
               | USER_TRAFFIC_LISTENER_TOKEN
               | USER_TRAFFIC_MUL_LISTENER_TOKEN => {
-                // Edge-triggered: read until WouldBlock. A cap would leave
-                // datagrams sitting with no further readiness event.
-                let udp_messages = ev_wrapper.udp_listeners.get_mut(&token).map_or_else(
-                  || {
+                // Edge-triggered: read until WouldBlock (a datagram left unread
+                // gets no further readiness event), but handle what was read every
+                // RECEIVE_BATCH datagrams: the socket's whole backlog read at once
+                // (a burst of fragments of large samples) is that many megabytes
+                // held in memory before the first is handled.
+                loop {
+                  let Some(listener) = ev_wrapper.udp_listeners.get_mut(&token) else {
                     error!("No listener with token {:?}", token);
-                    vec![]
-                  },
-                  |l| l.messages_bounded(usize::MAX),
-                );
-                for (packet, origin) in udp_messages {
-                  ev_wrapper
-                    .message_receiver
-                    .handle_received_packet(&packet, origin);
+                    break;
+                  };
+                  let udp_messages = listener.messages_bounded(RECEIVE_BATCH);
+                  let drained = udp_messages.len() < RECEIVE_BATCH;
+                  for (packet, origin) in udp_messages {
+                    ev_wrapper
+                      .message_receiver
+                      .handle_received_packet(&packet, origin);
+                  }
+                  if drained {
+                    break;
+                  }
                 }
               }
               LOOP_WAKE_TOKEN => {

@@ -297,6 +297,17 @@ impl FragmentAssembler {
     }
   }
 
+  /// Drops the partial samples below `sn` (the writer has moved past them).
+  pub fn discard_before(&mut self, sn: SequenceNumber) {
+    self.assembly_buffers = self.assembly_buffers.split_off(&sn);
+  }
+
+  /// The number of samples being assembled.
+  #[cfg(test)]
+  pub fn partial_samples(&self) -> usize {
+    self.assembly_buffers.len()
+  }
+
   pub fn garbage_collect_before(&mut self, expire_before: Timestamp) {
     self.assembly_buffers.retain(|sn, ab| {
       let retain = ab.modified_time >= expire_before;

@@ -713,6 +713,26 @@ impl Reader {
       write_options_b = write_options_b.related_sample_identity(related_sample_identity);
     }
 
+    // A stateful reader neither assembles a sample it already has (a repair sent
+    // again, a duplicate path) nor keeps the partial samples its writer has moved
+    // past (received, or declared irrelevant by a GAP or HEARTBEAT): each buffer is
+    // as large as the whole sample, and those would wait for the 10 s timeout.
+    // (The participant reader accepts duplicates, see `process_received_data`.)
+    if !self.like_stateless && self.my_guid.entity_id != EntityId::SPDP_BUILTIN_PARTICIPANT_READER {
+      if let Some((have_it, ack_base)) = self
+        .matched_writer(writer_guid)
+        .map(|proxy| (proxy.should_ignore_change(seq_num), proxy.all_ackable_before()))
+      {
+        if let Some(assembler) = self.fragment_assemblers.get_mut(&writer_guid) {
+          assembler.discard_before(ack_base);
+        }
+        if have_it {
+          trace!("DATAFRAG of {seq_num:?}, which this reader already has: not assembled");
+          return;
+        }
+      }
+    }
+
     // Feed to fragment assembler ...
     let writer_seq_num = datafrag.writer_sn; // for borrow checker
     let completed_dds_data = self
@@ -721,6 +741,13 @@ impl Reader {
 
     // ... and continue processing, if data was completed.
     if let Some(dds_data) = completed_dds_data {
+      if self.reliability == policy::Reliability::BestEffort {
+        // Lost fragments are never sent again: the older partial samples of this
+        // writer cannot complete any more.
+        if let Some(assembler) = self.fragment_assemblers.get_mut(&writer_guid) {
+          assembler.discard_before(writer_seq_num);
+        }
+      }
       // Source timestamp (if any) will be the timestamp of the last fragment (that
       // completes the sample).
       self.process_received_data(
@@ -1957,13 +1984,15 @@ mod tests {
   // A reliable, stateful reader of a test topic, and the receiver of its data
   // notifications.
   fn reliable_test_reader() -> (Reader, mio_source::NotificationReceiver, QosPolicies) {
+    test_reader(Reliability::Reliable {
+      max_blocking_time: Duration::from_millis(100),
+    })
+  }
+
+  fn test_reader(reliability: Reliability) -> (Reader, mio_source::NotificationReceiver, QosPolicies) {
     let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
     let topic_name = "test_name";
-    let reliable_qos = QosPolicyBuilder::new()
-      .reliability(Reliability::Reliable {
-        max_blocking_time: Duration::from_millis(100),
-      })
-      .build();
+    let reliable_qos = QosPolicyBuilder::new().reliability(reliability).build();
     let topic_cache_handle = dds_cache.write().unwrap().add_new_topic(
       topic_name.to_string(),
       TypeDesc::new("test_type".to_string()),
@@ -1999,6 +2028,118 @@ mod tests {
     );
 
     (reader, notification_receiver, reliable_qos)
+  }
+
+  // Fragment `frag` (1-based) of sample `sn` of a 3-fragment, 2,600-byte sample
+  // (1,024-byte fragments) whose bytes are `whole`.
+  fn fragment(reader: &Reader, writer: GUID, sn: i64, frag: u32, whole: &[u8]) -> DataFrag {
+    let start = (frag as usize - 1) * 1024;
+    let end = (start + 1024).min(whole.len());
+    DataFrag {
+      reader_id: reader.entity_id(),
+      writer_id: writer.entity_id,
+      writer_sn: SequenceNumber::new(sn),
+      fragment_starting_num: FragmentNumber::new(frag),
+      fragments_in_submessage: 1,
+      data_size: whole.len() as u32,
+      fragment_size: 1024,
+      inline_qos: None,
+      serialized_payload: bytes::Bytes::copy_from_slice(&whole[start..end]),
+    }
+  }
+
+  // Partial samples are as large as the whole sample: a reliable reader keeps
+  // none for samples it already has or that its writer has moved past.
+  #[test]
+  fn partial_samples_the_writer_moved_past_are_dropped() {
+    let (mut reader, notification_receiver, reliable_qos) = reliable_test_reader();
+    let writer = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: writer.prefix,
+      ..Default::default()
+    };
+    reader.matched_writer_add(
+      writer,
+      EntityId::UNKNOWN,
+      vec![],
+      vec![],
+      &reliable_qos,
+    );
+    // A CDR_LE payload header, then the sample's bytes.
+    let whole: Vec<u8> = [0u8, 1, 0, 0]
+      .into_iter()
+      .chain((0..2596).map(|i| (i % 251) as u8))
+      .collect();
+    let flags = BitFlags::<DATAFRAG_Flags>::from_flag(DATAFRAG_Flags::Endianness);
+    let partial = |reader: &Reader| {
+      reader
+        .fragment_assemblers
+        .get(&writer)
+        .map_or(0, |a| a.partial_samples())
+    };
+    // The first fragment of samples 1-4 (the rest was lost).
+    for sn in 1..=4 {
+      reader.handle_datafrag_msg(&fragment(&reader, writer, sn, 1, &whole), flags, &mr_state);
+    }
+    assert_eq!(partial(&reader), 4);
+    // The writer no longer has samples 1-3 (KeepLast): a GAP declares them
+    // irrelevant. The next fragment drops their partial samples, and a late
+    // fragment of one of them is not assembled again.
+    let gap = Gap {
+      reader_id: reader.entity_id(),
+      writer_id: writer.entity_id,
+      gap_start: SequenceNumber::new(1),
+      gap_list: SequenceNumberSet::new_empty(SequenceNumber::new(4)),
+    };
+    reader.handle_gap_msg(&gap, &mr_state);
+    reader.handle_datafrag_msg(&fragment(&reader, writer, 2, 2, &whole), flags, &mr_state);
+    assert_eq!(partial(&reader), 1, "only sample 4 is still being assembled");
+    // Sample 4 completes and is delivered.
+    for frag in 2..=3 {
+      reader.handle_datafrag_msg(&fragment(&reader, writer, 4, frag, &whole), flags, &mr_state);
+    }
+    assert!(notification_receiver.try_recv().is_ok(), "sample 4 was not delivered");
+    while notification_receiver.try_recv().is_ok() {}
+    assert_eq!(partial(&reader), 0);
+    // A repair of sample 4 sent again is not assembled into a new buffer.
+    reader.handle_datafrag_msg(&fragment(&reader, writer, 4, 1, &whole), flags, &mr_state);
+    assert_eq!(partial(&reader), 0);
+    assert!(notification_receiver.try_recv().is_err(), "a duplicate was delivered");
+  }
+
+  // Best effort: a completed sample ends the wait for the older partial ones.
+  #[test]
+  fn a_best_effort_reader_drops_older_partial_samples_when_one_completes() {
+    let (mut reader, notification_receiver, qos) = test_reader(Reliability::BestEffort);
+    let writer = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: writer.prefix,
+      ..Default::default()
+    };
+    reader.matched_writer_add(writer, EntityId::UNKNOWN, vec![], vec![], &qos);
+    let whole: Vec<u8> = [0u8, 1, 0, 0]
+      .into_iter()
+      .chain((0..2596).map(|i| (i % 251) as u8))
+      .collect();
+    let flags = BitFlags::<DATAFRAG_Flags>::from_flag(DATAFRAG_Flags::Endianness);
+    let partial = |reader: &Reader| {
+      reader
+        .fragment_assemblers
+        .get(&writer)
+        .map_or(0, |a| a.partial_samples())
+    };
+    // Samples 1-3 lost their later fragments; sample 4 arrives whole, sample 5
+    // is on its way.
+    for sn in 1..=3 {
+      reader.handle_datafrag_msg(&fragment(&reader, writer, sn, 1, &whole), flags, &mr_state);
+    }
+    reader.handle_datafrag_msg(&fragment(&reader, writer, 5, 1, &whole), flags, &mr_state);
+    assert_eq!(partial(&reader), 4);
+    for frag in 1..=3 {
+      reader.handle_datafrag_msg(&fragment(&reader, writer, 4, frag, &whole), flags, &mr_state);
+    }
+    assert!(notification_receiver.try_recv().is_ok(), "sample 4 was not delivered");
+    assert_eq!(partial(&reader), 1, "only sample 5 is still being assembled");
   }
 
   #[test]

@@ -24,11 +24,12 @@ pub use block::{Block, Voxel, BLOCK_EDGE, BLOCK_VOXELS, SUPERBLOCK_EDGE};
 pub use integrator::IntegrationStats;
 pub use tsdf_volume::{TsdfSample, TsdfVolume};
 
-/// `floor` as an integer without a libm call (not inlined without SSE4.1).
+/// `floor` as an integer without a libm call (not inlined without SSE4.1); saturating outside the
+/// `i32` range like `as` (a point far off the volume, e.g. from a garbage pose), NaN gives 0.
 #[inline(always)]
 pub fn floor_i(x: f32) -> i32 {
     let i = x as i32;
-    i - i32::from((i as f32) > x)
+    i.saturating_sub(i32::from((i as f32) > x))
 }
 
 /// `floor` of `x` in [0, 2²²) without a float → integer conversion, so that loops using it
@@ -110,6 +111,18 @@ pub(crate) mod tests {
     use crate::camera::{DepthImage, Intrinsics};
     use nalgebra::{Isometry3, Vector3};
     use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn floor_i_is_floor_and_saturates_outside_the_i32_range() {
+        for x in [-2.5f32, -2.0, -0.5, 0.0, 0.5, 2.0, 2.5, 1e6 + 0.5] {
+            assert_eq!(floor_i(x), x.floor() as i32, "{x}");
+        }
+        // Far off the volume (a garbage pose): no overflow, the ends of the range.
+        assert_eq!(floor_i(-3e9), i32::MIN);
+        assert_eq!(floor_i(f32::NEG_INFINITY), i32::MIN);
+        assert_eq!(floor_i(3e9), i32::MAX);
+        assert_eq!(floor_i(f32::NAN), 0);
+    }
 
     /// Renders a depth image of the plane `n·x = offset` (world frame = volume frame here).
     pub(crate) fn render_plane(

@@ -57,10 +57,13 @@ for target in "${TARGETS[@]}"; do
     before=$(find "$artifacts" -type f | wc -l)
     log="$LOG_DIR/$target.log"
     echo "=== $target: ${SECONDS_PER_TARGET} s"
+    # -jobs makes libFuzzer write fuzz-<n>.log files in the working directory: only for FUZZ_JOBS > 1.
+    parallel=()
+    [ "${FUZZ_JOBS:-1}" -gt 1 ] && parallel=(-jobs="$FUZZ_JOBS" -workers="$FUZZ_JOBS")
     fuzz run -s "$SANITIZER" -a "$target" "$corpus" -- \
         -max_total_time="$SECONDS_PER_TARGET" -artifact_prefix="$artifacts/" -print_final_stats=1 \
         -rss_limit_mb="${FUZZ_RSS_MB:-2048}" -timeout="${FUZZ_TIMEOUT_S:-10}" \
-        -jobs="${FUZZ_JOBS:-1}" -workers="${FUZZ_JOBS:-1}" >"$log" 2>&1
+        ${parallel[@]+"${parallel[@]}"} >"$log" 2>&1
     rc=$?
     [ "${FUZZ_JOBS:-1}" -gt 1 ] && cat fuzz-*.log >>"$log" 2>/dev/null && rm -f fuzz-*.log
     execs=$(grep -oE 'stat::number_of_executed_units: *[0-9]+' "$log" | awk '{ n += $2 } END { print n + 0 }')

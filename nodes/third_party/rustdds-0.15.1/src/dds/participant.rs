@@ -1596,7 +1596,7 @@ impl DomainParticipantInner {
 
     // Create the topic cache entry
     let mut dds_cache_guard = self.dds_cache.write()?;
-    dds_cache_guard.add_new_topic(name, topic_type_desc, qos);
+    dds_cache_guard.add_new_topic_of_kind(name, topic_type_desc, qos, topic_kind);
 
     Ok(topic)
   }

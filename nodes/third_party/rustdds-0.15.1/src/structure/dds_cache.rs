@@ -20,7 +20,7 @@ use crate::{
     CreateError, CreateResult,
   },
   rtps::constant::MAX_WITHHELD_BYTES_PER_TOPIC,
-  structure::{sequence_number::SequenceNumber, time::Timestamp},
+  structure::{sequence_number::SequenceNumber, time::Timestamp, topic_kind::TopicKind},
   GUID,
 };
 use super::cache_change::CacheChange;
@@ -66,14 +66,27 @@ impl DDSCache {
     topic_data_type: TypeDesc,
     qos: &QosPolicies,
   ) -> Arc<Mutex<TopicCache>> {
+    self.add_new_topic_of_kind(topic_name, topic_data_type, qos, TopicKind::WithKey)
+  }
+
+  /// As [`Self::add_new_topic`], for a topic of known kind: the cache of a
+  /// NO_KEY topic keeps only the History depth (its single instance).
+  pub(crate) fn add_new_topic_of_kind(
+    &mut self,
+    topic_name: String,
+    topic_data_type: TypeDesc,
+    qos: &QosPolicies,
+    kind: TopicKind,
+  ) -> Arc<Mutex<TopicCache>> {
     let topic_cache_handle = self
       .topic_caches
       .entry(topic_name.clone())
       .and_modify(|tc| tc.lock().unwrap().update_keep_limits(qos))
-      .or_insert(Arc::new(Mutex::new(TopicCache::new(
+      .or_insert(Arc::new(Mutex::new(TopicCache::new_of_kind(
         topic_name,
         topic_data_type,
         qos,
+        kind,
       ))));
 
     topic_cache_handle.clone()
@@ -121,6 +134,8 @@ pub(crate) struct TopicCache {
   topic_qos: QosPolicies,
   min_keep_samples: History,
   max_keep_samples: i32, // from QoS, for quick, repeated access
+  // NO_KEY: one instance, so KEEP_LAST depth bounds the samples worth keeping.
+  kind: TopicKind,
   // TODO: Change this to Option<u32>, where None means "no limit".
 
   // The main content of the cache is in this map.
@@ -158,7 +173,17 @@ pub(crate) struct TopicCache {
 
 impl TopicCache {
   pub fn new(topic_name: String, topic_data_type: TypeDesc, topic_qos: &QosPolicies) -> Self {
+    Self::new_of_kind(topic_name, topic_data_type, topic_qos, TopicKind::WithKey)
+  }
+
+  pub fn new_of_kind(
+    topic_name: String,
+    topic_data_type: TypeDesc,
+    topic_qos: &QosPolicies,
+    kind: TopicKind,
+  ) -> Self {
     let mut new_self = Self {
+      kind,
       topic_name,
       topic_data_type,
       topic_qos: topic_qos.clone(),
@@ -203,6 +228,14 @@ impl TopicCache {
     // If a definite minimum is specified, increase resource limit to at least that.
     let max_keep_samples = match min_keep_samples {
       History::KeepLast { depth: n } if n > max_keep_samples => n,
+      // A NO_KEY topic has one instance: without explicit limits, KEEP_LAST
+      // depth is all a reader can be handed (the default 64 kept 64 samples of
+      // a megabyte-sized stream for a reader of depth 1).
+      History::KeepLast { depth: n }
+        if self.kind == TopicKind::NoKey && qos.resource_limits().is_none() =>
+      {
+        n
+      }
       _ => max_keep_samples,
     };
 
@@ -739,6 +772,65 @@ mod tests {
       ),
     );
     topic_cache.mark_reliably_received_before(writer, SequenceNumber::new(1));
+  }
+
+  // A NO_KEY topic without resource limits keeps its History depth; a keyed
+  // one (depth per instance, instances unknown here) keeps the default 64.
+  #[test]
+  fn a_no_key_topic_keeps_its_history_depth() {
+    use crate::{dds::qos::policy::ResourceLimits, structure::topic_kind::TopicKind};
+    let qos = QosPolicyBuilder::new()
+      .history(History::KeepLast { depth: 3 })
+      .build();
+    let writer = user_writer();
+    let mut no_key = TopicCache::new_of_kind(
+      "cloud".to_string(),
+      TypeDesc::new("PointCloud2".to_string()),
+      &qos,
+      TopicKind::NoKey,
+    );
+    let mut keyed = TopicCache::new(
+      "Square".to_string(),
+      TypeDesc::new("ShapeType".to_string()),
+      &qos,
+    );
+    for cache in [&mut no_key, &mut keyed] {
+      for sn in 1..=100 {
+        cache.add_change(
+          &Timestamp::now(),
+          CacheChange::new(
+            writer,
+            SequenceNumber::new(sn),
+            WriteOptions::default(),
+            DDSData::new(SerializedPayload::new(
+              RepresentationIdentifier::CDR_LE,
+              vec![0; 100_000],
+            )),
+          ),
+        );
+      }
+    }
+    // (The cache is collected before each insert: the limit plus the newest.)
+    assert_eq!(no_key.changes.len(), 3 + 1);
+    assert_eq!(keyed.changes.len(), 64 + 1);
+    // Explicit resource limits and a deeper reader still raise the limit.
+    no_key.update_keep_limits(
+      &QosPolicyBuilder::new()
+        .history(History::KeepLast { depth: 5 })
+        .build(),
+    );
+    assert_eq!(no_key.max_keep_samples, 5);
+    no_key.update_keep_limits(
+      &QosPolicyBuilder::new()
+        .history(History::KeepLast { depth: 2 })
+        .resource_limits(ResourceLimits {
+          max_samples: 20,
+          max_instances: 1,
+          max_samples_per_instance: 20,
+        })
+        .build(),
+    );
+    assert_eq!(no_key.max_keep_samples, 20);
   }
 
   #[test]

@@ -603,13 +603,19 @@ mod tests {
         (depth, down)
     }
 
-    #[test]
-    fn robot_scene_with_defaults_maps_the_floor_in_front_of_the_feet() {
+    /// The robot scene and a pipeline with the node's defaults, without the per-frame time limit
+    /// (deterministic under any load).
+    fn robot_scene_pipeline() -> (Pipeline, DepthImage, Vector3<f64>) {
         let intrinsics = Intrinsics::primesense_default().scaled(0.5);
         let (depth, down) = robot_scene(&intrinsics);
-        // The node's defaults, without the per-frame time limit (deterministic under any load).
         let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
-        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        let pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        (pipeline, depth, down)
+    }
+
+    #[test]
+    fn robot_scene_with_defaults_maps_the_floor_in_front_of_the_feet() {
+        let (mut pipeline, depth, down) = robot_scene_pipeline();
         let mut summary = FrameSummary::default();
         let mut last = None;
         for frame in 0..6 {
@@ -649,10 +655,7 @@ mod tests {
 
     #[test]
     fn frames_before_the_first_imu_sample_are_mapped_again_once_gravity_is_known() {
-        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
-        let (depth, down) = robot_scene(&intrinsics);
-        let mapper = MapperConfig { time_limit_ms: f64::INFINITY, ..default_mapper_config() };
-        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), mapper, intrinsics).unwrap();
+        let (mut pipeline, depth, down) = robot_scene_pipeline();
         // Depth before any IMU sample (a driver that starts its IMU stream late): camera y is taken as
         // down, so the map frame is tilted by the camera's pitch.
         for frame in 0..3 {

@@ -556,8 +556,7 @@ impl Tracker {
     /// Whether the volume was initialised without gravity and this frame brings it.
     fn awaits_gravity(&self, frame: &Frame<'_>) -> bool {
         let volume_exists = self.model.is_some() || self.pending_model.is_some();
-        let gravity = frame.gravity_in_camera.is_some_and(|g| g.norm() > 1e-9 && g.iter().all(|v| v.is_finite()));
-        volume_exists && !self.gravity_aligned && gravity
+        volume_exists && !self.gravity_aligned && usable_gravity(frame).is_some()
     }
 
     /// (Re)initialises the volume around the camera (J 5.2): y along gravity, z forward, camera at
@@ -571,7 +570,7 @@ impl Tracker {
             // After a loss, keep the map continuous at the last known camera pose.
             None => self.map_from_camera() * self.volume_from_camera.inverse(),
         };
-        self.gravity_aligned = frame.gravity_in_camera.is_some_and(|g| g.norm() > 1e-9);
+        self.gravity_aligned = usable_gravity(frame).is_some();
         self.motion.clear();
         self.recovery.reset();
     }
@@ -599,11 +598,7 @@ impl Tracker {
             prediction.flatten().map_or(last_good, |map_from_camera| self.map_from_volume.inverse() * map_from_camera)
         });
         // Gravity in the volume frame is its y axis (J 5.2), when the volume was set up with the IMU.
-        let gravity = frame
-            .gravity_in_camera
-            .filter(|_| self.gravity_aligned)
-            .and_then(|g| g.try_normalize(1e-9))
-            .filter(|g| g.iter().all(|v| v.is_finite()));
+        let gravity = usable_gravity(frame).filter(|_| self.gravity_aligned);
         let tilt = |pose: Isometry3<f64>| match gravity.filter(|_| config.motion_prior.gravity_tilt) {
             Some(g) => tilt_corrected(&pose, &g, &Vector3::y()),
             None => pose,
@@ -701,6 +696,11 @@ pub fn hypotheses(
         }
     }
     attempts
+}
+
+/// The frame's unit gravity (camera frame), if it has a finite, non-zero one.
+fn usable_gravity(frame: &Frame<'_>) -> Option<Vector3<f64>> {
+    frame.gravity_in_camera.and_then(|g| g.try_normalize(1e-9)).filter(|g| g.iter().all(|v| v.is_finite()))
 }
 
 /// The starts of the coarse search around `start` (`volume_from_camera`): itself, moved ±`search_m`

@@ -1992,11 +1992,11 @@ mod tests {
   fn test_reader(reliability: Reliability) -> (Reader, mio_source::NotificationReceiver, QosPolicies) {
     let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
     let topic_name = "test_name";
-    let reliable_qos = QosPolicyBuilder::new().reliability(reliability).build();
+    let qos = QosPolicyBuilder::new().reliability(reliability).build();
     let topic_cache_handle = dds_cache.write().unwrap().add_new_topic(
       topic_name.to_string(),
       TypeDesc::new("test_type".to_string()),
-      &reliable_qos,
+      &qos,
     );
     let (notification_sender, notification_receiver) = crate::mio_source::notification_channel(100);
     let (_notification_event_source, notification_event_sender) =
@@ -2015,7 +2015,7 @@ mod tests {
         topic_name: topic_name.to_string(),
         topic_cache_handle,
         like_stateless: false,
-        qos_policy: reliable_qos.clone(),
+        qos_policy: qos.clone(),
         data_reader_command_receiver: reader_command_receiver,
         data_reader_waker: Arc::new(Mutex::new(None)),
         poll_event_sender: notification_event_sender,
@@ -2027,24 +2027,70 @@ mod tests {
       participant_status_sender,
     );
 
-    (reader, notification_receiver, reliable_qos)
+    (reader, notification_receiver, qos)
   }
 
-  // Fragment `frag` (1-based) of sample `sn` of a 3-fragment, 2,600-byte sample
-  // (1,024-byte fragments) whose bytes are `whole`.
-  fn fragment(reader: &Reader, writer: GUID, sn: i64, frag: u32, whole: &[u8]) -> DataFrag {
-    let start = (frag as usize - 1) * 1024;
-    let end = (start + 1024).min(whole.len());
-    DataFrag {
-      reader_id: reader.entity_id(),
-      writer_id: writer.entity_id,
-      writer_sn: SequenceNumber::new(sn),
-      fragment_starting_num: FragmentNumber::new(frag),
-      fragments_in_submessage: 1,
-      data_size: whole.len() as u32,
-      fragment_size: 1024,
-      inline_qos: None,
-      serialized_payload: bytes::Bytes::copy_from_slice(&whole[start..end]),
+  // A reader of `reliability` with one matched writer, fed fragments of
+  // 3-fragment, 2,600-byte samples (1,024-byte fragments).
+  struct FragmentFeed {
+    reader: Reader,
+    notifications: mio_source::NotificationReceiver,
+    writer: GUID,
+    mr_state: MessageReceiverState<'static>,
+    // A CDR_LE payload header, then the sample's bytes.
+    whole: Vec<u8>,
+  }
+
+  impl FragmentFeed {
+    fn new(reliability: Reliability) -> Self {
+      let (mut reader, notifications, qos) = test_reader(reliability);
+      let writer = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
+      let mr_state = MessageReceiverState {
+        source_guid_prefix: writer.prefix,
+        ..Default::default()
+      };
+      reader.matched_writer_add(writer, EntityId::UNKNOWN, vec![], vec![], &qos);
+      let whole = [0u8, 1, 0, 0]
+        .into_iter()
+        .chain((0..2596).map(|i| (i % 251) as u8))
+        .collect();
+      Self {
+        reader,
+        notifications,
+        writer,
+        mr_state,
+        whole,
+      }
+    }
+
+    // Fragment `frag` (1-based) of sample `sn`.
+    fn send(&mut self, sn: i64, frag: u32) {
+      let start = (frag as usize - 1) * 1024;
+      let end = (start + 1024).min(self.whole.len());
+      let datafrag = DataFrag {
+        reader_id: self.reader.entity_id(),
+        writer_id: self.writer.entity_id,
+        writer_sn: SequenceNumber::new(sn),
+        fragment_starting_num: FragmentNumber::new(frag),
+        fragments_in_submessage: 1,
+        data_size: self.whole.len() as u32,
+        fragment_size: 1024,
+        inline_qos: None,
+        serialized_payload: bytes::Bytes::copy_from_slice(&self.whole[start..end]),
+      };
+      let flags = BitFlags::<DATAFRAG_Flags>::from_flag(DATAFRAG_Flags::Endianness);
+      self
+        .reader
+        .handle_datafrag_msg(&datafrag, flags, &self.mr_state);
+    }
+
+    // Samples being assembled.
+    fn partial(&self) -> usize {
+      self
+        .reader
+        .fragment_assemblers
+        .get(&self.writer)
+        .map_or(0, |a| a.partial_samples())
     }
   }
 
@@ -2052,94 +2098,55 @@ mod tests {
   // none for samples it already has or that its writer has moved past.
   #[test]
   fn partial_samples_the_writer_moved_past_are_dropped() {
-    let (mut reader, notification_receiver, reliable_qos) = reliable_test_reader();
-    let writer = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
-    let mr_state = MessageReceiverState {
-      source_guid_prefix: writer.prefix,
-      ..Default::default()
-    };
-    reader.matched_writer_add(
-      writer,
-      EntityId::UNKNOWN,
-      vec![],
-      vec![],
-      &reliable_qos,
-    );
-    // A CDR_LE payload header, then the sample's bytes.
-    let whole: Vec<u8> = [0u8, 1, 0, 0]
-      .into_iter()
-      .chain((0..2596).map(|i| (i % 251) as u8))
-      .collect();
-    let flags = BitFlags::<DATAFRAG_Flags>::from_flag(DATAFRAG_Flags::Endianness);
-    let partial = |reader: &Reader| {
-      reader
-        .fragment_assemblers
-        .get(&writer)
-        .map_or(0, |a| a.partial_samples())
-    };
+    let mut feed = FragmentFeed::new(Reliability::Reliable {
+      max_blocking_time: Duration::from_millis(100),
+    });
     // The first fragment of samples 1-4 (the rest was lost).
     for sn in 1..=4 {
-      reader.handle_datafrag_msg(&fragment(&reader, writer, sn, 1, &whole), flags, &mr_state);
+      feed.send(sn, 1);
     }
-    assert_eq!(partial(&reader), 4);
+    assert_eq!(feed.partial(), 4);
     // The writer no longer has samples 1-3 (KeepLast): a GAP declares them
     // irrelevant. The next fragment drops their partial samples, and a late
     // fragment of one of them is not assembled again.
     let gap = Gap {
-      reader_id: reader.entity_id(),
-      writer_id: writer.entity_id,
+      reader_id: feed.reader.entity_id(),
+      writer_id: feed.writer.entity_id,
       gap_start: SequenceNumber::new(1),
       gap_list: SequenceNumberSet::new_empty(SequenceNumber::new(4)),
     };
-    reader.handle_gap_msg(&gap, &mr_state);
-    reader.handle_datafrag_msg(&fragment(&reader, writer, 2, 2, &whole), flags, &mr_state);
-    assert_eq!(partial(&reader), 1, "only sample 4 is still being assembled");
+    feed.reader.handle_gap_msg(&gap, &feed.mr_state);
+    feed.send(2, 2);
+    assert_eq!(feed.partial(), 1, "only sample 4 is still being assembled");
     // Sample 4 completes and is delivered.
     for frag in 2..=3 {
-      reader.handle_datafrag_msg(&fragment(&reader, writer, 4, frag, &whole), flags, &mr_state);
+      feed.send(4, frag);
     }
-    assert!(notification_receiver.try_recv().is_ok(), "sample 4 was not delivered");
-    while notification_receiver.try_recv().is_ok() {}
-    assert_eq!(partial(&reader), 0);
+    assert!(feed.notifications.try_recv().is_ok(), "sample 4 was not delivered");
+    while feed.notifications.try_recv().is_ok() {}
+    assert_eq!(feed.partial(), 0);
     // A repair of sample 4 sent again is not assembled into a new buffer.
-    reader.handle_datafrag_msg(&fragment(&reader, writer, 4, 1, &whole), flags, &mr_state);
-    assert_eq!(partial(&reader), 0);
-    assert!(notification_receiver.try_recv().is_err(), "a duplicate was delivered");
+    feed.send(4, 1);
+    assert_eq!(feed.partial(), 0);
+    assert!(feed.notifications.try_recv().is_err(), "a duplicate was delivered");
   }
 
   // Best effort: a completed sample ends the wait for the older partial ones.
   #[test]
   fn a_best_effort_reader_drops_older_partial_samples_when_one_completes() {
-    let (mut reader, notification_receiver, qos) = test_reader(Reliability::BestEffort);
-    let writer = GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED);
-    let mr_state = MessageReceiverState {
-      source_guid_prefix: writer.prefix,
-      ..Default::default()
-    };
-    reader.matched_writer_add(writer, EntityId::UNKNOWN, vec![], vec![], &qos);
-    let whole: Vec<u8> = [0u8, 1, 0, 0]
-      .into_iter()
-      .chain((0..2596).map(|i| (i % 251) as u8))
-      .collect();
-    let flags = BitFlags::<DATAFRAG_Flags>::from_flag(DATAFRAG_Flags::Endianness);
-    let partial = |reader: &Reader| {
-      reader
-        .fragment_assemblers
-        .get(&writer)
-        .map_or(0, |a| a.partial_samples())
-    };
+    let mut feed = FragmentFeed::new(Reliability::BestEffort);
     // Samples 1-3 lost their later fragments; sample 4 arrives whole, sample 5
     // is on its way.
     for sn in 1..=3 {
-      reader.handle_datafrag_msg(&fragment(&reader, writer, sn, 1, &whole), flags, &mr_state);
+      feed.send(sn, 1);
     }
-    reader.handle_datafrag_msg(&fragment(&reader, writer, 5, 1, &whole), flags, &mr_state);
-    assert_eq!(partial(&reader), 4);
+    feed.send(5, 1);
+    assert_eq!(feed.partial(), 4);
     for frag in 1..=3 {
-      reader.handle_datafrag_msg(&fragment(&reader, writer, 4, frag, &whole), flags, &mr_state);
+      feed.send(4, frag);
     }
-    assert!(notification_receiver.try_recv().is_ok(), "sample 4 was not delivered");
-    assert_eq!(partial(&reader), 1, "only sample 5 is still being assembled");
+    assert!(feed.notifications.try_recv().is_ok(), "sample 4 was not delivered");
+    assert_eq!(feed.partial(), 1, "only sample 5 is still being assembled");
   }
 
   #[test]

@@ -143,6 +143,13 @@ pub fn sensor_data_qos() -> QosProfile {
     QosProfile::subscription_default().reliability_best_effort().durability(Durability::Volatile).history(History::KeepLast { depth: 5 })
 }
 
+/// Reliable QoS for large outputs a subscriber only wants the newest of (the patch map's markers, the
+/// birds-eye cloud: up to 1.5 MB each at 30 Hz): as [`reliable_qos`] but the writer keeps the last 2
+/// for repair instead of 10. Compatible with every subscriber (depth is not matched).
+pub fn latest_reliable_qos() -> QosProfile {
+    reliable_qos().history(History::KeepLast { depth: 2 })
+}
+
 /// Reliable QoS for outputs (PatchArray, markers, status, joint states): reliable, volatile, keep last 10
 /// (the ROS 2 default profile). A full send window drops after 100 ms instead of stalling the loop.
 pub fn reliable_qos() -> QosProfile {

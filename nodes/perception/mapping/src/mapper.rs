@@ -66,6 +66,12 @@ pub struct MapperConfig {
     pub plane_boundary_j_step5: bool,
     /// Re-observation of mapped patches and their fusion with Σ (see [`crate::patch_fusion`]).
     pub fusion: FusionConfig,
+    /// Most patches the map holds; beyond it the least recently seen are dropped. J bounds the map
+    /// by its grid (ng per cell, 64 cells); with the robot's 1 cm cells (16,384) the bound is
+    /// needed when saliency runs without DtFP over a whole view: the map then grew by about 20
+    /// patches a frame to 2,000, each published at 30 Hz. 512 holds a patch per 1 cm cell of the
+    /// 0.12 m fixation ball (452 cells) with room for the ones the robot walks past.
+    pub max_patches: usize,
 }
 
 impl Default for MapperConfig {
@@ -86,6 +92,7 @@ impl Default for MapperConfig {
             containment: 0.95,
             plane_boundary_j_step5: true,
             fusion: FusionConfig::default(),
+            max_patches: 512,
         }
     }
 }
@@ -250,6 +257,8 @@ pub struct FrameResult {
     /// Patch count of J eq 19 for this frame.
     pub target_patches: usize,
     pub stop: StopReason,
+    /// Patches dropped from the map this frame to keep it within `max_patches`.
+    pub evicted: usize,
     pub timings: StageTimings,
 }
 
@@ -483,6 +492,7 @@ impl Mapper {
             };
             revisited.push(Revisited { id: r.id, outcome, fused });
         }
+        let evicted = self.map.keep_most_recent(config.max_patches);
         let t_done = Instant::now();
         self.frames += 1;
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
@@ -498,7 +508,7 @@ impl Mapper {
             fusion_ms: ms(t_fuse, t_done),
             total_ms: ms(start, Instant::now()),
         };
-        Ok(FrameResult { outcomes, revisited, preprocessed, saliency, gravity_in_camera, target_patches, stop, timings })
+        Ok(FrameResult { outcomes, revisited, preprocessed, saliency, gravity_in_camera, target_patches, stop, evicted, timings })
     }
 }
 
@@ -539,6 +549,9 @@ pub fn check_config(config: &MapperConfig) -> Result<(), MapperError> {
     }
     if !(config.containment > 0.0 && config.containment < 1.0) {
         return bad("containment must be in (0, 1)");
+    }
+    if config.max_patches == 0 {
+        return bad("max_patches must be positive");
     }
     if config.time_limit_ms.is_nan() || config.coverage_fraction.is_nan() {
         return bad("time_limit_ms and coverage_fraction must be numbers");
@@ -804,6 +817,26 @@ mod tests {
         let stats = mapper.map.stats();
         assert_eq!(stats.patches, mapper.map.len());
         assert!(stats.occupied_cells == stats.patches);
+    }
+
+    #[test]
+    fn the_map_holds_at_most_max_patches_the_newest_kept() {
+        let (depth, intrinsics, volume_from_camera, _, _) = rock_scene();
+        let mut config = no_limits();
+        config.max_patches = 6;
+        let mut mapper = Mapper::new(config, "map", default_volume_from_map()).unwrap();
+        let first = mapper.process(&FrameInput { depth: &depth, intrinsics: &intrinsics, volume_from_camera, timestamp: 1.0 }).unwrap();
+        assert!(first.summary().valid > 6, "{:?}", first.summary());
+        assert_eq!(first.evicted, first.summary().valid - 6);
+        assert_eq!(mapper.map.len(), 6);
+        // Cells freed by the eviction take seeds again; the patches of the newer frame are kept.
+        let second = mapper.process(&FrameInput { depth: &depth, intrinsics: &intrinsics, volume_from_camera, timestamp: 2.0 }).unwrap();
+        assert!(second.summary().valid >= 6 && second.evicted > 0, "{:?}", second.summary());
+        assert_eq!(mapper.map.len(), 6);
+        assert!(mapper.map.patches().iter().all(|p| p.last_seen == 2.0));
+        config = no_limits();
+        config.max_patches = 0;
+        assert!(matches!(Mapper::new(config, "map", default_volume_from_map()), Err(MapperError::Config(_))));
     }
 
     #[test]

@@ -275,6 +275,24 @@ impl PatchMap {
         self.retain(|_| flags.next().unwrap_or(true))
     }
 
+    /// Keeps the `max` most recently seen patches (the newer id first among equals) and drops the
+    /// rest; returns how many were dropped.
+    pub fn keep_most_recent(&mut self, max: usize) -> usize {
+        if self.patches.len() <= max {
+            return 0;
+        }
+        let mut order: Vec<(f64, u64, usize)> = self.patches.iter().enumerate().map(|(i, p)| (p.last_seen, p.id, i)).collect();
+        order.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+        let mut keep = vec![false; self.patches.len()];
+        for &(_, _, index) in order.iter().take(max) {
+            if let Some(flag) = keep.get_mut(index) {
+                *flag = true;
+            }
+        }
+        let mut flags = keep.into_iter();
+        self.retain(|_| flags.next().unwrap_or(true))
+    }
+
     /// Summary statistics of the map.
     pub fn stats(&self) -> MapStats {
         let n = self.patches.len();
@@ -363,6 +381,22 @@ mod tests {
         let stats = map.stats();
         assert_eq!((stats.patches, stats.occupied_cells), (1, 1));
         assert!((stats.total_area_m2 - std::f64::consts::PI * 0.05 * 0.03).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_full_map_keeps_the_most_recently_seen_patches() {
+        let mut map = PatchMap::new("map", grid());
+        let ids: Vec<u64> = (0..6).map(|i| map.insert(plane_at(Vector3::new(0.1 + 0.2 * f64::from(i), 0.5, 0.1)), 1.0)).collect();
+        assert!(map.touch(ids[0], 3.0));
+        assert!(map.touch(ids[2], 2.0));
+        assert_eq!(map.keep_most_recent(6), 0);
+        // Kept: the two seen later, then the newest of those seen at 1.0.
+        assert_eq!(map.keep_most_recent(3), 3);
+        let mut kept: Vec<u64> = map.patches().iter().map(|p| p.id).collect();
+        kept.sort_unstable();
+        assert_eq!(kept, vec![ids[0], ids[2], ids[5]]);
+        assert_eq!(map.keep_most_recent(0), 3);
+        assert!(map.is_empty());
     }
 
     #[test]

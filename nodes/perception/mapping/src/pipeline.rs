@@ -238,7 +238,8 @@ pub struct FrameOutput {
     pub mapped: FrameSummary,
     /// Every seed of this frame with its fitted patch (in the birds-eye camera frame) and verdict.
     pub seeds: Vec<SeedOutcome>,
-    /// Patches dropped this frame by patch tracking (left the volume) or a map reset.
+    /// Patches dropped this frame by patch tracking (left the volume), a map reset, or to keep the
+    /// map within `max_patches`.
     pub patches_dropped: usize,
     pub timings: PipelineTimings,
 }
@@ -430,7 +431,7 @@ impl Pipeline {
             map_from_birds_eye,
             mapped: mapped.summary(),
             seeds: mapped.outcomes,
-            patches_dropped,
+            patches_dropped: patches_dropped + mapped.evicted,
             timings,
         })
     }

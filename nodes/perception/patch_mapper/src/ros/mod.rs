@@ -637,8 +637,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut info_sub = ros.subscription::<CameraInfo>(&params.camera_info_topic, node::sensor_data_qos())?;
     let mut imu_sub = ros.subscription::<Imu>(&params.imu_topic, node::sensor_data_qos())?;
     let patches_pub = ros.publisher::<PatchArray>(&ros.relative(PATCHES_TOPIC), node::reliable_qos())?;
-    let markers_pub = ros.publisher::<MarkerArray>(&ros.relative(MARKERS_TOPIC), node::reliable_qos())?;
-    let birds_eye_pub = ros.publisher::<PointCloud2>(&ros.relative(BIRDS_EYE_TOPIC), node::reliable_qos())?;
+    let markers_pub = ros.publisher::<MarkerArray>(&ros.relative(MARKERS_TOPIC), node::latest_reliable_qos())?;
+    let birds_eye_pub = ros.publisher::<PointCloud2>(&ros.relative(BIRDS_EYE_TOPIC), node::latest_reliable_qos())?;
     let status_pub = ros.publisher::<MapperStatus>(&ros.relative(STATUS_TOPIC), node::reliable_qos())?;
     let mut reset_srv = ros.server::<Trigger>(&ros.relative(RESET_SERVICE))?;
     let diagnostics_pub =

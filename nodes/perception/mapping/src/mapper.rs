@@ -67,9 +67,9 @@ pub struct MapperConfig {
     /// Re-observation of mapped patches and their fusion with Σ (see [`crate::patch_fusion`]).
     pub fusion: FusionConfig,
     /// Most patches the map holds; beyond it the least recently seen are dropped. J bounds the map
-    /// by its grid (ng per cell, 64 cells); with the robot's 1 cm cells (16,384) the bound is
-    /// needed when saliency runs without DtFP over a whole view: the map then grew by about 20
-    /// patches a frame to 2,000, each published at 30 Hz. 512 holds a patch per 1 cm cell of the
+    /// by its grid (ng per cell, 64 cells); with the robot's 1 cm cells (16,384) that bound is no
+    /// bound when saliency runs without DtFP over a whole view: the map would grow by about 20
+    /// patches a frame to thousands, each published at 30 Hz. 512 holds a patch per 1 cm cell of the
     /// 0.12 m fixation ball (452 cells) with room for the ones the robot walks past.
     pub max_patches: usize,
 }

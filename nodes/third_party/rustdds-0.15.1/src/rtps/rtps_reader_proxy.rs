@@ -578,6 +578,12 @@ impl RtpsReaderProxy {
     }
   }
 
+  /// Drops every fragment request for `seq_num` (the sample is no longer
+  /// available: the reader is told with a GAP instead).
+  pub fn forget_frags_requested(&mut self, seq_num: SequenceNumber) {
+    self.frags_requested.remove(&seq_num);
+  }
+
   // This just removes the FragmentNumber entry from the set.
   pub fn mark_frag_sent(&mut self, seq_num: SequenceNumber, frag_num: &FragmentNumber) {
     let mut frag_map_emptied = false;
@@ -915,5 +921,29 @@ mod route_tests {
     let route = rp.send_route();
     assert!(!route.fallback);
     assert_eq!(route.unicast, Some(udp([127, 0, 0, 1], 7413)));
+  }
+}
+
+#[cfg(test)]
+mod fragment_request_tests {
+  use super::*;
+  use crate::dds::qos::QosPolicyBuilder;
+
+  #[test]
+  fn forgetting_a_sample_drops_all_its_fragment_requests_only() {
+    let mut proxy = RtpsReaderProxy::new(GUID::dummy_test_guid(crate::structure::guid::EntityKind::READER_NO_KEY_USER_DEFINED), QosPolicyBuilder::new().build(), false);
+    let frags = |numbers: &[u32]| {
+      let set: BTreeSet<FragmentNumber> = numbers.iter().map(|n| FragmentNumber::new(*n)).collect();
+      FragmentNumberSet::from_base_and_set(FragmentNumber::new(1), &set)
+    };
+    let (gone, kept) = (SequenceNumber::new(7), SequenceNumber::new(8));
+    proxy.mark_frags_requested(gone, &frags(&[1, 2, 5]));
+    proxy.mark_frags_requested(kept, &frags(&[3]));
+    proxy.forget_frags_requested(gone);
+    assert!(proxy.repair_frags_requested());
+    let requested: Vec<_> = proxy.frags_requested_iterator().collect();
+    assert_eq!(requested, vec![(kept, FragmentNumber::new(3))]);
+    proxy.forget_frags_requested(kept);
+    assert!(!proxy.repair_frags_requested());
   }
 }

@@ -1641,11 +1641,29 @@ impl Writer {
           TrafficClass::Control,
         );
       } else {
-        error!(
-          "handle_repair_frags_send_worker: {:?} missing from send buffer. topic={:?}",
+        // A KEEP_LAST writer dropped the sample (newer ones replaced it) before the
+        // reader's NACK_FRAG came: not an error. Tell the reader with a GAP, so it
+        // drops its partial sample and stops asking, and forget the whole request
+        // (otherwise every requested fragment would come back here).
+        debug!(
+          "handle_repair_frags_send_worker: {:?} no longer in the send buffer, GAP to \
+           {reader_guid:?}. topic={:?}",
           seq_num, self.my_topic_name
         );
-        // TODO: Should we send a GAP message then?
+        let gap = MessageBuilder::new().gap_msg(
+          &BTreeSet::from([seq_num]),
+          self.entity_id(),
+          self.endianness,
+          reader_guid,
+        );
+        let _blocked = self.send_message_to_readers(
+          DeliveryMode::Unicast,
+          gap.add_header_and_build(self.my_guid.prefix),
+          &mut std::iter::once(&*reader_proxy),
+          TrafficClass::Control,
+        );
+        reader_proxy.forget_frags_requested(seq_num);
+        return;
       }
 
       reader_proxy.mark_frag_sent(seq_num, &frag_num);

@@ -55,7 +55,13 @@ pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, WireError> {
 mod tests {
     use super::*;
     use patchwalk_msgs::msg::PatchArray;
-    use patchwalk_msgs::sensor_msgs::msg::Image;
+    use patchwalk_msgs::sensor_msgs::msg::{Image, PointCloud2, PointField};
+    use patchwalk_msgs::std_msgs::msg::Header;
+    use ros2_interfaces_jazzy_serde::sensor_msgs::msg as upstream;
+
+    fn header() -> Header {
+        Header { stamp: patchwalk_msgs::builtin_interfaces::msg::Time { sec: 7, nanosec: 9 }, frame_id: "camera".into() }
+    }
 
     #[test]
     fn encoded_messages_decode_to_themselves() {
@@ -75,5 +81,60 @@ mod tests {
         payload.truncate(payload.len() - 10);
         let err = decode::<Image>(&payload).unwrap_err();
         assert!(err.to_string().contains("Image"), "{err}");
+    }
+
+    #[test]
+    fn an_image_has_the_upstream_wire_format_both_ways() {
+        // An odd-length encoding string puts `data` behind padding: the alignment must match too.
+        let data: Vec<u8> = (0..1203u32).map(|i| (i * 31 % 251) as u8).collect();
+        let ours = Image { header: header(), height: 3, width: 401, encoding: "mono8".into(), is_bigendian: 1, step: 401, data };
+        let theirs = upstream::Image {
+            header: ours.header.clone(),
+            height: ours.height,
+            width: ours.width,
+            encoding: ours.encoding.clone(),
+            is_bigendian: ours.is_bigendian,
+            step: ours.step,
+            data: ours.data.clone(),
+        };
+        assert_eq!(encode(&ours).unwrap(), encode(&theirs).unwrap());
+        assert_eq!(decode::<Image>(&encode(&theirs).unwrap()).unwrap(), ours);
+        let back: upstream::Image = decode(&encode(&ours).unwrap()).unwrap();
+        assert_eq!(back.data, ours.data);
+        // A length beyond the payload is an error, not a panic or a short image.
+        let mut truncated = encode(&ours).unwrap();
+        truncated.truncate(truncated.len() - 10);
+        assert!(decode::<Image>(&truncated).is_err());
+    }
+
+    #[test]
+    fn a_point_cloud_has_the_upstream_wire_format_both_ways() {
+        let field = |name: &str, offset: u32| PointField { name: name.into(), offset, datatype: PointField::FLOAT32, count: 1 };
+        let data: Vec<u8> = [0.5f32, -1.25, 3.0, 7.5, 0.0, -2.0].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let ours = PointCloud2 {
+            header: header(),
+            height: 1,
+            width: 2,
+            fields: vec![field("x", 0), field("y", 4), field("z", 8)],
+            is_bigendian: false,
+            point_step: 12,
+            row_step: 24,
+            data,
+            is_dense: true,
+        };
+        let theirs = upstream::PointCloud2 {
+            header: ours.header.clone(),
+            height: ours.height,
+            width: ours.width,
+            fields: ours.fields.clone(),
+            is_bigendian: ours.is_bigendian,
+            point_step: ours.point_step,
+            row_step: ours.row_step,
+            data: ours.data.clone(),
+            is_dense: ours.is_dense,
+        };
+        assert_eq!(encode(&ours).unwrap(), encode(&theirs).unwrap());
+        assert_eq!(decode::<PointCloud2>(&encode(&theirs).unwrap()).unwrap(), ours);
+        assert_eq!(decode::<upstream::PointCloud2>(&encode(&ours).unwrap()).unwrap(), theirs);
     }
 }

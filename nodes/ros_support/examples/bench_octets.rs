@@ -1,38 +1,19 @@
 //! Encode and decode time of a 640×480 16UC1 depth image and a 57,600-point PointCloud2 (the
-//! birds-eye cloud's largest), as the nodes' DDS readers and writers do it: this crate's `Image` and
-//! `PointCloud2` (byte arrays in one block) side by side with the upstream types (one serde call per
-//! byte). Prints the median of 200 rounds per type.
+//! birds-eye cloud's largest), as the nodes' DDS readers and writers do it (`patchwalk_ros::wire`):
+//! `patchwalk_msgs`' `Image` and `PointCloud2` (byte arrays in one block) side by side with the
+//! upstream types (one serde call per byte). Prints the median of 200 rounds per type.
 //!
-//! Usage: `cargo run --release -p patchwalk_msgs --example bench_octets`
+//! Usage: `cargo run --release -p patchwalk_ros --example bench_octets`
 
 use std::time::Instant;
 
 use patchwalk_msgs::sensor_msgs::msg::{Image, PointCloud2, PointField};
+use patchwalk_ros::wire::{decode, encode};
 use ros2_interfaces_jazzy_serde::sensor_msgs::msg as upstream;
-use rustdds::dds::adapters::no_key::{DefaultDecoder, DeserializerAdapter};
-use rustdds::serialization::{to_writer_with_rep_id, CDRDeserializerAdapter};
-use rustdds::RepresentationIdentifier;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 
 const ROUNDS: usize = 200;
-
-fn encode<T: Serialize>(value: &T) -> Vec<u8> {
-    let mut out = Vec::new();
-    if let Err(e) = to_writer_with_rep_id(&mut out, value, RepresentationIdentifier::CDR_LE) {
-        eprintln!("encode failed: {e}");
-    }
-    out
-}
-
-fn decode<T: DeserializeOwned>(body: &[u8]) -> Option<T> {
-    <CDRDeserializerAdapter<T> as DeserializerAdapter<T>>::from_bytes_with(
-        body,
-        RepresentationIdentifier::CDR_LE,
-        <CDRDeserializerAdapter<T> as DefaultDecoder<T>>::DECODER,
-    )
-    .ok()
-}
 
 /// Median (ms) of `ROUNDS` runs of `f`.
 fn median_ms(mut f: impl FnMut()) -> f64 {
@@ -48,14 +29,17 @@ fn median_ms(mut f: impl FnMut()) -> f64 {
 }
 
 fn row<T: Serialize + DeserializeOwned>(name: &str, value: &T) {
-    let body = encode(value);
+    let payload = match encode(value) {
+        Ok(payload) => payload,
+        Err(e) => return eprintln!("  {name}: {e}"),
+    };
     let encode_ms = median_ms(|| {
-        std::hint::black_box(encode(value));
+        std::hint::black_box(encode(value).ok());
     });
     let decode_ms = median_ms(|| {
-        std::hint::black_box(decode::<T>(&body));
+        std::hint::black_box(decode::<T>(&payload).ok());
     });
-    println!("  {name:<32} {:>9} bytes   encode {encode_ms:7.3} ms   decode {decode_ms:7.3} ms", body.len());
+    println!("  {name:<32} {:>9} bytes   encode {encode_ms:7.3} ms   decode {decode_ms:7.3} ms", payload.len());
 }
 
 fn main() {

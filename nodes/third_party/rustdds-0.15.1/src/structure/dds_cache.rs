@@ -60,6 +60,7 @@ impl DDSCache {
   // Return a handle to the cache topic.
   // TODO: If we pick up a topic from Discovery, can someone DoS us by
   // sending super large limits in Topic QoS?
+  #[cfg(test)]
   pub(crate) fn add_new_topic(
     &mut self,
     topic_name: String,
@@ -172,6 +173,7 @@ pub(crate) struct TopicCache {
 }
 
 impl TopicCache {
+  #[cfg(test)]
   pub fn new(topic_name: String, topic_data_type: TypeDesc, topic_qos: &QosPolicies) -> Self {
     Self::new_of_kind(topic_name, topic_data_type, topic_qos, TopicKind::WithKey)
   }

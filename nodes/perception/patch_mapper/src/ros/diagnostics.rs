@@ -30,7 +30,7 @@ use super::footholds::FootholdHealth;
 pub use patchwalk_ros::diagnostics::{DIAGNOSTICS_PERIOD, DIAGNOSTICS_TOPIC};
 pub const HARDWARE_ID: &str = "patch_mapper";
 /// The timing entry that holds the end-to-end latency (`MapperStatus.timing_names`).
-const LATENCY_NAME: &str = "depth_in_to_patches_out";
+pub(super) const LATENCY_NAME: &str = "depth_in_to_patches_out";
 
 const OK: u8 = DiagnosticStatus::OK;
 const WARN: u8 = DiagnosticStatus::WARN;

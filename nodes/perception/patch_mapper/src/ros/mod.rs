@@ -476,6 +476,7 @@ impl Worker {
     }
 
     fn process(&mut self, job: DepthJob) {
+        let queued_ms = job.received.elapsed().as_secs_f64() * 1e3;
         if self.last_reset.is_some_and(|mark| mark.is_stale(job.received, publish::seconds_from_time(&job.stamp))) {
             with_status(&self.status, |s| s.frames_skipped += 1);
             tracing::debug!("depth frame from before the last reset dropped");
@@ -580,6 +581,7 @@ impl Worker {
         array.header.frame_id = fixed_frame.to_string();
         node::publish(&self.outputs.patches, PATCHES_TOPIC, array, &mut self.dds_log);
         let latency_ms = job.received.elapsed().as_secs_f64() * 1e3;
+        let patches_out_ms = started.elapsed().as_secs_f64() * 1e3;
         if let Some(markers) = &self.outputs.markers {
             let mut msg = publish::markers(map, &job.stamp);
             for marker in &mut msg.markers {
@@ -610,8 +612,10 @@ impl Worker {
             s.frames_processed += 1;
             s.patches_in_map = u32::try_from(patches).unwrap_or(u32::MAX);
             let named = output.timings.named();
-            s.timing_names = named.iter().map(|(n, _)| n.to_string()).chain(["publish".into(), "depth_in_to_patches_out".into()]).collect();
-            s.timing_ms = named.iter().map(|(_, ms)| *ms).chain([publish_ms, latency_ms]).collect();
+            let node_timings =
+                [("queued", queued_ms), ("patches_out", patches_out_ms), ("publish", publish_ms), (diagnostics::LATENCY_NAME, latency_ms)];
+            s.timing_names = named.iter().map(|(n, _)| *n).chain(node_timings.iter().map(|(n, _)| *n)).map(String::from).collect();
+            s.timing_ms = named.iter().map(|(_, ms)| *ms).chain(node_timings.iter().map(|(_, ms)| *ms)).collect();
         });
     }
 
@@ -623,6 +627,7 @@ impl Worker {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing_with(&args.node.ros.log_levels);
+    node::keep_memory_returnable();
     let names = args.node.names("patch_mapper")?;
     let loaded = args.node.load_config::<PatchMapperConfig>(&names)?;
     let clock = NodeClock::new(loaded.use_sim_time);

@@ -532,6 +532,16 @@ pub fn init_tracing() {
     init_tracing_with(&[]);
 }
 
+/// For a node that runs for hours: memory freed by large messages goes back to the system
+/// ([`crate::memory`]); says so once if the allocator keeps its defaults.
+pub fn keep_memory_returnable() {
+    if crate::memory::keep_memory_returnable(crate::memory::TRIM_PERIOD) == crate::memory::MemoryPolicy::Default {
+        tracing::warn!(
+            "the allocator keeps its default thresholds: resident memory may grow to the high-water mark of the largest messages"
+        );
+    }
+}
+
 /// [`init_tracing`] with the `--ros-args --log-level` directives laid over the filter (over
 /// `RUST_LOG` too: the command line is the more specific).
 pub fn init_tracing_with(levels: &[LogLevel]) {

@@ -108,6 +108,7 @@ impl Robot {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing_with(&args.node.ros.log_levels);
+    node::keep_memory_returnable();
     let names = args.node.names("terrain_sim")?;
     let loaded = args.node.load_config::<SimConfig>(&names)?;
     let config = loaded.config;

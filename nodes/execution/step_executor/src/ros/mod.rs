@@ -519,6 +519,7 @@ fn period(rate_hz: f64, key: &str) -> anyhow::Result<Duration> {
 
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     node::init_tracing_with(&args.node.ros.log_levels);
+    node::keep_memory_returnable();
     let names = args.node.names("step_executor")?;
     let loaded = args.node.load_config::<ExecutorFileView>(&names)?;
     let clock = NodeClock::new(loaded.use_sim_time);

@@ -10,7 +10,7 @@
 //! - [`declared`]: the node's config as declared ROS 2 parameters (dotted keys, typed, validated).
 //! - [`param_server`]: the rcl parameter services over them (`ros2 param list/get/set/describe`).
 //! - [`process`]: process CPU time for the benchmarks.
-//! - [`memory`]: freed memory handed back to the system (fixed glibc thresholds, periodic trim).
+//! - [`memory`]: free heap pages handed back to the system (periodic glibc trim).
 //! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
 //! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
 //! - [`security`]: DDS Security from an SROS2 keystore, configured by `ROS_SECURITY_*` as rcl does.

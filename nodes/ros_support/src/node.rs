@@ -532,13 +532,11 @@ pub fn init_tracing() {
     init_tracing_with(&[]);
 }
 
-/// For a node that runs for hours: memory freed by large messages goes back to the system
-/// ([`crate::memory`]); says so once if the allocator keeps its defaults.
+/// For a node that runs for hours: free heap pages go back to the system every
+/// [`crate::memory::TRIM_PERIOD`] ([`crate::memory`]).
 pub fn keep_memory_returnable() {
-    if crate::memory::keep_memory_returnable(crate::memory::TRIM_PERIOD) == crate::memory::MemoryPolicy::Default {
-        tracing::warn!(
-            "the allocator keeps its default thresholds: resident memory may grow to the high-water mark of the largest messages"
-        );
+    if !crate::memory::start_trimming(crate::memory::TRIM_PERIOD) {
+        tracing::debug!("no allocator trimming here: resident memory may stay at the high-water mark of the largest messages");
     }
 }
 

@@ -15,9 +15,12 @@
 use nalgebra::Vector3;
 use patchwalk_fusion::camera::Intrinsics;
 use patchwalk_spl::patch::Patch;
-use patchwalk_spl::validate::{DiscView, FootColumn};
+use patchwalk_spl::validate::{DiscView, FootColumn, PixelView};
 
 use crate::acquire::OrganizedCloud;
+
+/// How far (pixels) beyond a hole in the foot disc its nearest measured pixel is looked for.
+pub const HOLE_SEARCH_PX: usize = 64;
 
 /// Pixels scanned per column at most (a sub-grid beyond): a 5 cm disc's column in a 640×480 Kinect
 /// frame at 1 m is about 100×250 pixels.
@@ -69,6 +72,8 @@ pub fn foot_column(
         }
         None => (0, 0, width - 1, height - 1),
     };
+    // The disc's centre in the image: holes are looked beyond away from it.
+    let centre = (patch.center.z > 1e-3).then(|| intrinsics.project(&patch.center)).flatten();
     let pixels = (u1 - u0 + 1) * (v1 - v0 + 1);
     let max_pixels = max_pixels.max(1);
     let stride = if pixels > max_pixels { ((pixels as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1) } else { 1 };
@@ -78,13 +83,37 @@ pub fn foot_column(
             let p = p.cast::<f64>();
             if let Some(view) = view.as_deref_mut() {
                 let ray = Vector3::new((u as f64 - intrinsics.cx) / intrinsics.fx, (v as f64 - intrinsics.cy) / intrinsics.fy, 1.0);
-                view.add(&Vector3::zeros(), &ray, Some(p.z));
+                if view.add(&Vector3::zeros(), &ray, Some(p.z)) == PixelView::Missing {
+                    if let Some(beyond) = centre.and_then(|c| measured_beyond(cloud, c, (u, v))) {
+                        view.add_beyond_hole(&beyond);
+                    }
+                }
             }
             if column.local_if_inside(&p).is_some() {
                 out.push(p);
             }
         }
     }
+}
+
+/// The first measured point on the image line from `centre` through pixel `hole`, beyond the hole
+/// (at most [`HOLE_SEARCH_PX`] pixels on), if any.
+fn measured_beyond(cloud: &OrganizedCloud, centre: (f64, f64), hole: (usize, usize)) -> Option<Vector3<f64>> {
+    let (du, dv) = (hole.0 as f64 - centre.0, hole.1 as f64 - centre.1);
+    let length = du.hypot(dv);
+    // A hole at the centre has no outward direction.
+    if !(length >= 0.5) {
+        return None;
+    }
+    let (du, dv) = (du / length, dv / length);
+    (1..=HOLE_SEARCH_PX).find_map(|step| {
+        let (u, v) = ((hole.0 as f64 + du * step as f64).round(), (hole.1 as f64 + dv * step as f64).round());
+        if u < 0.0 || v < 0.0 || u >= cloud.width as f64 || v >= cloud.height as f64 {
+            return Some(None);
+        }
+        let p = cloud.points_in_camera.get(v as usize * cloud.width + u as usize)?;
+        p.iter().all(|c| c.is_finite()).then(|| Some(p.cast::<f64>()))
+    })?
 }
 
 #[cfg(test)]
@@ -176,5 +205,42 @@ mod tests {
         foot_column(&cloud, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, None);
         assert_eq!(with_view, out);
         assert!(on.pixels > 100 && on.unseen_fraction() == 0.0, "{on:?}");
+    }
+
+    /// The step cloud with no depth in a band of image columns (the drop's face seen edge-on, or a
+    /// hole of the sensor).
+    fn with_hole(cloud: &OrganizedCloud, intrinsics: &Intrinsics, x_range: std::ops::Range<f64>) -> OrganizedCloud {
+        let mut holed = cloud.clone();
+        for (i, p) in holed.points_in_camera.iter_mut().enumerate() {
+            let x = ((i % cloud.width) as f64 - intrinsics.cx) / intrinsics.fx * 0.5;
+            if x_range.contains(&x) {
+                *p = Vector3::repeat(f32::NAN);
+            }
+        }
+        holed
+    }
+
+    #[test]
+    fn a_hole_at_the_rim_opens_onto_the_drop_beyond_it_and_a_hole_in_the_floor_does_not() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let cloud = step_cloud(&intrinsics);
+        let up = -Vector3::z();
+        let mut out = Vec::new();
+        // A disc on the upper floor whose rim reaches 1 cm past the step's edge (x = 2 cm); no depth
+        // from 1.2 to 3 cm: the rim's pixels are holes with the lower floor beyond them.
+        let patch = disc_at(Vector3::new(-0.02, 0.0, 0.5));
+        let holed = with_hole(&cloud, &intrinsics, 0.012..0.03);
+        let mut view = DiscView::new(&patch, 0.02);
+        foot_column(&holed, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, Some(&mut view));
+        // Nearly all of the rim's holes have the lower floor beyond them (a few at the disc's top
+        // and bottom look along the band and find the border of the image or nothing).
+        assert!(view.missing > 20 && view.open * 10 >= view.missing * 8 && view.through == 0, "{view:?}");
+        assert!(view.open_fraction() > 0.03, "{view:?}");
+        // A disc wholly on the upper floor with a hole band inside it: the floor goes on beyond.
+        let patch = disc_at(Vector3::new(-0.05, 0.0, 0.5));
+        let flat = with_hole(&cloud, &intrinsics, -0.06..-0.05);
+        let mut view = DiscView::new(&patch, 0.02);
+        foot_column(&flat, &intrinsics, &patch, &up, 0.25, usize::MAX, &mut out, Some(&mut view));
+        assert!(view.missing > 20 && view.open == 0 && view.open_fraction() == 0.0, "{view:?}");
     }
 }

@@ -136,8 +136,10 @@ pub enum Verdict {
     Tilt,
     /// The terrain inside the foot disc lies off the surface (an edge or fold under the foot).
     Edge,
-    /// Too much of the foot disc was not seen by the camera (no depth, or free space or an occluder
-    /// where the surface should be).
+    /// The foot disc was not seen to carry the foot (tests off by default): with
+    /// `validate.open_rim_max_fraction` set, too many of its pixels see through it or into a hole at
+    /// an edge; with `validate.unseen_max_fraction` set, too many did not measure it at all (no
+    /// depth, or free space or an occluder where the surface should be).
     Unseen,
     /// Fewer neighbourhood points than `neighbourhood.min_points`.
     TooFewPoints,
@@ -179,7 +181,7 @@ impl Verdict {
             Verdict::Tilt
         } else if !validation.edge_ok() {
             Verdict::Edge
-        } else if !validation.unseen_ok() {
+        } else if !validation.unseen_ok() || !validation.open_rim_ok() {
             Verdict::Unseen
         } else {
             Verdict::Valid { id: u64::MAX }
@@ -307,7 +309,8 @@ pub struct FrameSummary {
     pub tilt: usize,
     /// An edge or fold under the foot disc (`validate.edge_max_offset_m`).
     pub edge: usize,
-    /// Too much of the foot disc unseen (`validate.unseen_max_fraction`).
+    /// The foot disc not seen to carry the foot (`validate.open_rim_max_fraction`,
+    /// `validate.unseen_max_fraction`).
     pub unseen: usize,
     /// Fit errors and too-small neighbourhoods.
     pub failed: usize,
@@ -691,8 +694,8 @@ fn process_seed(
             // Steps 14–16, reported in J's order.
             let t2 = Instant::now();
             let half_height = config.validate.edge_column_height_m;
-            let mut view =
-                (config.validate.unseen_max_fraction < f64::INFINITY).then(|| DiscView::new(&patch, config.validate.edge_max_offset_m));
+            let visibility = config.validate.unseen_max_fraction.min(config.validate.open_rim_max_fraction) < f64::INFINITY;
+            let mut view = visibility.then(|| DiscView::new(&patch, config.validate.edge_max_offset_m));
             if view.is_some() || config.validate.edge_max_offset_m < f64::INFINITY {
                 foot_column(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column, view.as_mut());
             }

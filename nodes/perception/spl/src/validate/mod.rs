@@ -19,7 +19,7 @@ pub use curvature::principal_curvature_range;
 pub use edge::{disc_offset, FootColumn};
 pub use residual::residual;
 pub use tilt::tilt_deg;
-pub use visibility::DiscView;
+pub use visibility::{DiscView, PixelView};
 
 use crate::patch::{Patch, PatchQuery};
 use nalgebra::Vector3;
@@ -78,6 +78,10 @@ pub struct ValidateConfig {
     /// behind or in front of it ([`visibility`]). Infinite (the default) switches the test off;
     /// [`visibility::SUGGESTED_UNSEEN_MAX_FRACTION`] (0.02) switches it on.
     pub unseen_max_fraction: f64,
+    /// Largest share of the foot disc's pixels that see through it or into a hole bordered by terrain
+    /// off its plane (the open-rim test, [`visibility`]). Infinite (the default) switches the test
+    /// off; [`visibility::SUGGESTED_OPEN_RIM_MAX_FRACTION`] (0.01) switches it on.
+    pub open_rim_max_fraction: f64,
     /// Judge coverage only where the patch surface lies inside the ball the points were gathered
     /// from, when the caller gives it ([`Foothold::sampled`], [`coverage`]'s module doc). False is
     /// J eq 16–17 as written over the whole boundary.
@@ -102,6 +106,7 @@ impl Default for ValidateConfig {
             edge_quantile: 0.98,
             edge_column_height_m: 0.25,
             unseen_max_fraction: f64::INFINITY,
+            open_rim_max_fraction: f64::INFINITY,
             coverage_within_sampled_ball: true,
         }
     }
@@ -118,6 +123,7 @@ impl ValidateConfig {
             tilt_max_deg: f64::INFINITY,
             edge_max_offset_m: f64::INFINITY,
             unseen_max_fraction: f64::INFINITY,
+            open_rim_max_fraction: f64::INFINITY,
             ..Self::default()
         }
     }
@@ -133,6 +139,7 @@ impl ValidateConfig {
         positive("edge_max_offset_m", self.edge_max_offset_m)?;
         positive("edge_column_height_m", self.edge_column_height_m)?;
         positive("unseen_max_fraction", self.unseen_max_fraction)?;
+        positive("open_rim_max_fraction", self.open_rim_max_fraction)?;
         if !(0.0..=1.0).contains(&self.edge_quantile) || self.edge_quantile == 0.0 {
             return Err(format!("validate.edge_quantile must be in (0, 1], got {}", self.edge_quantile));
         }
@@ -187,12 +194,22 @@ pub struct Validation {
     /// Share of the foot disc's pixels that did not measure its surface vs its limit ([`visibility`]).
     #[serde(default)]
     pub unseen: Option<TestResult>,
+    /// Share of the foot disc's pixels that see through it or into a hole bordered by terrain off its
+    /// plane vs its limit (the open-rim test, [`visibility`]).
+    #[serde(default)]
+    pub open_rim: Option<TestResult>,
 }
 
 impl Validation {
     /// Whether the patch passed every test.
     pub fn is_valid(&self) -> bool {
-        self.residual.passed && self.coverage.passed && self.curvature_ok() && self.tilt_ok() && self.edge_ok() && self.unseen_ok()
+        self.residual.passed
+            && self.coverage.passed
+            && self.curvature_ok()
+            && self.tilt_ok()
+            && self.edge_ok()
+            && self.unseen_ok()
+            && self.open_rim_ok()
     }
 
     /// Whether the tilt test passed (or was not run).
@@ -208,6 +225,11 @@ impl Validation {
     /// Whether the visibility test passed (or was not run).
     pub fn unseen_ok(&self) -> bool {
         self.unseen.is_none_or(|t| t.passed)
+    }
+
+    /// Whether the open-rim test passed (or was not run).
+    pub fn open_rim_ok(&self) -> bool {
+        self.open_rim.is_none_or(|t| t.passed)
     }
 
     /// Whether both curvature bounds hold.
@@ -239,6 +261,13 @@ impl Validation {
         if let Some(t) = self.unseen.filter(|t| !t.passed) {
             out.push(format!(
                 "unseen: {:.1} % of the foot disc's pixels did not measure its surface > {:.1} %",
+                100.0 * t.value,
+                100.0 * t.threshold
+            ));
+        }
+        if let Some(t) = self.open_rim.filter(|t| !t.passed) {
+            out.push(format!(
+                "open_rim: {:.1} % of the foot disc's pixels see through it or into a hole at an edge > {:.1} %",
                 100.0 * t.value,
                 100.0 * t.threshold
             ));
@@ -286,6 +315,10 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         let value = view.unseen_fraction();
         TestResult { passed: value <= config.unseen_max_fraction, value, threshold: config.unseen_max_fraction }
     });
+    let open_rim = foothold.view.filter(|_| config.open_rim_max_fraction < f64::INFINITY).map(|view| {
+        let value = view.open_fraction();
+        TestResult { passed: value <= config.open_rim_max_fraction, value, threshold: config.open_rim_max_fraction }
+    });
     Validation {
         residual,
         coverage,
@@ -294,6 +327,7 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         tilt,
         edge,
         unseen,
+        open_rim,
     }
 }
 

@@ -5,21 +5,24 @@
 //! single-frame mapper (J's defaults as `patch_mapper map --no-dtfp` runs them, gravity from the
 //! camera pose) and every fitted patch is checked against the terrain's exact surface.
 //!
-//! Printed per scene, for J 3.3's tests alone, with the default foothold tests (tilt, edge) and with
-//! the visibility test switched on too (`--unseen-max`, 0.02 unless given): fitted patches, valid
+//! Printed per scene, for J 3.3's tests alone, with the default foothold tests (tilt, edge), with the
+//! open-rim test switched on too (`--open-rim-max`, 0.01 unless given) and with the visibility test
+//! on top (`--unseen-max`, 0.02 unless given): fitted patches, valid
 //! share, mean residual of the valid ones, the share of valid patches lying across an edge
 //! (ground-truth terrain more than 2 cm off the patch surface inside the foot disc's column
-//! along gravity), and walls accepted (valid patches where the true surface under the centre is
-//! tilted more than 45°).
+//! along gravity), and walls accepted (valid patches where the plane through the true terrain under
+//! the foot disc is tilted more than 45°; beside it, how many have a 1 cm cell steeper than 45°
+//! under their centre, which on the scanned staircase's rough flanks happens under discs the terrain
+//! follows within 2 cm everywhere).
 //!
-//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12] [--detail] [--edge-quantile Q] [--unseen-max F]`
+//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12] [--detail] [--edge-quantile Q] [--open-rim-max F] [--unseen-max F]`
 
 use anyhow::{Context, Result};
 use nalgebra::{Unit, Vector3};
 use patchwalk_mapping::mapper::{default_volume_from_map, single_frame_volume_from_camera, FrameInput, Mapper, MapperConfig, Verdict};
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::transform::transform_patch;
-use patchwalk_spl::validate::visibility::SUGGESTED_UNSEEN_MAX_FRACTION;
+use patchwalk_spl::validate::visibility::{SUGGESTED_OPEN_RIM_MAX_FRACTION, SUGGESTED_UNSEEN_MAX_FRACTION};
 use patchwalk_spl::validate::{DiscView, FootColumn, ValidateConfig};
 use terrain_sim::config::SimConfig;
 use terrain_sim::scene::Heightfield;
@@ -35,8 +38,12 @@ struct Truth {
     above: usize,
     /// Largest distance off the surface (m).
     max_offset: f64,
-    /// The true surface under the centre is tilted more than 45°.
+    /// The true terrain under the foot disc (the plane through its samples in the column) is tilted
+    /// more than 45°: a wall at the scale of the foot.
     wall: bool,
+    /// The true surface of the 1 cm cell under the centre is tilted more than 45° (a wall, or one
+    /// steep cell of a rough surface the disc as a whole follows).
+    steep_centre: bool,
 }
 
 impl Truth {
@@ -54,12 +61,18 @@ fn ground_truth(patch: &Patch, terrain: &Heightfield) -> Truth {
     let step = 0.004;
     let n = (reach / step).ceil() as i64;
     let mut truth = Truth::default();
+    // Least squares plane z = a·x + b·y + c through the samples in the column: Σ [x y 1]ᵀ[x y 1], Σ [x y 1]ᵀ z.
+    let mut normal_matrix = nalgebra::Matrix3::<f64>::zeros();
+    let mut rhs = Vector3::<f64>::zeros();
     for i in -n..=n {
         for j in -n..=n {
             let (x, y) = (patch.center.x + i as f64 * step, patch.center.y + j as f64 * step);
             let Some(z) = terrain.height_at(x, y) else { continue };
             if let Some(local) = column.local_if_inside(&Vector3::new(x, y, z)) {
                 truth.samples += 1;
+                let row = Vector3::new(x - patch.center.x, y - patch.center.y, 1.0);
+                normal_matrix += row * row.transpose();
+                rhs += row * z;
                 let distance = column.distance_local(&local);
                 truth.max_offset = truth.max_offset.max(distance);
                 if distance > 0.02 {
@@ -72,7 +85,12 @@ fn ground_truth(patch: &Patch, terrain: &Heightfield) -> Truth {
             }
         }
     }
-    truth.wall = terrain.normal_at(patch.center.x, patch.center.y).is_some_and(|n| n.z.abs() < 45f64.to_radians().cos());
+    let steep = |n: Vector3<f64>| n.z.abs() < 45f64.to_radians().cos();
+    truth.steep_centre = terrain.normal_at(patch.center.x, patch.center.y).is_some_and(steep);
+    truth.wall = normal_matrix
+        .try_inverse()
+        .map(|inverse| inverse * rhs)
+        .is_some_and(|plane| steep(Vector3::new(-plane.x, -plane.y, 1.0).normalize()));
     truth
 }
 
@@ -115,6 +133,7 @@ struct Tally {
     residual_sum: f64,
     across: usize,
     walls: usize,
+    steep_centres: usize,
     verdicts: std::collections::BTreeMap<&'static str, usize>,
 }
 
@@ -122,7 +141,7 @@ impl Tally {
     fn line(&self, name: &str) -> String {
         let pct = |a: usize, b: usize| if b == 0 { 0.0 } else { 100.0 * a as f64 / b as f64 };
         format!(
-            "{name:<22} fitted {:>5}  valid {:>5} ({:>5.1} %)  mean residual {:>5.2} mm  valid across an edge {:>4} ({:>5.1} %)  walls accepted {:>3}  dropped {:?}",
+            "{name:<22} fitted {:>5}  valid {:>5} ({:>5.1} %)  mean residual {:>5.2} mm  valid across an edge {:>4} ({:>5.1} %)  walls accepted {:>3} (steep cell under the centre {:>3})  dropped {:?}",
             self.fitted,
             self.valid,
             pct(self.valid, self.fitted),
@@ -130,6 +149,7 @@ impl Tally {
             self.across,
             pct(self.across, self.valid),
             self.walls,
+            self.steep_centres,
             self.verdicts
         )
     }
@@ -153,6 +173,7 @@ fn main() -> Result<()> {
     j33.validate.tilt_max_deg = f64::INFINITY;
     j33.validate.edge_max_offset_m = f64::INFINITY;
     j33.validate.unseen_max_fraction = f64::INFINITY;
+    j33.validate.open_rim_max_fraction = f64::INFINITY;
     footholds.validate = ValidateConfig::default();
     footholds.validate.unseen_max_fraction = SUGGESTED_UNSEEN_MAX_FRACTION;
     // --edge-quantile Q, --unseen-max F: the edge and visibility tests' thresholds (default ValidateConfig's).
@@ -162,12 +183,24 @@ fn main() -> Result<()> {
     if let Some(f) = flag("--unseen-max") {
         footholds.validate.unseen_max_fraction = f.parse().context("--unseen-max F")?;
     }
-    let mut tilt_edge = footholds.clone();
-    tilt_edge.validate.unseen_max_fraction = f64::INFINITY;
-    let configs = [("J 3.3 tests only", &j33), ("+ tilt, edge", &tilt_edge), ("+ tilt, edge, unseen", &footholds)];
+    // --open-rim-max F: the open-rim test's threshold (0.01 unless given).
+    footholds.validate.open_rim_max_fraction = SUGGESTED_OPEN_RIM_MAX_FRACTION;
+    if let Some(f) = flag("--open-rim-max") {
+        footholds.validate.open_rim_max_fraction = f.parse().context("--open-rim-max F")?;
+    }
+    let mut open_rim = footholds.clone();
+    open_rim.validate.unseen_max_fraction = f64::INFINITY;
+    let mut tilt_edge = open_rim.clone();
+    tilt_edge.validate.open_rim_max_fraction = f64::INFINITY;
+    let configs = [
+        ("J 3.3 tests only", &j33),
+        ("+ tilt, edge", &tilt_edge),
+        ("+ tilt, edge, open rim", &open_rim),
+        ("+ tilt, edge, open rim, unseen", &footholds),
+    ];
     println!("bench_footholds: {frames} frames per path, seeds {seeds:?}, {} threads", rayon::current_num_threads());
     for (name, path, height_max) in &scenes {
-        let mut tallies = [Tally::default(), Tally::default(), Tally::default()];
+        let mut tallies: [Tally; 4] = Default::default();
         for &seed in &seeds {
             let mut config = SimConfig { seed, ..SimConfig::default() };
             config.scene.terrain.path = path.clone();
@@ -213,26 +246,30 @@ fn main() -> Result<()> {
                         tally.residual_sum += patch.residual;
                         tally.across += usize::from(truth.across());
                         tally.walls += usize::from(truth.wall);
+                        tally.steep_centres += usize::from(truth.steep_centre);
                         // The disc's view where the visibility test did not judge it; the verdicts where it did.
                         if detail && row > 0 {
                             let (seen, seen_off, view) =
                                 depth_in_column(&world, &rendered.depth, &sim.camera.intrinsics, &rendered.world_from_camera);
                             let view_text = view.map_or("no view".to_string(), |v| {
                                 format!(
-                                    "disc pixels {} through {} ({:.2} %) occluded {} missing {}",
+                                    "disc pixels {} through {} ({:.2} %) occluded {} missing {} open {} ({:.2} %)",
                                     v.pixels,
                                     v.through,
                                     100.0 * v.through_fraction(),
                                     v.occluded,
-                                    v.missing
+                                    v.missing,
+                                    v.open,
+                                    100.0 * v.open_fraction()
                                 )
                             });
-                            if row == 1 {
+                            if row == 2 {
                                 let unseen = view.map_or(f64::NAN, |v| 100.0 * v.unseen_fraction());
-                                println!("    view: across {} unseen {unseen:.2} % ({view_text})", truth.across());
+                                let open = outcome.validation.as_ref().and_then(|v| v.open_rim).map_or(f64::NAN, |t| 100.0 * t.value);
+                                println!("    view: across {} unseen {unseen:.2} % open {open:.2} % ({view_text})", truth.across());
                                 continue;
                             }
-                            if !(truth.across() || truth.wall) {
+                            if !(truth.across() || truth.wall || truth.steep_centre) {
                                 continue;
                             }
                             let edge = outcome.validation.as_ref().and_then(|v| v.edge.as_ref()).map_or(f64::NAN, |t| t.value);
@@ -248,7 +285,11 @@ fn main() -> Result<()> {
                                 truth.below,
                                 truth.above,
                                 1e3 * truth.max_offset,
-                                if truth.wall { ", wall" } else { "" },
+                                match (truth.wall, truth.steep_centre) {
+                                    (true, _) => ", wall",
+                                    (false, true) => ", steep cell under the centre",
+                                    _ => "",
+                                },
                                 1e3 * edge
                             );
                         }

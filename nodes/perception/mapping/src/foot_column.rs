@@ -102,7 +102,7 @@ fn measured_beyond(cloud: &OrganizedCloud, centre: (f64, f64), hole: (usize, usi
     let (du, dv) = (hole.0 as f64 - centre.0, hole.1 as f64 - centre.1);
     let length = du.hypot(dv);
     // A hole at the centre has no outward direction.
-    if !(length >= 0.5) {
+    if length.is_nan() || length < 0.5 {
         return None;
     }
     let (du, dv) = (du / length, dv / length);

@@ -173,7 +173,6 @@ fn main() -> Result<()> {
     j33.validate.tilt_max_deg = f64::INFINITY;
     j33.validate.edge_max_offset_m = f64::INFINITY;
     j33.validate.unseen_max_fraction = f64::INFINITY;
-    j33.validate.open_rim_max_fraction = f64::INFINITY;
     footholds.validate = ValidateConfig::default();
     footholds.validate.unseen_max_fraction = SUGGESTED_UNSEEN_MAX_FRACTION;
     // --edge-quantile Q, --unseen-max F: the edge and visibility tests' thresholds (default ValidateConfig's).
@@ -247,20 +246,19 @@ fn main() -> Result<()> {
                         tally.across += usize::from(truth.across());
                         tally.walls += usize::from(truth.wall);
                         tally.steep_centres += usize::from(truth.steep_centre);
-                        // The disc's view where the visibility test did not judge it; the verdicts where it did.
+                        // The disc's view from the full-resolution depth (without the hole search) and the
+                        // open-rim share the mapper measured, on the open-rim row; the verdicts on the others.
                         if detail && row > 0 {
                             let (seen, seen_off, view) =
                                 depth_in_column(&world, &rendered.depth, &sim.camera.intrinsics, &rendered.world_from_camera);
                             let view_text = view.map_or("no view".to_string(), |v| {
                                 format!(
-                                    "disc pixels {} through {} ({:.2} %) occluded {} missing {} open {} ({:.2} %)",
+                                    "disc pixels {} through {} ({:.2} %) occluded {} missing {}",
                                     v.pixels,
                                     v.through,
                                     100.0 * v.through_fraction(),
                                     v.occluded,
-                                    v.missing,
-                                    v.open,
-                                    100.0 * v.open_fraction()
+                                    v.missing
                                 )
                             });
                             if row == 2 {

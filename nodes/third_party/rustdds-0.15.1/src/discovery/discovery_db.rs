@@ -266,13 +266,23 @@ impl DiscoveryDB {
       .map(|(g, _)| *g)
       .collect();
     for guid in to_remove {
-      self.external_topic_readers.remove(&guid);
+      self.remove_topic_reader(guid);
     }
   }
 
   pub fn remove_topic_reader(&mut self, guid: GUID) {
     info!("remove_topic_reader {guid:?}");
     self.external_topic_readers.remove(&guid);
+    self.forget_topic_source(guid);
+  }
+
+  // The topic data an endpoint brought goes with it: otherwise each reader or
+  // writer ever created on a topic that lives on (e.g. by tools that come and
+  // go) leaves its record in `topics`.
+  fn forget_topic_source(&mut self, endpoint: GUID) {
+    for sources in self.topics.values_mut() {
+      sources.remove(&endpoint);
+    }
   }
 
   #[cfg(feature = "security")]
@@ -294,12 +304,13 @@ impl DiscoveryDB {
       .map(|(g, _)| *g)
       .collect();
     for guid in to_remove {
-      self.external_topic_writers.remove(&guid);
+      self.remove_topic_writer(guid);
     }
   }
 
   pub fn remove_topic_writer(&mut self, guid: GUID) {
     self.external_topic_writers.remove(&guid);
+    self.forget_topic_source(guid);
   }
 
   // Delete participant proxies, if we have not heard of them within
@@ -993,6 +1004,50 @@ mod tests {
     discovery_db.update_subscription(&dreader3);
 
     // TODO: there might be a need for different scenarios
+  }
+
+  // Readers created and deleted on a topic that lives on leave no record of
+  // themselves in the topic table.
+  #[test]
+  fn discdb_forgets_the_topic_data_of_removed_endpoints() {
+    let (discovery_db_event_sender, _discovery_db_event_receiver) =
+      std::sync::mpsc::sync_channel::<()>(4);
+    let (status_sender, _status_receiver) = sync_status_channel(16).unwrap();
+    let mut discovery_db = DiscoveryDB::new(
+      GUID::new_participant_guid(),
+      discovery_db_event_sender,
+      status_sender,
+    );
+    let reader_sub = subscription_builtin_topic_data().unwrap();
+    let topic_name = reader_sub.topic_name().clone();
+    let mut guids = Vec::new();
+    for i in 0..50u8 {
+      let mut reader = reader_proxy_data().unwrap();
+      reader.remote_reader_guid = GUID::new(
+        GuidPrefix::new(&[i; 12]),
+        reader.remote_reader_guid.entity_id,
+      );
+      guids.push(reader.remote_reader_guid);
+      discovery_db.update_subscription(&DiscoveredReaderData {
+        reader_proxy: reader,
+        subscription_topic_data: reader_sub.clone(),
+        content_filter: None,
+        user_data: Vec::new(),
+      });
+    }
+    assert_eq!(discovery_db.topics[&topic_name].len(), 50);
+    for guid in &guids[1..] {
+      discovery_db.remove_topic_reader(*guid);
+    }
+    assert_eq!(
+      discovery_db.topics[&topic_name].keys().collect::<Vec<_>>(),
+      vec![&guids[0]]
+    );
+    // A participant that leaves takes its endpoints' records too.
+    discovery_db.remove_topic_reader_with_prefix(guids[0].prefix);
+    assert!(discovery_db.topics[&topic_name].is_empty());
+    discovery_db.topic_cleanup();
+    assert!(!discovery_db.topics.contains_key(&topic_name));
   }
 
   #[test]

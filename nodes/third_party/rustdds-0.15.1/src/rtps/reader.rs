@@ -835,6 +835,7 @@ impl Reader {
     );
     if !self.like_stateless {
       let my_entity_id = self.my_guid.entity_id; // to please borrow checker
+      let best_effort = self.reliability == policy::Reliability::BestEffort;
       if let Some(writer_proxy) = self.matched_writer_mut(writer_guid) {
         if writer_proxy.should_ignore_change(writer_sn) {
           // change already present
@@ -847,6 +848,13 @@ impl Reader {
           } else {
             return;
           }
+        }
+        // A best-effort reader never gets a sample it missed: the ones before
+        // this are given up, so the proxy does not record every sample received
+        // above a gap that will never be filled (e.g. it matched a writer that
+        // had sent many samples already).
+        if best_effort && writer_sn > writer_proxy.all_ackable_before() {
+          writer_proxy.irrelevant_changes_up_to(writer_sn);
         }
         // Add the change and get the instant
         writer_proxy.received_changes_add(writer_sn, receive_timestamp);
@@ -2129,6 +2137,32 @@ mod tests {
     feed.send(4, 1);
     assert_eq!(feed.partial(), 0);
     assert!(feed.notifications.try_recv().is_err(), "a duplicate was delivered");
+  }
+
+  // A best-effort reader that matched a writer mid-stream keeps no record of
+  // the samples received since (nothing before them will ever come).
+  #[test]
+  fn a_best_effort_reader_does_not_track_samples_above_a_gap() {
+    let mut feed = FragmentFeed::new(Reliability::BestEffort);
+    let mut delivered = 0;
+    for sn in (1000..1300).filter(|sn| sn % 7 != 0) {
+      for frag in 1..=3 {
+        feed.send(sn, frag);
+      }
+      while feed.notifications.try_recv().is_ok() {
+        delivered += 1;
+      }
+      let writer = feed.writer;
+      let proxy = feed.reader.matched_writer_mut(writer).unwrap();
+      assert!(proxy.tracked_changes_count() <= 1, "sample {sn}");
+      assert_eq!(proxy.all_ackable_before(), SequenceNumber::new(sn + 1));
+    }
+    assert!(delivered > 0);
+    // An older sample arriving late is not delivered after a newer one.
+    for frag in 1..=3 {
+      feed.send(1001, frag);
+    }
+    assert!(feed.notifications.try_recv().is_err());
   }
 
   // Best effort: a completed sample ends the wait for the older partial ones.

@@ -19,11 +19,30 @@ use crate::{
     typedesc::TypeDesc,
     CreateError, CreateResult,
   },
-  rtps::constant::MAX_WITHHELD_BYTES_PER_TOPIC,
+  rtps::constant::{builtin_topic_names, MAX_WITHHELD_BYTES_PER_TOPIC},
   structure::{sequence_number::SequenceNumber, time::Timestamp, topic_kind::TopicKind},
   GUID,
 };
 use super::cache_change::CacheChange;
+
+/// How long a sample of an SEDP topic stays in its topic cache beyond the
+/// History depth (see `TopicCache::sample_lifetime`); `None` for other topics.
+fn sedp_sample_lifetime(topic_name: &str) -> Option<crate::Duration> {
+  use builtin_topic_names::*;
+  [
+    DCPS_PUBLICATION,
+    DCPS_SUBSCRIPTION,
+    DCPS_TOPIC,
+    DCPS_PUBLICATIONS_SECURE,
+    DCPS_SUBSCRIPTIONS_SECURE,
+  ]
+  .contains(&topic_name)
+  .then(|| crate::Duration::from_secs(SEDP_SAMPLE_LIFETIME_S))
+}
+
+/// Discovery takes an SEDP sample as soon as it can be read in order; 30 s is
+/// far beyond that, and samples still waiting for a repair are withheld and kept.
+const SEDP_SAMPLE_LIFETIME_S: i32 = 30;
 
 /// DDSCache contains all cacheChanges that are
 /// received by this participant. It is for serving local Readers. Local
@@ -114,11 +133,20 @@ impl DDSCache {
   }
 
   pub fn garbage_collect(&mut self) {
+    let now = Timestamp::now();
     for tc in self.topic_caches.values_mut() {
       let mut tc = tc.lock().unwrap();
+      let remove_before = tc
+        .sample_lifetime
+        .map_or(Timestamp::ZERO, |lifetime| now - lifetime);
+      let oldest_expired = tc
+        .changes
+        .keys()
+        .next()
+        .is_some_and(|oldest| *oldest < remove_before);
       if let Some((last_timestamp, _)) = tc.changes.iter().next_back() {
-        if *last_timestamp > tc.changes_reallocated_up_to {
-          tc.remove_changes_before(Timestamp::ZERO);
+        if *last_timestamp > tc.changes_reallocated_up_to || oldest_expired {
+          tc.remove_changes_before(remove_before);
         }
       }
     }
@@ -137,6 +165,13 @@ pub(crate) struct TopicCache {
   max_keep_samples: i32, // from QoS, for quick, repeated access
   // NO_KEY: one instance, so KEEP_LAST depth bounds the samples worth keeping.
   kind: TopicKind,
+  // Samples older than this are removed beyond the History depth (withheld
+  // samples excepted), whatever `max_keep_samples` allows. Set for the SEDP
+  // topics, whose only reader is Discovery: it takes each sample within
+  // milliseconds, and their large `max_keep_samples` (see
+  // `Discovery::builtin_sedp_reader_qos`) would otherwise keep thousands of
+  // taken announcements of endpoints that came and went.
+  sample_lifetime: Option<crate::Duration>,
   // TODO: Change this to Option<u32>, where None means "no limit".
 
   // The main content of the cache is in this map.
@@ -186,6 +221,7 @@ impl TopicCache {
   ) -> Self {
     let mut new_self = Self {
       kind,
+      sample_lifetime: sedp_sample_lifetime(&topic_name),
       topic_name,
       topic_data_type,
       topic_qos: topic_qos.clone(),
@@ -833,6 +869,50 @@ mod tests {
         .build(),
     );
     assert_eq!(no_key.max_keep_samples, 20);
+  }
+
+  // An SEDP topic's cache keeps taken announcements of endpoints that came and
+  // went only for its sample lifetime, not up to its 4096-sample limit; a user
+  // topic's cache is not aged.
+  #[test]
+  fn sedp_samples_expire_beyond_the_history_depth() {
+    use crate::rtps::constant::builtin_topic_names;
+    let mut cache = DDSCache::new();
+    let sedp = cache.add_new_topic(
+      builtin_topic_names::DCPS_SUBSCRIPTION.to_string(),
+      TypeDesc::new("DiscoveredReaderData".to_string()),
+      &Discovery::builtin_sedp_reader_qos(),
+    );
+    let user = cache.add_new_topic(
+      "Square".to_string(),
+      TypeDesc::new("ShapeType".to_string()),
+      &Discovery::builtin_sedp_reader_qos(),
+    );
+    let writer = user_writer();
+    let lifetime = crate::Duration::from_secs(super::SEDP_SAMPLE_LIFETIME_S);
+    let old = Timestamp::now() - lifetime - crate::Duration::from_secs(5);
+    for topic in [&sedp, &user] {
+      let mut topic = topic.lock().unwrap();
+      for sn in 1..=1000 {
+        let received = if sn <= 990 { old } else { Timestamp::now() };
+        topic.add_change(
+          &received,
+          CacheChange::new(
+            writer,
+            SequenceNumber::new(sn),
+            WriteOptions::default(),
+            DDSData::new(SerializedPayload::default()),
+          ),
+        );
+      }
+    }
+    cache.garbage_collect();
+    // The 10 recent samples stay, and the History depth (4) is never cut.
+    assert_eq!(sedp.lock().unwrap().changes.len(), 10);
+    assert_eq!(user.lock().unwrap().changes.len(), 1000);
+    // Without new samples, the next collection keeps what has not expired.
+    cache.garbage_collect();
+    assert_eq!(sedp.lock().unwrap().changes.len(), 10);
   }
 
   #[test]

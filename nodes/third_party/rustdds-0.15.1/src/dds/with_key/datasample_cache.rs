@@ -519,6 +519,7 @@ where
     }
 
     self.mark_instances_viewed(&instance_generations);
+    self.forget_taken(keys);
     result
   }
 
@@ -595,7 +596,25 @@ where
     }
 
     self.mark_instances_viewed(&instance_generations);
+    self.forget_taken(keys);
     result
+  }
+
+  /// After a take: the taken samples leave their instances' sample sets, and an
+  /// instance that is no longer alive and has no sample left is removed (DDS
+  /// lets a reader reclaim the resources of such an instance). Otherwise every
+  /// instance ever seen stays: e.g. Discovery's readers would keep a record of
+  /// each remote endpoint that was created and deleted, without bound.
+  fn forget_taken(&mut self, keys: &[(Timestamp, D::K)]) {
+    for (ts, key) in keys {
+      let reclaim = self.instance_map.get_mut(key).is_some_and(|imd| {
+        imd.instance_samples.remove(ts);
+        imd.instance_samples.is_empty() && imd.instance_state != InstanceState::Alive
+      });
+      if reclaim {
+        self.instance_map.remove(key);
+      }
+    }
   }
 
   pub(in crate::dds::with_key) fn next_key(&self, key: &D::K) -> Option<D::K> {
@@ -618,41 +637,65 @@ pub(crate) fn result_ok_as_ref_err_clone<T, E: Clone>(r: &Sample<T, E>) -> Sampl
 
 #[cfg(test)]
 mod tests {
-  // use super::*;
-  // use crate::{
-  //   structure::{time::Timestamp},
-  // };
-  // use crate::dds::ddsdata::DDSData;
-  // use crate::dds::traits::key::Keyed;
-  // use crate::test::random_data::*;
+  use super::DataSampleCache;
+  use crate::{
+    dds::{
+      qos::{policy::History, QosPolicyBuilder},
+      readcondition::ReadCondition,
+      with_key::{datasample::Sample, datawriter::WriteOptions},
+    },
+    structure::{guid::GUID, sequence_number::SequenceNumber, time::Timestamp},
+    test::random_data::RandomData,
+  };
 
+  fn add(cache: &mut DataSampleCache<RandomData>, sample: Sample<RandomData, i64>, sn: i64) {
+    cache.add_sample(
+      sample,
+      GUID::GUID_UNKNOWN,
+      SequenceNumber::new(sn),
+      Timestamp::now(),
+      WriteOptions::default(),
+    );
+  }
+
+  // Instances that came and went (e.g. the remote endpoints Discovery reads
+  // about) are forgotten once disposed and taken; live ones stay.
   #[test]
-  fn dsc_empty_qos() {
-    /*
-    let qos = QosPolicies::qos_none();
-    let mut datasample_cache = DataSampleCache::<RandomData>::new(qos);
-
-    let timestamp = Timestamp::now();
-    let data = RandomData {
-      a: 4,
-      b: "Fobar".to_string(),
+  fn a_disposed_instance_is_forgotten_once_its_samples_are_taken() {
+    let qos = QosPolicyBuilder::new()
+      .history(History::KeepLast { depth: 4 })
+      .build();
+    let mut cache = DataSampleCache::<RandomData>::new(qos);
+    let data = |a| RandomData {
+      a,
+      b: "endpoint".to_string(),
     };
-
-    let org_ddsdata = DDSData::from(&data, Some(timestamp));
-
-    let key = data.key().clone();
-    datasample_cache.add_sample(Ok(data.clone()), GUID::GUID_UNKNOWN, timestamp, None);
-    //datasample_cache.add_datasample(datasample).unwrap();
-
-    let samples = datasample_cache.read_by_keys(&[(timestamp, key)]);
-    assert_eq!(samples.len(), 1);
-    match &samples.get(0).unwrap().value() {
-      Ok(huh) => {
-        let ddssample = DDSData::from(huh, Some(timestamp));
-        assert_eq!(org_ddsdata, ddssample);
+    for (i, a) in (0..100).enumerate() {
+      add(&mut cache, Sample::Value(data(a)), 2 * i as i64 + 1);
+      if a != 7 {
+        add(&mut cache, Sample::Dispose(a), 2 * i as i64 + 2);
       }
-      _ => (),
+      let keys = cache.select_keys_for_access(ReadCondition::any());
+      let taken = cache.take_bare_by_keys(&keys);
+      assert_eq!(taken.len(), if a == 7 { 1 } else { 2 });
     }
-    */
+    // Only the instance that was never disposed is left, with no stale samples.
+    assert_eq!(cache.instance_map.keys().copied().collect::<Vec<_>>(), vec![7]);
+    assert!(cache.instance_map[&7].instance_samples.is_empty());
+    // A read keeps the instance (its sample is still there).
+    add(&mut cache, Sample::Value(data(200)), 1000);
+    add(&mut cache, Sample::Dispose(200), 1001);
+    let keys = cache.select_keys_for_access(ReadCondition::any());
+    assert_eq!(cache.read_bare_by_keys(&keys).len(), 2);
+    assert!(cache.instance_map.contains_key(&200));
+    // And an instance born again after being forgotten starts afresh.
+    let keys = cache.select_keys_for_access(ReadCondition::any());
+    cache.take_by_keys(&keys);
+    assert!(!cache.instance_map.contains_key(&200));
+    add(&mut cache, Sample::Value(data(200)), 1002);
+    let keys = cache.select_keys_for_access(ReadCondition::any());
+    let taken = cache.take_by_keys(&keys);
+    assert_eq!(taken.len(), 1);
+    assert!(cache.instance_map.contains_key(&200));
   }
 }

@@ -1,6 +1,6 @@
 use std::{
   cmp::max,
-  collections::BTreeMap,
+  collections::{BTreeMap, VecDeque},
   io,
   marker::PhantomData,
   pin::Pin,
@@ -54,7 +54,57 @@ pub(crate) struct ReadState<K: Key> {
   /// hash_to_key_map is used for decoding received key hashes back to original
   /// key values. This is needed when we receive a dispose message via hash
   /// only.
-  hash_to_key_map: BTreeMap<KeyHash, K>, // TODO: garbage collect this somehow
+  hash_to_key_map: KeyHashes<K>,
+}
+
+/// How many disposed keys stay decodable from their hash (a trailing
+/// unregister, or the same disposal sent again, still finds its key).
+const KEPT_DISPOSED_KEYS: usize = 256;
+
+/// Received key hashes and their keys. A key stays while its instance is alive;
+/// once disposed, only for the next [`KEPT_DISPOSED_KEYS`] disposals (unless it
+/// comes back alive), so instances that come and go (e.g. the remote endpoints
+/// Discovery reads about) do not pile up.
+pub(crate) struct KeyHashes<K> {
+  keys: BTreeMap<KeyHash, (K, Option<u64>)>, // the disposal number if last seen disposed
+  disposed: VecDeque<(KeyHash, u64)>,
+  disposals: u64,
+}
+
+impl<K: Key> KeyHashes<K> {
+  fn new() -> Self {
+    Self {
+      keys: BTreeMap::new(),
+      disposed: VecDeque::new(),
+      disposals: 0,
+    }
+  }
+
+  fn alive(&mut self, key: K) {
+    self.keys.insert(key.hash_key(false), (key, None));
+  }
+
+  fn disposed(&mut self, key: K) {
+    let hash = key.hash_key(false);
+    self.disposals += 1;
+    self.keys.insert(hash, (key, Some(self.disposals)));
+    self.disposed.push_back((hash, self.disposals));
+    while self.disposed.len() > KEPT_DISPOSED_KEYS {
+      if let Some((hash, disposal)) = self.disposed.pop_front() {
+        if self
+          .keys
+          .get(&hash)
+          .is_some_and(|(_, last)| *last == Some(disposal))
+        {
+          self.keys.remove(&hash);
+        }
+      }
+    }
+  }
+
+  fn get(&self, hash: &KeyHash) -> Option<&K> {
+    self.keys.get(hash).map(|(key, _)| key)
+  }
 }
 
 impl<K: Key> ReadState<K> {
@@ -62,7 +112,7 @@ impl<K: Key> ReadState<K> {
     ReadState {
       latest_instant: Timestamp::ZERO,
       last_read_sn: BTreeMap::new(),
-      hash_to_key_map: BTreeMap::<KeyHash, K>::new(),
+      hash_to_key_map: KeyHashes::new(),
     }
   }
 
@@ -73,7 +123,7 @@ impl<K: Key> ReadState<K> {
     &mut self,
   ) -> (
     &mut BTreeMap<GUID, SequenceNumber>,
-    &mut BTreeMap<KeyHash, K>,
+    &mut KeyHashes<K>,
   ) {
     let ReadState {
       last_read_sn,
@@ -214,22 +264,18 @@ where
     topic_cache.get_changes_in_range(is_reliable, latest_instant, last_read_sn)
   }
 
-  fn update_hash_to_key_map(
-    hash_to_key_map: &mut BTreeMap<KeyHash, D::K>,
-    deserialized: &Sample<D, D::K>,
-  ) {
-    let instance_key = match deserialized {
-      Sample::Value(d) => d.key(),
-      Sample::Dispose(k) => k.clone(),
-    };
-    hash_to_key_map.insert(instance_key.hash_key(false), instance_key);
+  fn update_hash_to_key_map(hash_to_key_map: &mut KeyHashes<D::K>, deserialized: &Sample<D, D::K>) {
+    match deserialized {
+      Sample::Value(d) => hash_to_key_map.alive(d.key()),
+      Sample::Dispose(k) => hash_to_key_map.disposed(k.clone()),
+    }
   }
 
   fn deserialize_with<S>(
     &self,
     timestamp: Timestamp,
     cc: &CacheChange,
-    hash_to_key_map: &mut BTreeMap<KeyHash, D::K>,
+    hash_to_key_map: &mut KeyHashes<D::K>,
     decoder: S,
   ) -> ReadResult<DeserializedCacheChange<D>>
   where
@@ -307,12 +353,10 @@ where
       DDSData::DisposeByKeyHash { key_hash, .. } => {
         // The cache should know hash -> key mapping even if the sample
         // has been disposed or .take()n
-        if let Some(key) = hash_to_key_map.get(&key_hash) {
-          Ok(DeserializedCacheChange::new(
-            timestamp,
-            cc,
-            Sample::Dispose(key.clone()),
-          ))
+        if let Some(key) = hash_to_key_map.get(&key_hash).cloned() {
+          let k = Sample::Dispose(key);
+          Self::update_hash_to_key_map(hash_to_key_map, &k);
+          Ok(DeserializedCacheChange::new(timestamp, cc, k))
         } else {
           Err(ReadError::UnknownKey {
             details: format!(
@@ -714,5 +758,32 @@ where
       .status_receiver
       .as_async_status_stream()
       .is_terminated()
+  }
+}
+
+#[cfg(test)]
+mod tests {
+  use super::{KeyHashes, KEPT_DISPOSED_KEYS};
+  use crate::Key;
+
+  // Keys of instances that were disposed are forgotten after enough later
+  // disposals; live keys, and disposed keys that came back, stay.
+  #[test]
+  fn disposed_key_hashes_are_forgotten_after_a_while() {
+    let mut keys = KeyHashes::<i64>::new();
+    keys.alive(-1);
+    keys.alive(-2);
+    keys.disposed(-2);
+    keys.alive(-2);
+    for endpoint in 0..10_000i64 {
+      keys.alive(endpoint);
+      keys.disposed(endpoint);
+      // A trailing unregister of the latest disposal still decodes.
+      assert_eq!(keys.get(&endpoint.hash_key(false)), Some(&endpoint));
+    }
+    assert!(keys.keys.len() <= KEPT_DISPOSED_KEYS + 2);
+    assert_eq!(keys.get(&(-1i64).hash_key(false)), Some(&-1));
+    assert_eq!(keys.get(&(-2i64).hash_key(false)), Some(&-2));
+    assert_eq!(keys.get(&0i64.hash_key(false)), None);
   }
 }

@@ -176,6 +176,13 @@ pub struct TestResult {
     pub threshold: f64,
 }
 
+impl TestResult {
+    /// A test that passes when `value` does not exceed `threshold`.
+    pub fn at_most(value: f64, threshold: f64) -> Self {
+        Self { passed: value <= threshold, value, threshold }
+    }
+}
+
 /// Result of [`validate_patch`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Validation {
@@ -309,16 +316,16 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
     });
     let edge = (config.edge_max_offset_m < f64::INFINITY).then(|| {
         let (value, _) = disc_offset(patch, foothold.column.unwrap_or(neighbourhood), foothold.up.as_ref(), config);
-        TestResult { passed: value <= config.edge_max_offset_m, value, threshold: config.edge_max_offset_m }
+        TestResult::at_most(value, config.edge_max_offset_m)
     });
-    let unseen = foothold.view.filter(|_| config.unseen_max_fraction < f64::INFINITY).map(|view| {
-        let value = view.unseen_fraction();
-        TestResult { passed: value <= config.unseen_max_fraction, value, threshold: config.unseen_max_fraction }
-    });
-    let open_rim = foothold.view.filter(|_| config.open_rim_max_fraction < f64::INFINITY).map(|view| {
-        let value = view.open_fraction();
-        TestResult { passed: value <= config.open_rim_max_fraction, value, threshold: config.open_rim_max_fraction }
-    });
+    let unseen = foothold
+        .view
+        .filter(|_| config.unseen_max_fraction < f64::INFINITY)
+        .map(|view| TestResult::at_most(view.unseen_fraction(), config.unseen_max_fraction));
+    let open_rim = foothold
+        .view
+        .filter(|_| config.open_rim_max_fraction < f64::INFINITY)
+        .map(|view| TestResult::at_most(view.open_fraction(), config.open_rim_max_fraction));
     Validation {
         residual,
         coverage,

@@ -241,7 +241,36 @@ pub fn local_coordinates(reference: &Patch, patch: &Patch) -> Option<DVector<f64
             delta[at + i] = x[i];
         }
     }
+    let at = delta.len() - 3;
+    let along = surface_offset(reference, &(patch.center - reference.center));
+    for i in 0..3 {
+        delta[at + i] = along[i];
+    }
     delta.iter().all(|v| v.is_finite()).then_some(delta)
+}
+
+/// The centre part of the chart: a centre offset `c_b − c_a` measured along the prior's surface.
+/// In the prior's frame, `l = R_aᵀ (c_b − c_a)`, the height above the surface through the prior's
+/// apex, `l_z − ½ (κx l_x² + κy l_y²)` (eq 12), replaces `l_z`, and the result is turned back to
+/// the world axes (so the chart's derivative at the prior is the identity). An apex estimate slides
+/// along the surface with the sampling noise of the data centroid, and the slide lowers it by the
+/// sag `½ uᵀ K u`, always to the same side: averaged in world coordinates, observations of a curved
+/// patch from independent views keep that sag as a bias of the fused apex while its Σ shrinks
+/// (a sphere's fused Σ then held the truth in 86 % of ten-view trials instead of 95 %); measured
+/// along the surface, the slides average out. Planes (K = 0) are unchanged.
+fn surface_offset(reference: &Patch, offset: &Vector3<f64>) -> Vector3<f64> {
+    let rotation = reference.rotation_matrix();
+    let k = reference.k3();
+    let l = rotation.transpose() * offset;
+    rotation * Vector3::new(l.x, l.y, l.z - 0.5 * (k.x * l.x * l.x + k.y * l.y * l.y))
+}
+
+/// The inverse of [`surface_offset`]: the world offset of a chart point's centre.
+fn offset_from_surface(reference: &Patch, along: &Vector3<f64>) -> Vector3<f64> {
+    let rotation = reference.rotation_matrix();
+    let k = reference.k3();
+    let l = rotation.transpose() * along;
+    rotation * Vector3::new(l.x, l.y, l.z + 0.5 * (k.x * l.x * l.x + k.y * l.y * l.y))
 }
 
 /// The patch at local coordinates `delta` of the chart at `reference` (the inverse of
@@ -267,6 +296,11 @@ pub fn retract(reference: &Patch, delta: &DVector<f64>) -> Option<Patch> {
         for i in 0..3 {
             params[at + i] = r[i];
         }
+    }
+    let c = p - 3;
+    let offset = offset_from_surface(reference, &Vector3::new(delta[c], delta[c + 1], delta[c + 2]));
+    for i in 0..3 {
+        params[c + i] = reference.center[i] + offset[i];
     }
     let mut out = Patch::from_params(reference.surface, reference.boundary, params.as_slice()).ok()?;
     out.rotation = nearest_branch(&out.rotation, &reference.rotation);
@@ -450,6 +484,19 @@ mod tests {
         .unwrap()
     }
 
+    /// A 6-DoF plane (a rectangle), whose chart is linear in the centre.
+    fn plane() -> Patch {
+        Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Rectangle,
+            vec![0.06, 0.04],
+            Vector2::zeros(),
+            Vector3::new(0.1, -0.2, 0.3),
+            Vector3::new(0.2, 0.1, 0.5),
+        )
+        .unwrap()
+    }
+
     /// A random covariance with the rotation block (rows `at..at+3`) decoupled from the rest.
     fn decoupled_covariance<R: Rng>(rng: &mut R, p: usize, at: usize, rot: usize) -> DMatrix<f64> {
         let a = DMatrix::from_fn(p, p, |_, _| rng.random_range(-1.0..1.0) * 0.01);
@@ -465,13 +512,14 @@ mod tests {
         c
     }
 
-    /// On a linear-Gaussian toy (observations that differ from the truth in extents, curvatures and
-    /// centre only, with the rotation uncertain but decoupled), sequential fusion equals the batch
-    /// information-form estimate `x = (Σ Λ_i)⁻¹ Σ Λ_i x_i`, `Σ = (Σ Λ_i)⁻¹`.
+    /// On a linear-Gaussian toy (observations of a plane that differ from the truth in extents and
+    /// centre only, with the rotation uncertain but decoupled; a plane's chart is linear in its
+    /// centre), sequential fusion equals the batch information-form estimate
+    /// `x = (Σ Λ_i)⁻¹ Σ Λ_i x_i`, `Σ = (Σ Λ_i)⁻¹`.
     #[test]
     fn sequential_fusion_equals_the_batch_estimate_on_a_linear_toy() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-        let base = paraboloid();
+        let base = plane();
         let p = base.dof();
         let at = rotation_index(&base);
         let observations: Vec<Patch> = (0..6)
@@ -531,10 +579,13 @@ mod tests {
         prior.covariance = DMatrix::identity(p, p) * 1e-6;
         let mut observation = prior.clone();
         observation.covariance = DMatrix::identity(p, p) * 3e-6;
-        // 4 mm along x of the centre: m² = 0.004² / (1e-6 + 3e-6) = 4.
-        observation.center.x += 0.004;
+        // The apex slid 4 mm along the surface (local x, with the sag ½ κx x² along the normal):
+        // m² = 0.004² / (1e-6 + 3e-6) = 4 (to 1e-4: the chart's slope there, κx x = 0.016, turns a
+        // little of the observation's Σ).
+        let slide = prior.rotation_matrix() * Vector3::new(0.004, 0.0, 0.5 * prior.curvatures.x * 0.004 * 0.004);
+        observation.center += slide;
         let inn = innovation(&prior, &observation).unwrap();
-        assert!((inn.mahalanobis2 - 4.0).abs() < 1e-6, "{}", inn.mahalanobis2);
+        assert!((inn.mahalanobis2 - 4.0).abs() < 1e-3, "{}", inn.mahalanobis2);
         assert_eq!(inn.dof, p);
         assert!(inn.mahalanobis2 < chi2_quantile(p, 0.99));
         // 2 cm off is far outside.
@@ -545,7 +596,13 @@ mod tests {
         assert!((chi2_quantile(10, 0.999) - 29.588).abs() < 0.3);
         assert!((chi2_quantile(2, 0.95) - 5.991).abs() < 0.06);
         assert!((chi2_quantile(8, 0.95) - chi2_95(8)).abs() < 1e-4);
-        // The update moves the estimate to the information-weighted mean: 1/4 of the way.
+        // The update moves the estimate to the information-weighted mean: 1/4 of the way (a plane,
+        // whose chart is linear in the centre).
+        let mut prior = plane();
+        let p = prior.dof();
+        prior.covariance = DMatrix::identity(p, p) * 1e-6;
+        let mut observation = prior.clone();
+        observation.covariance = DMatrix::identity(p, p) * 3e-6;
         observation.center.x = prior.center.x + 0.004;
         let (fused, _) = fuse(&prior, &observation, 1.0).unwrap();
         assert!((fused.center.x - prior.center.x - 0.001).abs() < 1e-9);

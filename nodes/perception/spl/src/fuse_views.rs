@@ -5,6 +5,7 @@
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
 
+use crate::fit::neighbourhood::refit_on_surface;
 use crate::fit::simulate::{random_visible_patch, sample_sensor, SceneConfig};
 use crate::fit::{fit_patch, BoundaryRequest, FitConfig, FitRequest, SurfaceRequest};
 use crate::geometry::exp_map;
@@ -35,7 +36,9 @@ pub fn observe<R: Rng>(rng: &mut R, truth: &Patch, points: usize, max_angle: f64
         boundary: BoundaryRequest::Exactly(truth.boundary),
         ..FitRequest::default()
     };
-    let fit = fit_patch(&pts, Some(&covs), &request, &FitConfig::default()).ok()?;
+    let config = FitConfig::default();
+    let first = fit_patch(&pts, Some(&covs), &request, &config).ok()?;
+    let fit = refit_on_surface(first, &pts, &pts, &ErrorModel::default(), &request, &config);
     transform_patch(&fit, &world_from_camera)
 }
 

@@ -6,7 +6,8 @@
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use crate::fit::{fit_patch_with_boundary_points, FitConfig, FitError, FitRequest};
+use crate::fit::sensed::{covariances_on_surface, depends_on_range};
+use crate::fit::{fit_patch_with_boundary_points, BoundaryRequest, FitConfig, FitError, FitRequest, SurfaceRequest};
 use crate::patch::{BoundaryType, Patch, SurfaceType};
 use crate::sensor::{covariances_for, ErrorModel, SensorError};
 
@@ -58,12 +59,33 @@ pub fn fit_neighbourhood(
 ) -> Result<Patch, NeighbourhoodFitError> {
     let covariances = covariances_for(fit_points_in_camera, &Vector3::zeros(), &config.sensor)?;
     let request = FitRequest { containment: config.containment, ..FitRequest::default() };
-    let mut patch =
-        fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)?;
+    let first = fit_patch_with_boundary_points(fit_points_in_camera, Some(&covariances), boundary_points_in_camera, &request, &config.fit)?;
+    let mut patch = refit_on_surface(first, fit_points_in_camera, boundary_points_in_camera, &config.sensor, &request, &config.fit);
     if config.plane_boundary_j_step5 && patch.surface == SurfaceType::Plane {
         rescale_boundary(&mut patch, plane_boundary_factor(config.containment));
     }
     Ok(patch)
+}
+
+/// With [`FitConfig::covariances_on_surface`] and a range-dependent sensor model, `first` fitted
+/// again (same type, same request otherwise) with the point covariances evaluated on its surface
+/// ([`crate::fit::sensed`]); `first` itself when the option is off, the model does not depend on
+/// the range, or the second fit fails (the first is then the best estimate there is).
+pub fn refit_on_surface(
+    first: Patch,
+    fit_points_in_sensor: &[Vector3<f64>],
+    boundary_points_in_sensor: &[Vector3<f64>],
+    sensor: &ErrorModel,
+    request: &FitRequest,
+    config: &FitConfig,
+) -> Patch {
+    if !(config.covariances_on_surface && depends_on_range(sensor)) {
+        return first;
+    }
+    let Ok(covariances) = covariances_on_surface(&first, fit_points_in_sensor, sensor) else { return first };
+    let same_type =
+        FitRequest { surface: SurfaceRequest::Exactly(first.surface), boundary: BoundaryRequest::Exactly(first.boundary), ..*request };
+    fit_patch_with_boundary_points(fit_points_in_sensor, Some(&covariances), boundary_points_in_sensor, &same_type, config).unwrap_or(first)
 }
 
 /// Scales the boundary extents `d` of a patch (not a quad's angle) and their covariance rows/columns.

@@ -119,6 +119,12 @@ pub struct FitConfig {
     /// is what the surface shape alone says: 8–12 mm median off at Kinect noise and 150 points,
     /// against 3.6–4.1 mm (`bench_fit --no-apex-from-centroid --weight-derivative distance_like`).
     pub apex_from_centroid: bool,
+    /// Beyond IROS, for fits that know the sensor ([`super::neighbourhood::fit_neighbourhood`]): the
+    /// point covariances of a range-dependent sensor model are evaluated again where each
+    /// measurement ray meets the fitted surface, and the patch is fitted once more with them (see
+    /// [`super::sensed`]; removes the pull towards the sensor of covariances taken at the measured
+    /// depth). Costs a second fit of the same type; nothing changes for the constant range model.
+    pub covariances_on_surface: bool,
 }
 
 impl Default for FitConfig {
@@ -132,6 +138,7 @@ impl Default for FitConfig {
             inflate_by_residual: true,
             weight_derivative: WeightDerivative::Always,
             apex_from_centroid: true,
+            covariances_on_surface: true,
         }
     }
 }

@@ -208,47 +208,12 @@ pub fn chi2_95(k: usize) -> f64 {
     k * (1.0 - a + z * a.sqrt()).powi(3)
 }
 
-/// Truth parameter vector in the fit's representation: boundary estimand, and of the discrete
-/// symmetries (rotation by π about the normal) the one nearest the estimate.
+/// Truth parameter vector in the fit's representation: boundary estimand, and of the equivalent
+/// descriptions of the true patch (quarter turns about the normal where the type allows them, as
+/// [`crate::fuse::align`] chooses for fusion) the one nearest the estimate.
 pub fn truth_params<R: Rng + ?Sized>(rng: &mut R, truth: &Patch, fit: &Patch, containment: f64) -> Option<DVector<f64>> {
-    let rot = truth.rotation_matrix();
-    // Equivalent descriptions of the same patch: rotations by kπ/2 about the normal (k odd swaps
-    // the x/y roles, allowed only where the types are symmetric under the swap: ellipse-bounded
-    // paraboloids, IROS footnote 5).
-    let quarter_turns: &[u32] = match truth.surface {
-        SurfaceType::EllipticParaboloid | SurfaceType::HyperbolicParaboloid => &[0, 1, 2, 3],
-        _ => &[0, 2],
-    };
-    let mut best: Option<(f64, Patch)> = None;
-    for &k in quarter_turns {
-        let angle = k as f64 * std::f64::consts::FRAC_PI_2;
-        let r = log_map(&(rot * exp_map(&Vector3::new(0.0, 0.0, angle))));
-        let (curv, bparams) = if k % 2 == 1 {
-            let mut d = truth.boundary_params.clone();
-            d.swap(0, 1);
-            (Vector2::new(truth.curvatures.y, truth.curvatures.x), d)
-        } else {
-            (truth.curvatures, truth.boundary_params.clone())
-        };
-        let Ok(candidate) = Patch::new(truth.surface, truth.boundary, bparams, curv, r, truth.center) else { continue };
-        let dist = (candidate.rotation_matrix() - fit.rotation_matrix()).norm();
-        if best.as_ref().is_none_or(|(b, _)| dist < *b) {
-            best = Some((dist, candidate));
-        }
-    }
-    let (_, mut t) = best?;
+    let mut t = crate::fuse::align(fit, truth)?;
     t.boundary_params = boundary_estimand(rng, &t, containment);
-    // Exp-map vectors near ‖r‖ = π can differ by a 2π wrap although the rotations agree.
-    let rf = fit.rotation;
-    if (t.rotation - rf).norm() > 1.0 {
-        let th = t.rotation.norm();
-        if th > 0.0 {
-            let alt = t.rotation * (1.0 - 2.0 * std::f64::consts::PI / th);
-            if (alt - rf).norm() < (t.rotation - rf).norm() {
-                t.rotation = alt;
-            }
-        }
-    }
     Some(t.params())
 }
 

@@ -107,11 +107,12 @@ pub fn track_walk(walk: &Walk<'_>, config: &TrackerConfig, run: &WalkRun) -> Res
     Ok(result)
 }
 
-/// The tracker as J 5.2 describes it, for comparison: ICP from the last pose, no wide level, no
-/// IMU tilt, and every failed frame resets the volume.
+/// The tracker as J 5.2 describes it, for comparison: ICP from the last pose with KinectFusion's
+/// equal weights, no wide level, no IMU tilt, and every failed frame resets the volume.
 pub fn j52_as_written(config: &TrackerConfig) -> TrackerConfig {
     let mut config = config.clone();
     config.icp.wide.iterations = 0;
+    config.icp.depth_noise_power = 0;
     config.motion_prior.constant_velocity = false;
     config.motion_prior.gravity_tilt = false;
     config.motion_prior.max_tilt_error_deg = 180.0;

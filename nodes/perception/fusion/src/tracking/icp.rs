@@ -11,7 +11,9 @@
 //! ξ = −(Σ wᵢ JᵢᵀJᵢ)⁻¹ Σ wᵢ Jᵢᵀ rᵢ,      T ← exp(ξ) T
 //! ```
 //!
-//! with the Huber weight wᵢ = min(1, h / |rᵢ|), over the pairs (pᵢ, qᵢ) that projective association
+//! with wᵢ = min(1, h / |rᵢ/sᵢ|) / sᵢ², the Huber weight of the residual over the depth's relative
+//! noise sᵢ = zᵢ^k (k = `IcpConfig::depth_noise_power`, 2 for J eq 2's stereo noise; 0 gives
+//! KinectFusion's Huber weight alone), over the pairs (pᵢ, qᵢ) that projective association
 //! finds within the level's gates: ‖T pᵢ − qᵢ‖ ≤ d_max and, where the level has one, ∠(R nₚᵢ, nᵢ) ≤ θ_max.
 //! The schedule of levels is [`level_plan`]: optionally a *wide* level first (the 1/4 image
 //! subsampled, wide distance gate, normal-angle gate) that pulls in a pose 10–30 cm or 10–20° off,
@@ -184,7 +186,8 @@ fn source_level(depth: &DepthImage, intrinsics: &Intrinsics, stride: usize, norm
 pub struct IcpResult {
     pub volume_from_camera: Isometry3<f64>,
     pub summary: IcpSummary,
-    /// Smallest eigenvalue of the last normal matrix divided by the inlier count.
+    /// Smallest eigenvalue of the last normal matrix divided by the inliers' summed depth weights
+    /// (the inlier count when they are unweighted).
     pub min_eigenvalue: f64,
 }
 
@@ -194,6 +197,8 @@ struct Normal {
     jtj: [f64; 21],
     jtr: [f64; 6],
     inliers: usize,
+    /// Σ of the inliers' depth weights (`IcpConfig::depth_noise_power`).
+    weight_sum: f64,
     /// Source points that landed on a model pixel with a surface (before the distance gate).
     associated: usize,
     squared_residuals: f64,
@@ -201,7 +206,7 @@ struct Normal {
 
 impl Normal {
     fn zero() -> Self {
-        Self { jtj: [0.0; 21], jtr: [0.0; 6], inliers: 0, associated: 0, squared_residuals: 0.0 }
+        Self { jtj: [0.0; 21], jtr: [0.0; 6], inliers: 0, weight_sum: 0.0, associated: 0, squared_residuals: 0.0 }
     }
     fn add(mut self, other: Self) -> Self {
         for (a, b) in self.jtj.iter_mut().zip(other.jtj.iter()) {
@@ -211,6 +216,7 @@ impl Normal {
             *a += b;
         }
         self.inliers += other.inliers;
+        self.weight_sum += other.weight_sum;
         self.associated += other.associated;
         self.squared_residuals += other.squared_residuals;
         self
@@ -236,13 +242,13 @@ pub fn icp(config: &IcpConfig, levels: &[(LevelPlan, &SourceLevel)], model: &Mod
     let mut summary = IcpSummary::default();
     // Normal matrix and inlier count of the last successful iteration: its smallest eigenvalue (the
     // degeneracy check) is computed once after the last iteration, not at every iteration.
-    let mut last_system: Option<(Matrix6<f64>, usize)> = None;
+    let mut last_system: Option<(Matrix6<f64>, f64)> = None;
     let model_from_volume = model.volume_from_camera.inverse().cast::<f32>();
     for (plan, source) in levels {
         let min_normal_cos = if plan.uses_normals() { plan.max_normal_angle_deg.to_radians().cos() as f32 } else { -2.0 };
         let gates = Gates { distance_m: plan.gate_m as f32, min_normal_cos };
         for _ in 0..plan.iterations {
-            let normal = accumulate(source, model, &model_from_volume, &pose, gates, config.huber_m);
+            let normal = accumulate(source, model, &model_from_volume, &pose, gates, config.huber_m, config.depth_noise_power);
             summary = IcpSummary {
                 iterations: summary.iterations + 1,
                 inliers: normal.inliers,
@@ -263,7 +269,7 @@ pub fn icp(config: &IcpConfig, levels: &[(LevelPlan, &SourceLevel)], model: &Mod
                 last_system = None;
                 break;
             };
-            last_system = Some((h, normal.inliers));
+            last_system = Some((h, normal.weight_sum));
             let delta = cholesky.solve(&(-g));
             let mut translation = Vector3::new(delta[0], delta[1], delta[2]);
             let mut rotation = Vector3::new(delta[3], delta[4], delta[5]);
@@ -281,7 +287,7 @@ pub fn icp(config: &IcpConfig, levels: &[(LevelPlan, &SourceLevel)], model: &Mod
             }
         }
     }
-    let min_eigenvalue = last_system.map_or(0.0, |(h, inliers)| h.symmetric_eigenvalues().min() / inliers as f64);
+    let min_eigenvalue = last_system.map_or(0.0, |(h, weight_sum)| h.symmetric_eigenvalues().min() / weight_sum.max(f64::MIN_POSITIVE));
     IcpResult { volume_from_camera: pose, summary, min_eigenvalue }
 }
 
@@ -351,6 +357,7 @@ fn accumulate(
     volume_from_camera: &Isometry3<f64>,
     gates: Gates,
     huber: f64,
+    depth_noise_power: u32,
 ) -> Normal {
     let gate = gates.distance_m;
     let normal_gate = gates.min_normal_cos >= -1.0 && source.normals_in_camera.len() == source.points_in_camera.len();
@@ -400,8 +407,13 @@ fn accumulate(
                     }
                 }
                 let r = n.dot(&difference);
-                // Huber weight w, applied as √w to both factors of each product.
-                let sqrt_weight = if r.abs() <= huber { 1.0 } else { (huber / r.abs()).sqrt() };
+                // The depth's relative noise s = z^power (1 at 1 m): the residual counts as r/s, with
+                // the Huber weight on r/s; both applied as √w to both factors of each product.
+                let noise = point.z.max(1e-3).powi(depth_noise_power as i32);
+                let scaled = r.abs() / noise;
+                let huber_weight = if scaled <= huber { 1.0 } else { huber / scaled };
+                let depth_weight = 1.0 / (noise * noise);
+                let sqrt_weight = (huber_weight * depth_weight).sqrt();
                 let c = p.coords.cross(n);
                 let row = [n.x, n.y, n.z, c.x, c.y, c.z, r];
                 let slot = batch.len;
@@ -412,6 +424,7 @@ fn accumulate(
                 }
                 batch.len += 1;
                 acc.inliers += 1;
+                acc.weight_sum += f64::from(depth_weight);
                 acc.squared_residuals += f64::from(r * r);
                 if batch.len == BATCH {
                     flush_batch(&mut acc, &mut batch);

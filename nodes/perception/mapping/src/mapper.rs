@@ -29,6 +29,7 @@ use patchwalk_spl::fit::FitConfig;
 use patchwalk_spl::patch::Patch;
 use patchwalk_spl::sensor::ErrorModel;
 use patchwalk_spl::transform::transform_patch;
+use patchwalk_spl::validate::visibility::out_of_view_fraction;
 use patchwalk_spl::validate::{validate_foothold, DiscView, Foothold, SampledBall, ValidateConfig, Validation};
 
 /// Configuration of the whole mapper; every default is J's value (see each stage's struct).
@@ -136,10 +137,11 @@ pub enum Verdict {
     Tilt,
     /// The terrain inside the foot disc lies off the surface (an edge or fold under the foot).
     Edge,
-    /// The foot disc was not seen to carry the foot (tests off by default): with
-    /// `validate.open_rim_max_fraction` set, too many of its pixels see through it or into a hole at
-    /// an edge; with `validate.unseen_max_fraction` set, too many did not measure it at all (no
-    /// depth, or free space or an occluder where the surface should be).
+    /// The foot disc was not seen to carry the foot: more of it than `validate.out_of_view_max_fraction`
+    /// lies outside the image; or (tests off by default) with `validate.open_rim_max_fraction` set,
+    /// too many of its pixels see through it or into a hole at an edge; with
+    /// `validate.unseen_max_fraction` set, too many did not measure it at all (no depth, or free
+    /// space or an occluder where the surface should be).
     Unseen,
     /// Fewer neighbourhood points than `neighbourhood.min_points`.
     TooFewPoints,
@@ -181,7 +183,7 @@ impl Verdict {
             Verdict::Tilt
         } else if !validation.edge_ok() {
             Verdict::Edge
-        } else if !validation.unseen_ok() || !validation.open_rim_ok() {
+        } else if !validation.unseen_ok() || !validation.open_rim_ok() || !validation.in_view_ok() {
             Verdict::Unseen
         } else {
             Verdict::Valid { id: u64::MAX }
@@ -700,7 +702,9 @@ fn process_seed(
                 foot_column(cloud, intrinsics, &patch, up_in_camera, half_height, DEFAULT_MAX_PIXELS, column, view.as_mut());
             }
             let sampled = SampledBall { centre: seed.point_in_camera, radius: config.foot_radius_m };
-            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled), view };
+            let out_of_view = (config.validate.out_of_view_max_fraction < f64::INFINITY)
+                .then(|| out_of_view_fraction(&patch, |p| intrinsics.pixel_of(p).is_some()));
+            let foothold = Foothold { up: Some(*up_in_camera), column: Some(column.as_slice()), sampled: Some(sampled), view, out_of_view };
             let validation = validate_foothold(&patch, &validation_points, &foothold, &config.validate);
             outcome.verdict = Verdict::from_validation(&validation);
             outcome.patch_in_camera = Some(patch);

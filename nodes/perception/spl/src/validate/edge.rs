@@ -153,7 +153,7 @@ mod tests {
         let v = validate_foothold(
             &patch,
             &fitted,
-            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None, out_of_view: None },
             &config,
         );
         assert!(v.residual.value < 1e-9 && v.residual.passed, "{v:?}");
@@ -166,7 +166,7 @@ mod tests {
         let v = validate_foothold(
             &away,
             &fitted,
-            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None, out_of_view: None },
             &config,
         );
         assert!(v.edge.unwrap().passed, "{v:?}");
@@ -175,7 +175,7 @@ mod tests {
         assert!(validate_foothold(
             &patch,
             &fitted,
-            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None },
+            &Foothold { up: Some(Vector3::z()), column: Some(&ground), sampled: None, view: None, out_of_view: None },
             &off
         )
         .is_valid());
@@ -192,8 +192,12 @@ mod tests {
         let (offset, _) = disc_offset(&patch, &fold, None, &config);
         // The 98 % quantile of |z| = slope·|x| over the disc, above 2 cm.
         assert!(offset > 0.02 && offset < slope * 0.05, "{offset}");
-        let v =
-            validate_foothold(&patch, &fold, &Foothold { up: Some(Vector3::z()), column: Some(&fold), sampled: None, view: None }, &config);
+        let v = validate_foothold(
+            &patch,
+            &fold,
+            &Foothold { up: Some(Vector3::z()), column: Some(&fold), sampled: None, view: None, out_of_view: None },
+            &config,
+        );
         assert!(!v.edge.unwrap().passed);
         // A gentle 5° fold stays under 5 mm and passes.
         let gentle = terrain(0.1, |x, _| -5f64.to_radians().tan() * x.abs());
@@ -213,10 +217,15 @@ mod tests {
         assert!(disc_offset(&patch, &cloud, None, &config).0 < 1e-9);
         cloud.extend(wall(0.03));
         assert!(
-            !validate_foothold(&patch, &cloud, &Foothold { up: None, column: Some(&cloud), sampled: None, view: None }, &config)
-                .edge
-                .unwrap()
-                .passed
+            !validate_foothold(
+                &patch,
+                &cloud,
+                &Foothold { up: None, column: Some(&cloud), sampled: None, view: None, out_of_view: None },
+                &config
+            )
+            .edge
+            .unwrap()
+            .passed
         );
     }
 
@@ -247,7 +256,7 @@ mod tests {
         let fitted = ball(&stair, &seed, 0.05);
         let fit = NeighbourhoodFit { sensor: ErrorModel::Constant { sigma_m: 0.001 }, ..NeighbourhoodFit::default() };
         let patch = fit_neighbourhood(&fitted, &fitted, &fit).unwrap();
-        let foothold = Foothold { up: Some(Vector3::z()), column: Some(&stair), sampled: None, view: None };
+        let foothold = Foothold { up: Some(Vector3::z()), column: Some(&stair), sampled: None, view: None, out_of_view: None };
         let v = validate_foothold(&patch, &fitted, &foothold, &ValidateConfig::default());
         assert_eq!(patch.surface, SurfaceType::CylindricParaboloid);
         assert!((-13.6..-10.0).contains(&patch.curvatures.y), "{:?}", patch.curvatures);

@@ -82,6 +82,11 @@ pub struct ValidateConfig {
     /// off its plane (the open-rim test, [`visibility`]). Infinite (the default) switches the test
     /// off; [`visibility::SUGGESTED_OPEN_RIM_MAX_FRACTION`] (0.01) switches it on.
     pub open_rim_max_fraction: f64,
+    /// Largest share of the foot disc's area whose image falls outside the camera's image (or behind
+    /// it) when the caller knows the camera ([`Foothold::out_of_view`], [`visibility`]): the rest of
+    /// the foot was not seen, and neither is the terrain that the edge test would find there.
+    /// 0.02 by default (a rim segment about 0.1 r deep, 5 mm of a 5 cm foot); infinite switches it off.
+    pub out_of_view_max_fraction: f64,
     /// Judge coverage only where the patch surface lies inside the ball the points were gathered
     /// from, when the caller gives it ([`Foothold::sampled`], [`coverage`]'s module doc). False is
     /// J eq 16–17 as written over the whole boundary.
@@ -107,6 +112,7 @@ impl Default for ValidateConfig {
             edge_column_height_m: 0.25,
             unseen_max_fraction: f64::INFINITY,
             open_rim_max_fraction: f64::INFINITY,
+            out_of_view_max_fraction: visibility::DEFAULT_OUT_OF_VIEW_MAX_FRACTION,
             coverage_within_sampled_ball: true,
         }
     }
@@ -124,6 +130,7 @@ impl ValidateConfig {
             edge_max_offset_m: f64::INFINITY,
             unseen_max_fraction: f64::INFINITY,
             open_rim_max_fraction: f64::INFINITY,
+            out_of_view_max_fraction: f64::INFINITY,
             ..Self::default()
         }
     }
@@ -140,6 +147,7 @@ impl ValidateConfig {
         positive("edge_column_height_m", self.edge_column_height_m)?;
         positive("unseen_max_fraction", self.unseen_max_fraction)?;
         positive("open_rim_max_fraction", self.open_rim_max_fraction)?;
+        positive("out_of_view_max_fraction", self.out_of_view_max_fraction)?;
         if !(0.0..=1.0).contains(&self.edge_quantile) || self.edge_quantile == 0.0 {
             return Err(format!("validate.edge_quantile must be in (0, 1], got {}", self.edge_quantile));
         }
@@ -163,6 +171,9 @@ pub struct Foothold<'a> {
     pub sampled: Option<SampledBall>,
     /// What the pixels over the foot disc measured (see [`visibility`]); `None`: no visibility test.
     pub view: Option<DiscView>,
+    /// Share of the foot disc's area outside the camera's image ([`visibility::out_of_view_fraction`]);
+    /// `None`: the camera is not known, no out-of-view test.
+    pub out_of_view: Option<f64>,
 }
 
 /// One test's outcome: the measured value against its threshold.
@@ -205,6 +216,9 @@ pub struct Validation {
     /// plane vs its limit (the open-rim test, [`visibility`]).
     #[serde(default)]
     pub open_rim: Option<TestResult>,
+    /// Share of the foot disc's area outside the camera's image vs its limit ([`visibility`]).
+    #[serde(default)]
+    pub out_of_view: Option<TestResult>,
 }
 
 impl Validation {
@@ -217,6 +231,7 @@ impl Validation {
             && self.edge_ok()
             && self.unseen_ok()
             && self.open_rim_ok()
+            && self.in_view_ok()
     }
 
     /// Whether the tilt test passed (or was not run).
@@ -237,6 +252,11 @@ impl Validation {
     /// Whether the open-rim test passed (or was not run).
     pub fn open_rim_ok(&self) -> bool {
         self.open_rim.is_none_or(|t| t.passed)
+    }
+
+    /// Whether the out-of-view test passed (or was not run).
+    pub fn in_view_ok(&self) -> bool {
+        self.out_of_view.is_none_or(|t| t.passed)
     }
 
     /// Whether both curvature bounds hold.
@@ -275,6 +295,13 @@ impl Validation {
         if let Some(t) = self.open_rim.filter(|t| !t.passed) {
             out.push(format!(
                 "open_rim: {:.1} % of the foot disc's pixels see through it or into a hole at an edge > {:.1} %",
+                100.0 * t.value,
+                100.0 * t.threshold
+            ));
+        }
+        if let Some(t) = self.out_of_view.filter(|t| !t.passed) {
+            out.push(format!(
+                "out_of_view: {:.1} % of the foot disc lies outside the image > {:.1} %",
                 100.0 * t.value,
                 100.0 * t.threshold
             ));
@@ -326,6 +353,10 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         .view
         .filter(|_| config.open_rim_max_fraction < f64::INFINITY)
         .map(|view| TestResult::at_most(view.open_fraction(), config.open_rim_max_fraction));
+    let out_of_view = foothold
+        .out_of_view
+        .filter(|_| config.out_of_view_max_fraction < f64::INFINITY)
+        .map(|share| TestResult::at_most(share, config.out_of_view_max_fraction));
     Validation {
         residual,
         coverage,
@@ -335,6 +366,7 @@ pub fn validate_foothold(patch: &Patch, neighbourhood: &[Vector3<f64>], foothold
         edge,
         unseen,
         open_rim,
+        out_of_view,
     }
 }
 
@@ -358,7 +390,7 @@ pub(crate) mod tests {
         let v = validate_foothold(
             &disk(0.1),
             &pts,
-            &Foothold { up: Some(Vector3::z()), column: None, sampled: None, view: None },
+            &Foothold { up: Some(Vector3::z()), column: None, sampled: None, view: None, out_of_view: None },
             &ValidateConfig::default(),
         );
         assert!(v.is_valid(), "{:?}", v.failures());
@@ -379,7 +411,7 @@ pub(crate) mod tests {
         let v = validate_foothold(
             &disk(0.1),
             &pts,
-            &Foothold { up: Some(Vector3::x()), column: None, sampled: None, view: None },
+            &Foothold { up: Some(Vector3::x()), column: None, sampled: None, view: None, out_of_view: None },
             &ValidateConfig::j33(),
         );
         assert!(v.is_valid() && v.edge.is_none() && v.tilt.is_some_and(|t| t.passed && (t.value - 90.0).abs() < 1e-9), "{v:?}");

@@ -66,7 +66,12 @@ mod tests {
         for (deg, pass) in [(config.tilt_max_deg - 1.0, true), (config.tilt_max_deg + 1.0, false)] {
             let patch = tilted(deg);
             let points = patch.sample_points(&mut rng, 2000);
-            let v = validate_foothold(&patch, &points, &Foothold { up: Some(up), column: None, sampled: None, view: None }, &config);
+            let v = validate_foothold(
+                &patch,
+                &points,
+                &Foothold { up: Some(up), column: None, sampled: None, view: None, out_of_view: None },
+                &config,
+            );
             let tilt = v.tilt.unwrap();
             assert_eq!(tilt.passed, pass, "{deg}°: {v:?}");
             assert!((tilt.value - deg).abs() < 1e-9 && tilt.threshold == config.tilt_max_deg);
@@ -85,16 +90,22 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(8);
         let points = wall.sample_points(&mut rng, 2000);
         let config = ValidateConfig::default();
-        let v = validate_foothold(&wall, &points, &Foothold { up: Some(Vector3::z()), column: None, sampled: None, view: None }, &config);
+        let v = validate_foothold(
+            &wall,
+            &points,
+            &Foothold { up: Some(Vector3::z()), column: None, sampled: None, view: None, out_of_view: None },
+            &config,
+        );
         assert!(!v.is_valid() && !v.tilt.unwrap().passed);
         // Without gravity there is no tilt test (J 3.3 as written judges the wall valid).
-        let v = validate_foothold(&wall, &points, &Foothold { up: None, column: None, sampled: None, view: None }, &config);
+        let v =
+            validate_foothold(&wall, &points, &Foothold { up: None, column: None, sampled: None, view: None, out_of_view: None }, &config);
         assert!(v.tilt.is_none() && v.is_valid(), "{v:?}");
         // A NaN gravity fails with the value named.
         let v = validate_foothold(
             &wall,
             &points,
-            &Foothold { up: Some(Vector3::new(f64::NAN, 0.0, 0.0)), column: None, sampled: None, view: None },
+            &Foothold { up: Some(Vector3::new(f64::NAN, 0.0, 0.0)), column: None, sampled: None, view: None, out_of_view: None },
             &config,
         );
         assert!(!v.is_valid() && v.failures().iter().any(|f| f.starts_with("tilt NaN")), "{:?}", v.failures());

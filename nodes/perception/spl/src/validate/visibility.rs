@@ -32,9 +32,48 @@
 //! are such holes too (valid 76 → 71 % at [`SUGGESTED_OPEN_RIM_MAX_FRACTION`]), so it is off by
 //! default.
 
-use nalgebra::Vector3;
+//!
+//! The out-of-view test (on by default) asks the same of the foot disc as a whole: the share of its
+//! area whose image lies outside the camera's image ([`out_of_view_fraction`]). That part of the
+//! foot was not seen, and the terrain the edge test would find in its column was not either: a disc
+//! on a stair tread reaching past the image's side border over the nosing has a drop nobody measured.
+
+use nalgebra::{Vector2, Vector3};
 
 use crate::patch::{Patch, PatchQuery};
+
+/// The default largest share of a foot disc's area outside the image: a rim segment about 0.1·r deep
+/// (5 mm of a 5 cm foot), as [`SUGGESTED_UNSEEN_MAX_FRACTION`].
+pub const DEFAULT_OUT_OF_VIEW_MAX_FRACTION: f64 = 0.02;
+
+/// Samples per side of the grid over the boundary's bounding box that [`out_of_view_fraction`] projects.
+const OUT_OF_VIEW_GRID: usize = 24;
+
+/// Share of the foot disc's area (the patch inside its boundary, in the camera frame) whose image
+/// is not inside the camera's image: the surface sampled on a regular grid over the boundary's
+/// bounding box, each sample inside the boundary projected with `in_image` (false for a point
+/// behind the camera or off the image). 0 for a degenerate disc.
+pub fn out_of_view_fraction(patch_in_camera: &Patch, in_image: impl Fn(&Vector3<f64>) -> bool) -> f64 {
+    let half = patch_in_camera.boundary_half_extents();
+    let (mut inside, mut out) = (0usize, 0usize);
+    for i in 0..OUT_OF_VIEW_GRID {
+        for j in 0..OUT_OF_VIEW_GRID {
+            let cell = |k: usize, h: f64| ((k as f64 + 0.5) / OUT_OF_VIEW_GRID as f64 * 2.0 - 1.0) * h;
+            let uv = Vector2::new(cell(i, half.x), cell(j, half.y));
+            if !patch_in_camera.contains_uv(&uv) {
+                continue;
+            }
+            let Some(point) = patch_in_camera.explicit_world(&uv) else { continue };
+            inside += 1;
+            out += usize::from(!in_image(&point));
+        }
+    }
+    if inside == 0 {
+        0.0
+    } else {
+        out as f64 / inside as f64
+    }
+}
 
 /// A largest share of a foot disc's pixels that may not have measured its surface, for a robot that
 /// switches the test on (see the module doc); the default is off.
@@ -255,7 +294,7 @@ mod tests {
             for d in rays() {
                 view.add(&Vector3::zeros(), &d, (d.x <= hole_from_x).then_some(1.0));
             }
-            let foothold = Foothold { up: None, column: None, sampled: None, view: Some(view) };
+            let foothold = Foothold { up: None, column: None, sampled: None, view: Some(view), out_of_view: None };
             validate_foothold(&patch, &points, &foothold, &config)
         };
         // Without depth beyond x = 4 cm: a segment 1 cm deep, 5.2 % of the disc, unseen.
@@ -290,5 +329,35 @@ mod tests {
         let z = t;
         let x = 0.04 * t;
         assert!((z - (1.0 - 0.5 * 10.0 * x * x)).abs() < 1e-9, "{z}");
+    }
+
+    /// The disc's area outside a pinhole image (f = 500 px, 640 × 480, principal point at the
+    /// centre): none for the disc on the optical axis, about half when its centre sits on the image's
+    /// side border, all of it behind the camera; the test fails past its limit.
+    #[test]
+    fn the_share_of_the_disc_outside_the_image_is_its_area_beyond_the_border() {
+        use crate::validate::{validate_foothold, Foothold, ValidateConfig};
+        let in_image = |p: &Vector3<f64>| {
+            p.z > 0.0
+                && (500.0 * p.x / p.z + 320.0).abs() < 640.0
+                && 500.0 * p.x / p.z + 320.0 >= 0.0
+                && (500.0 * p.y / p.z + 240.0) >= 0.0
+                && 500.0 * p.y / p.z + 240.0 < 480.0
+        };
+        let mut disc = disc_facing_the_camera();
+        assert_eq!(out_of_view_fraction(&disc, in_image), 0.0);
+        // The centre on the right border: u = 500 x / 1 + 320 = 640.
+        disc.center.x = 0.64;
+        let half = out_of_view_fraction(&disc, in_image);
+        assert!((half - 0.5).abs() < 0.06, "{half}");
+        disc.center.z = -1.0;
+        assert_eq!(out_of_view_fraction(&disc, in_image), 1.0);
+        let config = ValidateConfig::default();
+        let foothold = Foothold { out_of_view: Some(half), ..Foothold::default() };
+        let v = validate_foothold(&disc, &[], &foothold, &config);
+        assert!(!v.in_view_ok() && !v.is_valid());
+        assert!(v.failures().iter().any(|f| f.starts_with("out_of_view")), "{:?}", v.failures());
+        let inside = Foothold { out_of_view: Some(0.0), ..Foothold::default() };
+        assert!(validate_foothold(&disc, &[], &inside, &config).in_view_ok());
     }
 }

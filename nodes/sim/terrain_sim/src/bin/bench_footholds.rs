@@ -5,7 +5,8 @@
 //! single-frame mapper (J's defaults as `patch_mapper map --no-dtfp` runs them, gravity from the
 //! camera pose) and every fitted patch is checked against the terrain's exact surface.
 //!
-//! Printed per scene, for J 3.3's tests alone, with the default foothold tests (tilt, edge), with the
+//! Printed per scene, for J 3.3's tests alone, with the default foothold tests (tilt, edge, the disc
+//! in view: `--out-of-view-max`, the default 0.02 unless given), with the
 //! open-rim test switched on too (`--open-rim-max`, 0.01 unless given) and with the visibility test
 //! on top (`--unseen-max`, 0.02 unless given): fitted patches, valid
 //! share, mean residual of the valid ones, the share of valid patches lying across an edge
@@ -15,7 +16,7 @@
 //! under their centre, which on the scanned staircase's rough flanks happens under discs the terrain
 //! follows within 2 cm everywhere).
 //!
-//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12] [--detail] [--edge-quantile Q] [--open-rim-max F] [--unseen-max F]`
+//! `cargo run --release -p terrain_sim --bin bench_footholds -- [--frames N] [--seeds 11,12] [--detail] [--edge-quantile Q] [--open-rim-max F] [--unseen-max F] [--out-of-view-max F]`
 
 use anyhow::{Context, Result};
 use nalgebra::{Unit, Vector3};
@@ -173,6 +174,7 @@ fn main() -> Result<()> {
     j33.validate.tilt_max_deg = f64::INFINITY;
     j33.validate.edge_max_offset_m = f64::INFINITY;
     j33.validate.unseen_max_fraction = f64::INFINITY;
+    j33.validate.out_of_view_max_fraction = f64::INFINITY;
     footholds.validate = ValidateConfig::default();
     footholds.validate.unseen_max_fraction = SUGGESTED_UNSEEN_MAX_FRACTION;
     // --edge-quantile Q, --unseen-max F: the edge and visibility tests' thresholds (default ValidateConfig's).
@@ -181,6 +183,10 @@ fn main() -> Result<()> {
     }
     if let Some(f) = flag("--unseen-max") {
         footholds.validate.unseen_max_fraction = f.parse().context("--unseen-max F")?;
+    }
+    // --out-of-view-max F: the out-of-view test's threshold (inf switches it off).
+    if let Some(f) = flag("--out-of-view-max") {
+        footholds.validate.out_of_view_max_fraction = f.parse().context("--out-of-view-max F")?;
     }
     // --open-rim-max F: the open-rim test's threshold (0.01 unless given).
     footholds.validate.open_rim_max_fraction = SUGGESTED_OPEN_RIM_MAX_FRACTION;

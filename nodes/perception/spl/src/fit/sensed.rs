@@ -75,6 +75,7 @@ pub fn covariances_on_surface(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::patch::tests::disc_facing_the_camera;
     use crate::patch::{BoundaryType, SurfaceType};
     use nalgebra::Vector2;
 
@@ -93,15 +94,7 @@ mod tests {
 
     #[test]
     fn a_ray_meets_a_facing_plane_at_its_depth() {
-        let plane = Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.05],
-            Vector2::zeros(),
-            Vector3::new(std::f64::consts::PI, 0.0, 0.0),
-            Vector3::new(0.0, 0.0, 1.0),
-        )
-        .unwrap();
+        let plane = disc_facing_the_camera();
         let ray = Vector3::new(0.1, -0.05, 1.0).normalize();
         let t = range_on_surface(&plane, &ray, 1.01).unwrap();
         assert!(((ray * t).z - 1.0).abs() < 1e-12, "{t}");
@@ -121,15 +114,7 @@ mod tests {
 
     #[test]
     fn covariances_are_those_of_the_points_on_the_surface() {
-        let plane = Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.05],
-            Vector2::zeros(),
-            Vector3::new(std::f64::consts::PI, 0.0, 0.0),
-            Vector3::new(0.0, 0.0, 1.0),
-        )
-        .unwrap();
+        let plane = disc_facing_the_camera();
         let model = ErrorModel::default();
         let near = Vector3::new(0.02, 0.01, 0.995);
         let covs = covariances_on_surface(&plane, &[near], &model).unwrap();

@@ -207,6 +207,20 @@ pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
+    /// A plane disc of radius 5 cm, 1 m in front of a camera on its optical axis (+z), facing the
+    /// camera (a rotation by π about x turns local +z into camera −z).
+    pub(crate) fn disc_facing_the_camera() -> Patch {
+        Patch::new(
+            SurfaceType::Plane,
+            BoundaryType::Circle,
+            vec![0.05],
+            Vector2::zeros(),
+            Vector3::new(std::f64::consts::PI, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, 1.0),
+        )
+        .unwrap()
+    }
+
     pub(crate) fn all_types() -> Vec<(SurfaceType, BoundaryType)> {
         PATCH_TYPES.to_vec()
     }

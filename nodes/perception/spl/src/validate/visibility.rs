@@ -194,19 +194,7 @@ mod tests {
     use crate::patch::{BoundaryType, SurfaceType};
     use nalgebra::Vector2;
 
-    /// A plane disc of radius 5 cm, 1 m in front of a camera on its optical axis (+z), facing the camera.
-    fn disc_facing_the_camera() -> Patch {
-        // Rotation π about x turns local +z into camera −z: the normal faces the camera.
-        Patch::new(
-            SurfaceType::Plane,
-            BoundaryType::Circle,
-            vec![0.05],
-            Vector2::zeros(),
-            Vector3::new(std::f64::consts::PI, 0.0, 0.0),
-            Vector3::new(0.0, 0.0, 1.0),
-        )
-        .unwrap()
-    }
+    use crate::patch::tests::disc_facing_the_camera;
 
     /// Rays of a 1 mm grid of image points over ±10 cm at z = 1 (the pixel rays of a pinhole camera).
     fn rays() -> impl Iterator<Item = Vector3<f64>> {

@@ -60,7 +60,7 @@ pub enum TrackingError {
 #[serde(deny_unknown_fields, default)]
 pub struct IcpConfig {
     /// Gauss–Newton iterations per pyramid level, coarse (1/4 resolution) to fine (full resolution);
-    /// [10, 3, 0] gives the same TUM fr1_xyz ATE (3.0 mm) as [8, 6, 3] at a third of the cost.
+    /// [10, 3, 0] gives the same TUM fr1_xyz ATE as [8, 6, 3] at a third of the cost.
     pub iterations: [usize; 3],
     /// Correspondence gate per level (m), coarse to fine.
     pub max_correspondence_m: [f64; 3],

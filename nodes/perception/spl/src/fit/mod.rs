@@ -411,11 +411,8 @@ mod tests {
                 Some(-0.5 * fit.implicit_local(&fit.to_local(&truth.center)) * kappa.signum())
             })
             .collect();
-        let n = offsets.len() as f64;
-        let mean = offsets.iter().sum::<f64>() / n;
-        let sd = (offsets.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (n - 1.0)).sqrt();
-        assert!(n >= 290.0);
-        mean / sd
+        assert!(offsets.len() >= 290);
+        super::simulate::mean_over_scatter(&offsets)
     }
 
     #[test]

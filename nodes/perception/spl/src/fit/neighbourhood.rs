@@ -140,7 +140,7 @@ mod tests {
     /// it); evaluated on the first fit's surface they do not.
     #[test]
     fn covariances_on_the_surface_remove_the_pull_towards_the_camera() {
-        use crate::fit::simulate::sample_sensor;
+        use crate::fit::simulate::{mean_over_scatter, sample_sensor};
         use crate::fit::FitConfig;
         use crate::patch::tests::disc_facing_the_camera;
         use rand::SeedableRng;
@@ -157,10 +157,7 @@ mod tests {
                     Some(-0.5 * fit.implicit_local(&fit.to_local(&truth.center)))
                 })
                 .collect();
-            let n = offsets.len() as f64;
-            let mean = offsets.iter().sum::<f64>() / n;
-            let sd = (offsets.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (n - 1.0)).sqrt();
-            mean / sd
+            mean_over_scatter(&offsets)
         };
         let (measured, on_surface) = (offset_over_scatter(false), offset_over_scatter(true));
         eprintln!("mean offset / scatter: covariances at the measured points {measured:+.3}, on the surface {on_surface:+.3}");

@@ -37,7 +37,7 @@ fn range_on_surface(patch: &Patch, ray: &Vector3<f64>, range: f64) -> Option<f64
     let mut t = range;
     for _ in 0..8 {
         let q = a * t - b;
-        let f = k.x * q.x * q.x + k.y * q.y * q.y + k.z * q.z * q.z - 2.0 * q.z;
+        let f = patch.implicit_local(&q);
         let df = 2.0 * (k.x * q.x * a.x + k.y * q.y * a.y + k.z * q.z * a.z - a.z);
         if df == 0.0 || !df.is_finite() {
             return None;

@@ -200,6 +200,15 @@ pub fn boundary_estimand<R: Rng + ?Sized>(rng: &mut R, patch: &Patch, containmen
     out.d.iter().take(out.nd).copied().collect()
 }
 
+/// The mean of `values` over their sample standard deviation (a bias in units of the scatter); NaN
+/// for fewer than two values.
+pub fn mean_over_scatter(values: &[f64]) -> f64 {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let sd = (values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (n - 1.0)).sqrt();
+    mean / sd
+}
+
 /// χ²_k 95% quantile (Wilson–Hilferty; within 0.1% for k ≥ 2).
 pub fn chi2_95(k: usize) -> f64 {
     let k = k as f64;

@@ -86,6 +86,7 @@ pub(crate) fn point_terms(
 /// offset's standard deviation for 150 points, and a bias that fusion does not average out).
 /// `F̃ = F h`, `h = 2s / (1 + s)`, is the distance over its standard deviation exactly. For the
 /// paraboloid forms (`κz = 0`) `h = 1`.
+#[derive(Clone, Copy)]
 struct DistanceScale {
     /// `h = 2s / (1 + s)`.
     h: f64,
@@ -199,7 +200,6 @@ impl Pass<'_> {
             block_terms(&frame, chunk, self.min_variance, |j, lane| {
                 let ([qx, qy, qz], [gx, gy, gz], inv_sigma) = (lane.q, lane.g, lane.inv_sigma);
                 fs[j] = lane.big_f;
-                let scale = DistanceScale::new(kz, lane.f);
                 if self.with_sampson {
                     let grad_norm = (gx * gx + gy * gy + gz * gz).sqrt();
                     ds[j] = if grad_norm > 0.0 { lane.f.abs() / grad_norm } else { lane.f.abs() };
@@ -228,7 +228,7 @@ impl Pass<'_> {
                 } else {
                     df * inv_sigma
                 };
-                gs[j] = project(&scale.gradient(grad, &df, kz, lane.f, lane.raw_f));
+                gs[j] = project(&lane.scale.gradient(grad, &df, kz, lane.f, lane.raw_f));
             });
             if len == BLOCK {
                 sums.add_block(&fs, &gs, &ds);
@@ -339,6 +339,8 @@ struct Lane {
     big_f: f64,
     /// `f / σ` unscaled.
     raw_f: f64,
+    /// The scale to the exact distance (`F = raw_f · h`) and its derivative.
+    scale: DistanceScale,
     /// `f` (eq 37).
     f: f64,
     inv_sigma: f64,
@@ -391,8 +393,11 @@ fn block_terms(fr: &Frame, chunk: &Chunk, min_variance: f64, mut sink: impl FnMu
         let sy = r0[1] * swx + r1[1] * swy + r2[1] * swz;
         let sz = r0[2] * swx + r1[2] * swy + r2[2] * swz;
         let raw_f = f * inv_sigma;
-        let big_f = if kz == 0.0 { raw_f } else { raw_f * DistanceScale::new(kz, f).h };
-        sink(j, &Lane { big_f, raw_f, f, inv_sigma, q: [qx, qy, qz], g: [gx, gy, gz], s: [sx, sy, sz], var, clamped });
+        let scale = DistanceScale::new(kz, f);
+        sink(
+            j,
+            &Lane { big_f: raw_f * scale.h, raw_f, scale, f, inv_sigma, q: [qx, qy, qz], g: [gx, gy, gz], s: [sx, sy, sz], var, clamped },
+        );
     }
 }
 

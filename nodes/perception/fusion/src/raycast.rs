@@ -176,15 +176,17 @@ pub fn raycast_guided(
     let rotation = pose.rotation.to_rotation_matrix();
     let origin = pose.translation.vector;
     let (fx, fy, cx, cy) = (intrinsics.fx as f32, intrinsics.fy as f32, intrinsics.cx as f32, intrinsics.cy as f32);
-    type Row = (Vec<Point3<f32>>, Vec<Vector3<f32>>, Vec<f32>);
-    let rows: Vec<Row> = (0..height)
-        .into_par_iter()
-        .map(|v| {
-            let mut points = vec![Point3::new(f32::NAN, f32::NAN, f32::NAN); width];
-            let mut normals = vec![Vector3::repeat(f32::NAN); width];
-            let mut depths = vec![f32::NAN; width];
+    let mut points_in_volume = vec![Point3::new(f32::NAN, f32::NAN, f32::NAN); width * height];
+    let mut normals_in_volume = vec![Vector3::repeat(f32::NAN); width * height];
+    let mut depth_m = vec![f32::NAN; width * height];
+    points_in_volume
+        .par_chunks_mut(width.max(1))
+        .zip(normals_in_volume.par_chunks_mut(width.max(1)))
+        .zip(depth_m.par_chunks_mut(width.max(1)))
+        .enumerate()
+        .for_each(|(v, ((points, normals), depths))| {
             let Some(bounds) = bounds else {
-                return (points, normals, depths);
+                return;
             };
             let start_ray = |u: usize| {
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
@@ -232,17 +234,7 @@ pub fn raycast_guided(
                     break;
                 }
             }
-            (points, normals, depths)
-        })
-        .collect();
-    let mut points_in_volume = Vec::with_capacity(width * height);
-    let mut normals_in_volume = Vec::with_capacity(width * height);
-    let mut depth_m = Vec::with_capacity(width * height);
-    for (p, n, d) in rows {
-        points_in_volume.extend(p);
-        normals_in_volume.extend(n);
-        depth_m.extend(d);
-    }
+        });
     let depth = DepthImage { width, height, depth_m };
     ModelRaycast { intrinsics: *intrinsics, volume_from_camera: *volume_from_camera, points_in_volume, normals_in_volume, depth }
 }

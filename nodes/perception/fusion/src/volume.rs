@@ -267,11 +267,12 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
     targets.dedup();
     let old_from_new = pose.inverse();
     let voxel = volume.voxel_size();
+    let fresh = volume.empty_blocks(targets.len());
     let old = &*volume;
-    let blocks: Vec<([i32; 3], Box<Block>)> = targets
+    let filled: Vec<([i32; 3], Box<Block>, bool)> = targets
         .par_iter()
-        .filter_map(|c| {
-            let mut block = Block::empty();
+        .zip(fresh)
+        .map(|(c, mut block)| {
             let mut any = false;
             for index in 0..BLOCK_VOXELS {
                 let (x, y, z) = (index % BLOCK_EDGE, (index / BLOCK_EDGE) % BLOCK_EDGE, index / (BLOCK_EDGE * BLOCK_EDGE));
@@ -296,10 +297,20 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
                     any = true;
                 }
             }
-            any.then_some((*c, block))
+            (*c, block, any)
         })
         .collect();
+    let mut blocks = Vec::with_capacity(filled.len());
+    let mut unused = Vec::new();
+    for (c, block, any) in filled {
+        if any {
+            blocks.push((c, block));
+        } else {
+            unused.push(block);
+        }
+    }
     volume.rebuild(blocks);
+    volume.give_back(unused);
 }
 
 #[cfg(test)]

@@ -45,7 +45,8 @@ impl TsdfVolume {
                 let n = self.blocks_per_edge;
                 let coords = [(slot_index % n) as u16, ((slot_index / n) % n) as u16, (slot_index / (n * n)) as u16];
                 touched.push(self.blocks.len() as u32);
-                self.allocate(slot_index, coords, Block::empty());
+                let block = self.empty_block();
+                self.allocate(slot_index, coords, block);
             } else {
                 touched.push(slot);
             }
@@ -253,6 +254,37 @@ mod tests {
         let surface = volume.surface_voxels(0.3);
         assert!(!surface.is_empty());
         assert!(surface.iter().all(|p| (p.y - 0.9).abs() < 0.4 * config.truncation_m()));
+    }
+
+    #[test]
+    fn a_cleared_volume_integrates_into_its_old_blocks_as_into_new_ones() {
+        let config = TsdfConfig { voxel_size_m: 0.02, size_m: 1.28, ..TsdfConfig::default() };
+        let intrinsics = Intrinsics::primesense_default().scaled(0.25);
+        let pose = looking_down_pose(Vector3::new(0.64, 0.2, 0.64));
+        let floor = render_plane(&intrinsics, &pose, Vector3::y(), 0.9);
+        let higher = render_plane(&intrinsics, &pose, Vector3::y(), 0.7);
+        let mut fresh = TsdfVolume::new(config).unwrap();
+        fresh.integrate(&higher, &intrinsics, &pose).unwrap();
+        let mut reused = TsdfVolume::new(config).unwrap();
+        reused.integrate(&floor, &intrinsics, &pose).unwrap();
+        let peak = reused.block_count();
+        reused.clear();
+        assert_eq!((reused.block_count(), reused.spare_count()), (0, peak), "the blocks are kept");
+        let stats = reused.integrate(&higher, &intrinsics, &pose).unwrap();
+        assert_eq!(stats.blocks_allocated, fresh.block_count());
+        assert_eq!(
+            reused.block_count() + reused.spare_count(),
+            peak.max(fresh.block_count()),
+            "no block allocated while spare ones were left"
+        );
+        // Same content, voxel for voxel: nothing of the floor is left in the reused blocks.
+        let content = |v: &TsdfVolume| {
+            let mut blocks: Vec<([u16; 3], Vec<(u32, u32)>)> =
+                v.blocks().map(|(c, b)| (c, b.voxels.iter().map(|x| (x.tsdf.to_bits(), x.weight.to_bits())).collect())).collect();
+            blocks.sort_by_key(|(c, _)| *c);
+            blocks
+        };
+        assert_eq!(content(&reused), content(&fresh));
     }
 
     #[test]

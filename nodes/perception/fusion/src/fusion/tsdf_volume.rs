@@ -7,7 +7,7 @@ use std::sync::atomic::AtomicU64;
 
 use nalgebra::{Point3, Vector3};
 
-use super::block::{local_index, Block, BLOCK_EDGE, SUPERBLOCK_EDGE};
+use super::block::{local_index, Block, Voxel, BLOCK_EDGE, SUPERBLOCK_EDGE};
 use super::{floor_i, FusionError, TsdfConfig};
 
 /// Slot of no block in the dense slot grid.
@@ -27,6 +27,12 @@ pub struct TsdfVolume {
     /// Dense slot grid: block (bx, by, bz) → pool index or `NONE`.
     pub(super) slots: Vec<u32>,
     pub(super) blocks: Vec<Box<Block>>,
+    /// Blocks given up by a clear, a reset or a remap, kept for the next allocations: a node that
+    /// resets its map every few seconds allocates its blocks once instead of handing thousands of
+    /// 4 kB blocks back and forth with the allocator among its transient per-frame buffers (the
+    /// freed blocks' pages would stay pinned by whatever small allocation lands beside them).
+    /// Blocks in use plus spare never exceed the most blocks the volume held at once.
+    spare: Vec<Box<Block>>,
     /// Block coordinates of every pooled block.
     pub(super) coords: Vec<[u16; 3]>,
     /// Allocated blocks per superblock (SUPERBLOCK_EDGE³ blocks), for empty-space leaping.
@@ -50,6 +56,7 @@ impl TsdfVolume {
             blocks_per_edge,
             slots: vec![NONE; blocks_per_edge * blocks_per_edge * blocks_per_edge],
             blocks: Vec::new(),
+            spare: Vec::new(),
             coords: Vec::new(),
             occupancy: vec![0; superblocks_per_edge * superblocks_per_edge * superblocks_per_edge],
             superblocks_per_edge,
@@ -91,14 +98,40 @@ impl TsdfVolume {
         self.blocks.len()
     }
 
-    /// Drops every block (tracking-loss reset, J 5.2).
+    /// Number of spare blocks (given up, kept for reuse).
+    pub fn spare_count(&self) -> usize {
+        self.spare.len()
+    }
+
+    /// Drops every block (tracking-loss reset, J 5.2); their memory is kept for reuse.
     pub fn clear(&mut self) {
         self.slots.fill(NONE);
-        self.blocks.clear();
+        self.spare.append(&mut self.blocks);
         self.coords.clear();
         self.occupancy.fill(0);
         self.bounds_min = [i32::MAX; 3];
         self.bounds_max = [i32::MIN; 3];
+    }
+
+    /// A block of never-observed voxels: a spare one if there is one, else a new one.
+    pub(super) fn empty_block(&mut self) -> Box<Block> {
+        match self.spare.pop() {
+            Some(mut block) => {
+                block.voxels.fill(Voxel::EMPTY);
+                block
+            }
+            None => Block::empty(),
+        }
+    }
+
+    /// `n` blocks of never-observed voxels (spare ones first), for filling in parallel.
+    pub(crate) fn empty_blocks(&mut self, n: usize) -> Vec<Box<Block>> {
+        (0..n).map(|_| self.empty_block()).collect()
+    }
+
+    /// Keeps `blocks` (no longer in the volume) for reuse.
+    pub(crate) fn give_back(&mut self, blocks: impl IntoIterator<Item = Box<Block>>) {
+        self.spare.extend(blocks);
     }
 
     /// Pools a new block at block coordinates `c` for slot `slot_index` (caller checked it is free).
@@ -258,14 +291,15 @@ impl TsdfVolume {
         self.coords.iter().copied().zip(self.blocks.iter().map(|b| &**b))
     }
 
-    /// Replaces the content with the given blocks (coordinates outside the cube are dropped).
+    /// Replaces the content with the given blocks (those outside the cube, or at a taken slot, are
+    /// kept as spare).
     pub(crate) fn rebuild(&mut self, blocks: Vec<([i32; 3], Box<Block>)>) {
         self.clear();
         for (c, block) in blocks {
-            let Some(slot_index) = self.slot_index(c[0], c[1], c[2]) else { continue };
-            if self.slots.get(slot_index) != Some(&NONE) {
+            let Some(slot_index) = self.slot_index(c[0], c[1], c[2]).filter(|&s| self.slots.get(s) == Some(&NONE)) else {
+                self.spare.push(block);
                 continue;
-            }
+            };
             self.allocate(slot_index, [c[0] as u16, c[1] as u16, c[2] as u16], block);
         }
     }

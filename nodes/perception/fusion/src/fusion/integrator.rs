@@ -278,8 +278,9 @@ mod tests {
             "no block allocated while spare ones were left"
         );
         // Same content, voxel for voxel: nothing of the floor is left in the reused blocks.
+        type Voxels = Vec<(u32, u32)>;
         let content = |v: &TsdfVolume| {
-            let mut blocks: Vec<([u16; 3], Vec<(u32, u32)>)> =
+            let mut blocks: Vec<([u16; 3], Voxels)> =
                 v.blocks().map(|(c, b)| (c, b.voxels.iter().map(|x| (x.tsdf.to_bits(), x.weight.to_bits())).collect())).collect();
             blocks.sort_by_key(|(c, _)| *c);
             blocks

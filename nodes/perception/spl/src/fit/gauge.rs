@@ -120,4 +120,25 @@ mod tests {
         }
         assert!(round_point_towards(0.0, &Vector3::zeros()).is_none());
     }
+
+    /// The moments' picture of the sphere's gauge (what Σ propagates the centroid's sampling noise
+    /// through) moves the apex and its normal as the gauge itself does: a sideways centroid shift
+    /// `x̄` at height `z̄` inside the surface moves the apex by `x̄ / (1 − κ z̄)` and tilts it by κ
+    /// times that, not by `x̄` and `κ x̄` (20 % short for κ z̄ = 0.2, the variance 36 % short).
+    #[test]
+    fn the_moments_move_a_sphere_apex_as_the_gauge_does() {
+        for (kappa, height) in [(10.0, 0.02), (-8.0, -0.02), (10.0, 0.0)] {
+            let shift = 1e-5;
+            let (apex, normal) = round_point_towards(kappa, &Vector3::new(shift, 0.0, height)).unwrap();
+            let tilt = (-normal.x).atan2(normal.z) * kappa.signum();
+            let m = boundary::Moments::from_column_slice(&[shift, 0.0, 1e-4, 1e-4, 0.0]);
+            let moved = boundary::from_moments(SurfaceType::Sphere, BoundaryType::Circle, &m, kappa, 1.96, 3.0, height);
+            let follow = 1.0 / (1.0 - kappa * height);
+            assert!((apex.x / shift - follow).abs() < 1e-3 * follow, "κ {kappa}: apex moved {} of the shift", apex.x / shift);
+            assert!((moved.local[3] - apex.x).abs() < 1e-3 * apex.x.abs(), "κ {kappa}: {} vs {}", moved.local[3], apex.x);
+            // The tilt about y, −κ x̄ f, as large as the gauge's normal turns.
+            assert!((moved.local[1] + kappa * shift * follow).abs() < 1e-9);
+            assert!((tilt.abs() - (kappa * shift * follow).abs()).abs() < 1e-3 * (kappa * shift * follow).abs(), "κ {kappa}: tilt {tilt}");
+        }
+    }
 }

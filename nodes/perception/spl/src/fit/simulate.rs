@@ -196,7 +196,8 @@ pub fn boundary_estimand<R: Rng + ?Sized>(rng: &mut R, patch: &Patch, containmen
     let lambda = std::f64::consts::SQRT_2 * boundary::erf_inv(gamma);
     let ln_term = -(1.0 - gamma).ln();
     let kappa = patch.curvatures.y;
-    let out = boundary::from_moments(patch.surface, patch.boundary, &m, kappa, lambda, ln_term);
+    // The extents do not depend on the centroid's height.
+    let out = boundary::from_moments(patch.surface, patch.boundary, &m, kappa, lambda, ln_term, 0.0);
     out.d.iter().take(out.nd).copied().collect()
 }
 

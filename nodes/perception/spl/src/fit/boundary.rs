@@ -24,7 +24,7 @@ pub(crate) struct MomentStats {
     /// `∂m/∂(κ3, δ, δc)`: how the moments move with a local increment of the frame (eq 16 with
     /// `q_l' = q_l + [q_l]× δ − δc`).
     pub frame_jacobian: SMatrix<f64, 5, 9>,
-    /// Local height `z̄` of the data centroid (see [`from_moments`]).
+    /// Local height `z̄` of the data centroid (see [`MomentMap`]).
     pub centroid_height: f64,
 }
 
@@ -138,26 +138,30 @@ pub struct FromMoments {
     pub local: [f64; 6],
 }
 
-/// Boundary parameters and gauge increments as functions of the moments (IROS steps 5–9).
-/// `kappa` is the curvature of spheres/cylinders (for the rotation that follows the apex),
-/// `lambda = √2 erf⁻¹(Γ)` (step 4), `ln_term = −ln(1 − Γ)` (eq 30), `centroid_height` the local
-/// height `z̄` of the data's 3D centroid.
+/// What turns the moments into boundary parameters and gauge increments (IROS steps 4–9).
 ///
 /// The apex of spheres and cylinders is where the ray from the centre (axis) through the centroid
 /// meets the surface ([`super::gauge`]). The centroid lies `z̄ ≈ κ⟨ρ²⟩/2` inside the surface, so a
 /// sideways shift `x̄` of it moves the apex by `x̄ / (1 − κ z̄)` along the surface and tilts it by
 /// `κ x̄ / (1 − κ z̄)`: for a cap of κr = 0.55 the sampling noise of the centroid moves the apex
 /// 8 % farther (its variance 17 %) than the tangent-plane picture `x̄`, `κ x̄` says.
-#[allow(clippy::too_many_arguments)]
-pub fn from_moments(
-    surface: SurfaceType,
-    boundary: BoundaryType,
-    m: &Moments,
-    kappa: f64,
-    lambda: f64,
-    ln_term: f64,
-    centroid_height: f64,
-) -> FromMoments {
+#[derive(Debug, Clone, Copy)]
+pub struct MomentMap {
+    pub surface: SurfaceType,
+    pub boundary: BoundaryType,
+    /// Curvature of spheres/cylinders (for the rotation that follows the apex).
+    pub kappa: f64,
+    /// `λ = √2 erf⁻¹(Γ)` (step 4).
+    pub lambda: f64,
+    /// `−ln(1 − Γ)` (eq 30).
+    pub ln_term: f64,
+    /// Local height `z̄` of the data's 3D centroid.
+    pub centroid_height: f64,
+}
+
+/// Boundary parameters and gauge increments as functions of the moments (IROS steps 5–9).
+pub fn from_moments(map: &MomentMap, m: &Moments) -> FromMoments {
+    let MomentMap { surface, boundary, kappa, lambda, ln_term, centroid_height } = *map;
     let (xm, ym, alpha, phi, cxy) = (m[0], m[1], m[2], m[3], m[4]);
     // Apex shift per unit of sideways centroid shift on spheres and cylinders (see above); a
     // centroid near the centre (a half sphere) would make it unbounded: capped at 10.
@@ -236,15 +240,7 @@ fn round_radius(lambda: f64, vx: f64, vy: f64) -> f64 {
 }
 
 /// `∂(d, local)/∂m` by central differences (the maps are smooth closed forms; 10 evaluations).
-pub(crate) fn from_moments_jacobian(
-    surface: SurfaceType,
-    boundary: BoundaryType,
-    m: &Moments,
-    kappa: f64,
-    lambda: f64,
-    ln_term: f64,
-    centroid_height: f64,
-) -> SMatrix<f64, 11, 5> {
+pub(crate) fn from_moments_jacobian(map: &MomentMap, m: &Moments) -> SMatrix<f64, 11, 5> {
     let scale = (m[2] + m[3]).abs().sqrt().max(1e-6);
     let mut jac = SMatrix::<f64, 11, 5>::zeros();
     for j in 0..5 {
@@ -253,8 +249,8 @@ pub(crate) fn from_moments_jacobian(
         let mut mm = *m;
         mp[j] += h;
         mm[j] -= h;
-        let p = from_moments(surface, boundary, &mp, kappa, lambda, ln_term, centroid_height);
-        let q = from_moments(surface, boundary, &mm, kappa, lambda, ln_term, centroid_height);
+        let p = from_moments(map, &mp);
+        let q = from_moments(map, &mm);
         for i in 0..5 {
             jac[(i, j)] = (p.d[i] - q.d[i]) / (2.0 * h);
         }
@@ -375,7 +371,15 @@ mod tests {
                     })
                     .collect();
                 let (m, _) = moment_values(&local);
-                from_moments(SurfaceType::Sphere, BoundaryType::Circle, &m, 0.0, lambda, 0.0, 0.0).d[0]
+                let map = MomentMap {
+                    surface: SurfaceType::Sphere,
+                    boundary: BoundaryType::Circle,
+                    kappa: 0.0,
+                    lambda,
+                    ln_term: 0.0,
+                    centroid_height: 0.0,
+                };
+                from_moments(&map, &m).d[0]
             })
             .collect();
         let mean = estimates.iter().sum::<f64>() / estimates.len() as f64;
@@ -407,12 +411,20 @@ mod tests {
         let cxy = s * c * (va - vb);
         let m = Moments::from_column_slice(&[0.01, -0.02, alpha, phi, cxy]);
         let ln_term = -(1.0f64 - 0.95).ln();
-        let out = from_moments(SurfaceType::Plane, BoundaryType::Ellipse, &m, 0.0, 1.96, ln_term, 0.0);
+        let map = MomentMap {
+            surface: SurfaceType::Plane,
+            boundary: BoundaryType::Ellipse,
+            kappa: 0.0,
+            lambda: 1.96,
+            ln_term,
+            centroid_height: 0.0,
+        };
+        let out = from_moments(&map, &m);
         assert!((out.local[2] - th).abs() < 1e-12);
         assert!((out.d[0] - (2.0 * ln_term * va).sqrt()).abs() < 1e-12);
         assert!((out.d[1] - (2.0 * ln_term * vb).sqrt()).abs() < 1e-12);
         assert_eq!((out.local[3], out.local[4]), (0.01, -0.02));
-        let jac = from_moments_jacobian(SurfaceType::Plane, BoundaryType::Ellipse, &m, 0.0, 1.96, ln_term, 0.0);
+        let jac = from_moments_jacobian(&map, &m);
         assert!((jac[(8, 0)] - 1.0).abs() < 1e-6 && (jac[(9, 1)] - 1.0).abs() < 1e-6);
     }
 }

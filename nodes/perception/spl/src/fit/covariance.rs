@@ -134,14 +134,16 @@ pub(super) fn finish(
     // Steps 5–9: moments in the surface frame, move to the final frame, moments again there.
     let local = boundary::to_local(boundary_points, &state.rot, &state.c);
     let (m0, mean_local) = boundary::moment_values(&local);
-    let first = boundary::from_moments(surface, boundary, &m0, kappa, lambda, ln_term, mean_local.z);
+    let map = boundary::MomentMap { surface, boundary, kappa, lambda, ln_term, centroid_height: mean_local.z };
+    let first = boundary::from_moments(&map, &m0);
     let gauged = apply_gauge(surface, boundary, &state, &m0, &mean_local, first.local[2])?;
     // Paraboloids keep their frame (no gauge freedom): the points are in it already.
     let local = if gauged == state { local } else { boundary::to_local(boundary_points, &gauged.rot, &gauged.c) };
     let state = gauged;
     let stats = boundary::moments(&local);
     let m = stats.m;
-    let from_m = boundary::from_moments(surface, boundary, &m, kappa, lambda, ln_term, stats.centroid_height);
+    let map = boundary::MomentMap { centroid_height: stats.centroid_height, ..map };
+    let from_m = boundary::from_moments(&map, &m);
     let mut d: Vec<f64> = from_m.d.iter().take(from_m.nd).copied().collect();
     // Table I: |κ| d ≤ 1 for spheres (d_c) and cylinders (d_y).
     match surface {
@@ -175,7 +177,7 @@ pub(super) fn finish(
         (Some(i), Some(j)) => cov_free[(i, j)],
         _ => 0.0,
     });
-    let jm = boundary::from_moments_jacobian(surface, boundary, &m, kappa, lambda, ln_term, stats.centroid_height);
+    let jm = boundary::from_moments_jacobian(&map, &m);
     let mut g = SMatrix::<f64, 14, 5>::zeros();
     for j in 0..5 {
         for i in 0..5 {

@@ -132,7 +132,15 @@ mod tests {
             let (apex, normal) = round_point_towards(kappa, &Vector3::new(shift, 0.0, height)).unwrap();
             let tilt = (-normal.x).atan2(normal.z) * kappa.signum();
             let m = boundary::Moments::from_column_slice(&[shift, 0.0, 1e-4, 1e-4, 0.0]);
-            let moved = boundary::from_moments(SurfaceType::Sphere, BoundaryType::Circle, &m, kappa, 1.96, 3.0, height);
+            let map = boundary::MomentMap {
+                surface: SurfaceType::Sphere,
+                boundary: BoundaryType::Circle,
+                kappa,
+                lambda: 1.96,
+                ln_term: 3.0,
+                centroid_height: height,
+            };
+            let moved = boundary::from_moments(&map, &m);
             let follow = 1.0 / (1.0 - kappa * height);
             assert!((apex.x / shift - follow).abs() < 1e-3 * follow, "κ {kappa}: apex moved {} of the shift", apex.x / shift);
             assert!((moved.local[3] - apex.x).abs() < 1e-3 * apex.x.abs(), "κ {kappa}: {} vs {}", moved.local[3], apex.x);

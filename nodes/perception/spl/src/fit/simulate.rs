@@ -197,7 +197,8 @@ pub fn boundary_estimand<R: Rng + ?Sized>(rng: &mut R, patch: &Patch, containmen
     let ln_term = -(1.0 - gamma).ln();
     let kappa = patch.curvatures.y;
     // The extents do not depend on the centroid's height.
-    let out = boundary::from_moments(patch.surface, patch.boundary, &m, kappa, lambda, ln_term, 0.0);
+    let map = boundary::MomentMap { surface: patch.surface, boundary: patch.boundary, kappa, lambda, ln_term, centroid_height: 0.0 };
+    let out = boundary::from_moments(&map, &m);
     out.d.iter().take(out.nd).copied().collect()
 }
 

@@ -31,7 +31,8 @@ pub struct TsdfVolume {
     /// resets its map every few seconds allocates its blocks once instead of handing thousands of
     /// 4 kB blocks back and forth with the allocator among its transient per-frame buffers (the
     /// freed blocks' pages would stay pinned by whatever small allocation lands beside them).
-    /// Blocks in use plus spare never exceed the most blocks the volume held at once.
+    /// Blocks in use plus spare stay at the most the volume ever needed at once (a rotation remap
+    /// needs the old and the resampled blocks together).
     spare: Vec<Box<Block>>,
     /// Block coordinates of every pooled block.
     pub(super) coords: Vec<[u16; 3]>,

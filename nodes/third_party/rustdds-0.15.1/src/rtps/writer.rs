@@ -810,7 +810,7 @@ impl Writer {
   /// because the key exchange with this writer is still in progress), and the
   /// periodic HEARTBEAT, at the slow period once everything was acknowledged,
   /// would announce the data only up to a second later: a new secured client's
-  /// first service request waited 0.56-0.72 s for it.
+  /// first service request waited up to 0.9 s for it (PATCHES.md §16).
   fn schedule_prompt_heartbeats(&mut self) {
     if self.like_stateless || !self.is_reliable() || self.readers.is_empty() {
       return;

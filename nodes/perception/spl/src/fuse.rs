@@ -9,7 +9,9 @@
 //!    about the normal; quarter turns with the x/y roles swapped where the type allows it, IROS
 //!    footnote 5) the one whose frame is nearest the prior's, its Σ carried along to first order.
 //! 2. **Local coordinates** ([`local_coordinates`]) of the observation in the chart at the prior:
-//!    boundary, curvatures and centre as differences; the rotation through the log map,
+//!    the boundary's extents as relative differences `d_a ln(d_b / d_a)` (see [`extent_offset`]),
+//!    the other boundary parameters and the curvatures as differences, the centre along the prior's
+//!    surface ([`surface_offset`]); the rotation through the log map,
 //!    `δ = J_r(r_a)⁻¹ log(R(r_a)ᵀ R(r_b))` (IROS eq 2 and App. II, with the right Jacobian of SO(3)),
 //!    for 5-DoF types the tilt that takes the prior's normal onto the observation's, scaled so that
 //!    the chart's derivative at the prior is the identity on `r_xy` (eq 7–8). The observation's Σ is
@@ -241,12 +243,47 @@ pub fn local_coordinates(reference: &Patch, patch: &Patch) -> Option<DVector<f64
             delta[at + i] = x[i];
         }
     }
+    for i in 0..extent_count(reference) {
+        delta[i] = extent_offset(reference.boundary_params[i], patch.boundary_params[i]);
+    }
     let at = delta.len() - 3;
     let along = surface_offset(reference, &(patch.center - reference.center));
     for i in 0..3 {
         delta[at + i] = along[i];
     }
     delta.iter().all(|v| v.is_finite()).then_some(delta)
+}
+
+/// How many of the boundary parameters are extents (lengths): all but a quadrilateral's angle γ.
+fn extent_count(patch: &Patch) -> usize {
+    match patch.boundary {
+        BoundaryType::Quadrilateral => 4,
+        b => b.num_params(),
+    }
+}
+
+/// The extent part of the chart: `d_b` relative to `d_a`, `d_a ln(d_b / d_a)` (derivative 1 at
+/// `d_b = d_a`; a plain difference where the prior's extent is zero). The boundary is estimated from
+/// the second moments of the points (IROS steps 6–9), so an extent's standard deviation is a fixed
+/// share of the extent itself: as plain differences, a view that underestimates an extent also
+/// claims a smaller Σ and gets more weight, and ten fused views kept a bias of a quarter of their
+/// fused σ, always towards smaller patches. In relative terms every view's Σ is the same share of the
+/// prior's extent, and the weights no longer depend on the views' own errors.
+fn extent_offset(prior: f64, observed: f64) -> f64 {
+    if prior > 0.0 {
+        prior * (observed / prior).ln()
+    } else {
+        observed - prior
+    }
+}
+
+/// The inverse of [`extent_offset`]: the extent at chart coordinate `offset` of a prior's `prior`.
+fn extent_from_offset(prior: f64, offset: f64) -> f64 {
+    if prior > 0.0 {
+        prior * (offset / prior).exp()
+    } else {
+        prior + offset
+    }
 }
 
 /// The centre part of the chart: a centre offset `c_b − c_a` measured along the prior's surface.
@@ -275,13 +312,17 @@ fn offset_from_surface(reference: &Patch, along: &Vector3<f64>) -> Vector3<f64> 
 
 /// The patch at local coordinates `delta` of the chart at `reference` (the inverse of
 /// [`local_coordinates`]): `R = R(r_a) exp(J_r(r_a) δ)`, for 5-DoF types the normal tilted by
-/// `A⁻¹ δ`; the other parameters added. Σ is left zero.
+/// `A⁻¹ δ`, extents `d_a exp(δ / d_a)`, the centre off the prior's surface; the other parameters
+/// added. Σ is left zero.
 pub fn retract(reference: &Patch, delta: &DVector<f64>) -> Option<Patch> {
     let p = reference.dof();
     if delta.len() != p {
         return None;
     }
     let mut params = reference.params() + delta;
+    for i in 0..extent_count(reference) {
+        params[i] = extent_from_offset(reference.boundary_params[i], delta[i]);
+    }
     let at = rotation_index(reference);
     let rotation = reference.rotation_matrix();
     if reference.is_5dof() {
@@ -514,8 +555,9 @@ mod tests {
 
     /// On a linear-Gaussian toy (observations of a plane that differ from the truth in extents and
     /// centre only, with the rotation uncertain but decoupled; a plane's chart is linear in its
-    /// centre), sequential fusion equals the batch information-form estimate
-    /// `x = (Σ Λ_i)⁻¹ Σ Λ_i x_i`, `Σ = (Σ Λ_i)⁻¹`.
+    /// centre and in the logarithms of its extents), sequential fusion equals the batch
+    /// information-form estimate `x = (Σ Λ_i)⁻¹ Σ Λ_i x_i`, `Σ = (Σ Λ_i)⁻¹` in the coordinates
+    /// `u = [ln d, the rest]`, `Σ_u = D Σ D` with `D = diag(1/d)` on the extents.
     #[test]
     fn sequential_fusion_equals_the_batch_estimate_on_a_linear_toy() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
@@ -537,15 +579,31 @@ mod tests {
         for o in &observations[1..] {
             fused = fuse(&fused, o, 1.0).unwrap().0;
         }
+        let extents = base.boundary.num_params();
+        let scale = |d: &[f64]| {
+            DMatrix::from_fn(p, p, |r, c| {
+                if r != c {
+                    0.0
+                } else if r < extents {
+                    d[r]
+                } else {
+                    1.0
+                }
+            })
+        };
         let mut information = DMatrix::zeros(p, p);
         let mut weighted = DVector::zeros(p);
         for o in &observations {
-            let inv = o.covariance.clone().try_inverse().unwrap();
-            weighted += &inv * o.params();
+            let to_u = scale(&o.boundary_params.iter().map(|d| 1.0 / d).collect::<Vec<_>>());
+            let u = o.params().map_with_location(|i, _, v| if i < extents { v.ln() } else { v });
+            let inv = (&to_u * &o.covariance * &to_u).try_inverse().unwrap();
+            weighted += &inv * u;
             information += inv;
         }
-        let batch_cov = information.try_inverse().unwrap();
-        let batch = &batch_cov * weighted;
+        let batch_cov_u = information.try_inverse().unwrap();
+        let batch = (&batch_cov_u * weighted).map_with_location(|i, _, v| if i < extents { v.exp() } else { v });
+        let from_u = scale(&batch.as_slice()[..extents]);
+        let batch_cov = &from_u * batch_cov_u * &from_u;
         let err = (fused.params() - &batch).amax();
         assert!(err < 1e-9, "estimate differs from batch by {err}\n{}\n{}", fused.params(), batch);
         let cov_err = (&fused.covariance - &batch_cov).amax() / batch_cov.amax();

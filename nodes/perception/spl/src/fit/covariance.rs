@@ -140,7 +140,10 @@ pub(super) fn finish(
     // Paraboloids keep their frame (no gauge freedom): the points are in it already.
     let local = if gauged == state { local } else { boundary::to_local(boundary_points, &gauged.rot, &gauged.c) };
     let state = gauged;
-    let stats = boundary::moments(&local);
+    let stats = match boundary {
+        BoundaryType::Quadrilateral => boundary::moments(&local),
+        _ => boundary::moments(&local).centrally_symmetric(),
+    };
     let m = stats.m;
     let map = boundary::MomentMap { centroid_height: stats.centroid_height, ..map };
     let from_m = boundary::from_moments(&map, &m);

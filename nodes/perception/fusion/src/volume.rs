@@ -267,7 +267,7 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
     targets.dedup();
     let old_from_new = pose.inverse();
     let voxel = volume.voxel_size();
-    let fresh = volume.empty_blocks(targets.len());
+    let fresh: Vec<Box<Block>> = targets.iter().map(|_| volume.empty_block()).collect();
     let old = &*volume;
     let filled: Vec<([i32; 3], Box<Block>, bool)> = targets
         .par_iter()
@@ -300,17 +300,9 @@ fn resample(volume: &mut TsdfVolume, new_from_old: &Isometry3<f64>) {
             (*c, block, any)
         })
         .collect();
-    let mut blocks = Vec::with_capacity(filled.len());
-    let mut unused = Vec::new();
-    for (c, block, any) in filled {
-        if any {
-            blocks.push((c, block));
-        } else {
-            unused.push(block);
-        }
-    }
-    volume.rebuild(blocks);
-    volume.give_back(unused);
+    let (kept, unused): (Vec<_>, Vec<_>) = filled.into_iter().partition(|(_, _, any)| *any);
+    volume.rebuild(kept.into_iter().map(|(c, block, _)| (c, block)).collect());
+    volume.give_back(unused.into_iter().map(|(_, block, _)| block));
 }
 
 #[cfg(test)]

@@ -243,7 +243,7 @@ pub fn local_coordinates(reference: &Patch, patch: &Patch) -> Option<DVector<f64
             delta[at + i] = x[i];
         }
     }
-    for i in 0..extent_count(reference) {
+    for i in 0..reference.boundary.num_extents() {
         delta[i] = extent_offset(reference.boundary_params[i], patch.boundary_params[i]);
     }
     let at = delta.len() - 3;
@@ -254,20 +254,12 @@ pub fn local_coordinates(reference: &Patch, patch: &Patch) -> Option<DVector<f64
     delta.iter().all(|v| v.is_finite()).then_some(delta)
 }
 
-/// How many of the boundary parameters are extents (lengths): all but a quadrilateral's angle γ.
-fn extent_count(patch: &Patch) -> usize {
-    match patch.boundary {
-        BoundaryType::Quadrilateral => 4,
-        b => b.num_params(),
-    }
-}
-
 /// The extent part of the chart: `d_b` relative to `d_a`, `d_a ln(d_b / d_a)` (derivative 1 at
 /// `d_b = d_a`; a plain difference where the prior's extent is zero). The boundary is estimated from
 /// the second moments of the points (IROS steps 6–9), so an extent's standard deviation is a fixed
 /// share of the extent itself: as plain differences, a view that underestimates an extent also
-/// claims a smaller Σ and gets more weight, and ten fused views kept a bias of a quarter of their
-/// fused σ, always towards smaller patches. In relative terms every view's Σ is the same share of the
+/// claims a smaller Σ and gets more weight, and ten fused views would keep a bias of a quarter of
+/// their fused σ, always towards smaller patches. In relative terms every view's Σ is the same share of the
 /// prior's extent, and the weights no longer depend on the views' own errors.
 fn extent_offset(prior: f64, observed: f64) -> f64 {
     if prior > 0.0 {
@@ -320,7 +312,7 @@ pub fn retract(reference: &Patch, delta: &DVector<f64>) -> Option<Patch> {
         return None;
     }
     let mut params = reference.params() + delta;
-    for i in 0..extent_count(reference) {
+    for i in 0..reference.boundary.num_extents() {
         params[i] = extent_from_offset(reference.boundary_params[i], delta[i]);
     }
     let at = rotation_index(reference);

@@ -115,7 +115,7 @@ impl TsdfVolume {
     }
 
     /// A block of never-observed voxels: a spare one if there is one, else a new one.
-    pub(super) fn empty_block(&mut self) -> Box<Block> {
+    pub(crate) fn empty_block(&mut self) -> Box<Block> {
         match self.spare.pop() {
             Some(mut block) => {
                 block.voxels.fill(Voxel::EMPTY);
@@ -123,11 +123,6 @@ impl TsdfVolume {
             }
             None => Block::empty(),
         }
-    }
-
-    /// `n` blocks of never-observed voxels (spare ones first), for filling in parallel.
-    pub(crate) fn empty_blocks(&mut self, n: usize) -> Vec<Box<Block>> {
-        (0..n).map(|_| self.empty_block()).collect()
     }
 
     /// Keeps `blocks` (no longer in the volume) for reuse.

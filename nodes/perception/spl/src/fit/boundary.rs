@@ -93,9 +93,9 @@ impl MomentStats {
     /// centroid and the second moments uncorrelated. Their sample covariance is the data's third
     /// central moments over N, zero for such a boundary; the sample's own third moments are noise
     /// about that zero, and noise tied to the centroid's error (points bunched on one side move the
-    /// centroid there and skew the rest the other way). Fusion multiplies that cross term by the
-    /// centre's innovation, so it pushed fused extents up by a third of their fused σ over ten views
-    /// of a plane.
+    /// centroid there and skew the rest the other way). Fusion would multiply that cross term by the
+    /// centre's innovation and push fused extents up, by a third of their fused σ over ten views of
+    /// a plane.
     pub fn centrally_symmetric(mut self) -> Self {
         for i in 0..2 {
             for j in 2..5 {

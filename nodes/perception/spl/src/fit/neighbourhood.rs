@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::fit::sensed::{covariances_on_surface, depends_on_range};
 use crate::fit::{fit_patch_with_boundary_points, BoundaryRequest, FitConfig, FitError, FitRequest, SurfaceRequest};
-use crate::patch::{BoundaryType, Patch, SurfaceType};
+use crate::patch::{Patch, SurfaceType};
 use crate::sensor::{covariances_for, ErrorModel, SensorError};
 
 /// What [`fit_neighbourhood`] needs: the sensor's error model, the fit's settings, the boundary
@@ -90,10 +90,7 @@ pub fn refit_on_surface(
 
 /// Scales the boundary extents `d` of a patch (not a quad's angle) and their covariance rows/columns.
 fn rescale_boundary(patch: &mut Patch, factor: f64) {
-    let extents = match patch.boundary {
-        BoundaryType::Quadrilateral => 4,
-        _ => patch.boundary_params.len(),
-    };
+    let extents = patch.boundary.num_extents();
     for (i, d) in patch.boundary_params.iter_mut().enumerate().take(extents) {
         *d *= factor;
         if i < patch.covariance.nrows() {

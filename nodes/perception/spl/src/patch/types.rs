@@ -119,6 +119,15 @@ impl BoundaryType {
             BoundaryType::Quadrilateral => 5,
         }
     }
+
+    /// How many of the boundary parameters are extents (lengths, the first ones): all but a
+    /// quadrilateral's angle γ.
+    pub fn num_extents(self) -> usize {
+        match self {
+            BoundaryType::Quadrilateral => 4,
+            b => b.num_params(),
+        }
+    }
 }
 
 /// Whether `(surface, boundary)` is one of the 10 patch types of IROS Table I.

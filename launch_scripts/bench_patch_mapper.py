@@ -15,7 +15,9 @@ Prints p50/p99; asserts nothing.
 With --bag, a recorded rosbag2 MCAP bag (e.g. `terrain_sim record --terrain <heightmap.png> --mcap
 walk.mcap --compression none`) is played instead of running terrain_sim: this process publishes its
 depth images, camera infos and IMU samples at the recorded pace, restamped to the wall clock, so the
-rendering of a large terrain does not take the CPU the mapper is measured on. "Through DDS" is then
+rendering of a large terrain does not take the CPU the mapper is measured on. The bag is played by a
+second process (this script with --play), so that reading and publishing the images does not hold
+the interpreter lock of the process that timestamps the PatchArray arrivals. "Through DDS" is then
 PatchArray arrival minus the publication of its depth frame.
 
 Usage: .venv/bin/python launch_scripts/bench_patch_mapper.py [--seconds 20] [--min-patches 100] [--bag walk.mcap]
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import tempfile
 import threading
@@ -36,9 +39,15 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 import patchwalk_testing as pw  # noqa: E402
 
-LOG_DIR = Path(tempfile.mkdtemp(prefix="bench_patch_mapper_"))
-ENV = pw.ros_environment(LOG_DIR)
-os.environ.update(ENV)  # before rclpy is imported
+# The --play process inherits the environment (ROS domain, DDS profile) of the bench that started it.
+PLAYER_MARK = "PATCHWALK_BENCH_PLAYER"
+if os.environ.get(PLAYER_MARK):
+    LOG_DIR = Path(os.environ["ROS_LOG_DIR"])
+    ENV = dict(os.environ)
+else:
+    LOG_DIR = Path(tempfile.mkdtemp(prefix="bench_patch_mapper_"))
+    ENV = pw.ros_environment(LOG_DIR)
+    os.environ.update(ENV)  # before rclpy is imported
 
 # patch_mapper's configuration for the simulated rig (terrain_sim's IMU mount).
 SIM_MAPPER_CONFIG = REPO / "config" / "patch_mapper_sim.yaml"
@@ -61,7 +70,8 @@ def percentiles(values: list[float]) -> str:
 def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
     """Publishes the bag's depth images, camera infos and IMU samples at their recorded pace, each
     stamp replaced by the wall-clock time of its slot (the CDR header's stamp, bytes 4..12, patched
-    in the serialized message), and reports each depth frame's stamp when it is out."""
+    in the serialized message), and reports each depth frame's stamp and publication time
+    (`published((sec, nanosec), wall_s)`) when it is out."""
     from experiment import with_header_stamp
     from rclpy.qos import qos_profile_sensor_data
     from rosbags.highlevel import AnyReader
@@ -87,7 +97,26 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
             sec, nanosec = int(slot), int((slot - int(slot)) * 1e9)
             publishers[connection.topic].publish(with_header_stamp(raw, sec, nanosec))
             if connection.msgtype == "sensor_msgs/msg/Image":
-                published((sec, nanosec))
+                published((sec, nanosec), time.time())
+
+
+def player_main(bag: Path) -> int:
+    """The --play process: plays `bag` (see `play_bag`) and prints `sec nanosec wall_s` per depth frame."""
+    harness = pw.RosHarness("bench_patch_mapper_player")
+    try:
+        harness.wait_for_nodes("/patch_mapper")
+        play_bag(harness, bag, threading.Event(), lambda stamp, wall: print(f"{stamp[0]} {stamp[1]} {wall:.6f}", flush=True))
+    finally:
+        harness.shutdown()
+    return 0
+
+
+def read_player(player, published) -> None:
+    """Hands each depth frame the --play process reports to `published((sec, nanosec), wall_s)`."""
+    for line in player.stdout:
+        fields = line.split()
+        if len(fields) == 3:
+            published((int(fields[0]), int(fields[1])), float(fields[2]))
 
 
 def main() -> int:
@@ -99,7 +128,10 @@ def main() -> int:
                         help="extra terrain_sim -p, e.g. scene.terrain.path=<heightmap.png> to walk over a terrain")
     parser.add_argument("--bag", type=Path, help="play this MCAP bag instead of running terrain_sim")
     parser.add_argument("--cells-per-side", type=int, default=16, help="mapper.seeds.cells_per_side")
+    parser.add_argument("--play", type=Path, help=argparse.SUPPRESS)  # the bag player process
     args = parser.parse_args()
+    if args.play:
+        return player_main(args.play)
 
     from experiment import header_stamp
     from patchwalk_msgs.msg import MapperStatus, PatchArray
@@ -119,9 +151,9 @@ def main() -> int:
     sim = None if args.bag else pw.NodeProcess("terrain_sim", ["run", *[a for p in args.sim_param for a in ("-p", p)]], ENV, LOG_DIR)
     mapper = pw.NodeProcess("patch_mapper", ["run", *mapper_args], ENV, LOG_DIR)
     nodes = [n for n in (sim, mapper) if n is not None]
-    player_stop = threading.Event()
+    player = None  # the --play process
     lock = threading.Lock()
-    arrivals: list[tuple[float, float, int]] = []  # (arrival wall s, stamp s, patches)
+    arrivals: list[tuple[float, float, int, int]] = []  # (arrival wall s, stamp s, patches, serialized bytes)
     statuses: list = []
     depth_arrivals: dict[tuple[int, int], float] = {}  # depth stamp (sec, nanosec) -> arrival wall s
     through_dds: list[float] = []  # PatchArray arrival - its depth frame's arrival (ms)
@@ -134,21 +166,20 @@ def main() -> int:
         now = time.time()
         sec, nanosec = header_stamp(raw)
         with lock:
-            arrivals.append((now, sec + nanosec * 1e-9, patches_in_map[0]))
+            arrivals.append((now, sec + nanosec * 1e-9, patches_in_map[0], len(raw)))
             depth_arrival = depth_arrivals.pop((sec, nanosec), None)
             if depth_arrival is not None:
                 through_dds.append((now - depth_arrival) * 1e3)
 
-    def depth_seen(stamp: tuple[int, int]):
-        """A depth frame arrived here (from terrain_sim) or was published (from the bag)."""
-        now = time.time()
+    def depth_seen(stamp: tuple[int, int], at: float):
+        """A depth frame arrived here (from terrain_sim) or was published (from the bag) at wall time `at`."""
         with lock:
-            depth_arrivals[stamp] = now
+            depth_arrivals[stamp] = at
             while len(depth_arrivals) > 300:  # frames the mapper skipped
                 depth_arrivals.pop(next(iter(depth_arrivals)))
 
     def on_depth(msg):
-        depth_seen((msg.header.stamp.sec, msg.header.stamp.nanosec))
+        depth_seen((msg.header.stamp.sec, msg.header.stamp.nanosec), time.time())
 
     def on_status(msg):
         with lock:
@@ -167,8 +198,9 @@ def main() -> int:
                 harness.node.create_subscription(Image, "/camera/depth/image_raw", on_depth, qos_profile_sensor_data)
         if args.bag:
             harness.wait_for_nodes("/patch_mapper")
-            player = threading.Thread(target=play_bag, args=(harness, args.bag, player_stop, depth_seen), daemon=True)
-            player.start()
+            player = subprocess.Popen([sys.executable, __file__, "--play", str(args.bag)], stdout=subprocess.PIPE, text=True,
+                                      env={**os.environ, PLAYER_MARK: "1"})
+            threading.Thread(target=read_player, args=(player, depth_seen), daemon=True).start()
         else:
             harness.wait_for_nodes("/patch_mapper", "/terrain_sim")
         deadline = time.monotonic() + 120.0
@@ -188,15 +220,24 @@ def main() -> int:
             through_dds.clear()
         cpu0 = {n.name: cpu_seconds(n.proc.pid) for n in nodes}
         cpu0["this process"] = cpu_seconds(os.getpid())
+        if player is not None:
+            cpu0["bag player"] = cpu_seconds(player.pid)
         t0 = time.monotonic()
         time.sleep(args.seconds)
         wall = time.monotonic() - t0
         cpu1 = {n.name: cpu_seconds(n.proc.pid) for n in nodes}
         cpu1["this process"] = cpu_seconds(os.getpid())
+        if player is not None:
+            cpu1["bag player"] = cpu_seconds(player.pid)
         with lock:
             window, status_window, dds_window = list(arrivals), list(statuses), list(through_dds)
     finally:
-        player_stop.set()
+        if player is not None:
+            player.terminate()
+            try:
+                player.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                player.kill()
         for node in reversed(nodes):
             try:
                 node.stop()
@@ -208,7 +249,10 @@ def main() -> int:
     print(f"\npatch_mapper on {source}, {wall:.1f} s window, {os.cpu_count()} cores")
     print(f"PatchArray messages: {len(window)} ({len(window) / wall:.1f} Hz); patches in the map "
           f"min {min((a[2] for a in window), default=0)} max {max((a[2] for a in window), default=0)}")
-    print("end to end (arrival - depth stamp):   " + percentiles([(a - s) * 1e3 for a, s, _ in window]))
+    sizes = sorted(a[3] for a in window)
+    if sizes:
+        print(f"PatchArray serialized: median {sizes[len(sizes) // 2] / 1e3:.0f} kB, max {sizes[-1] / 1e3:.0f} kB")
+    print("end to end (arrival - depth stamp):   " + percentiles([(a[0] - a[1]) * 1e3 for a in window]))
     print("through DDS (arrival - depth arrival): " + percentiles(dds_window))
     if status_window:
         last = status_window[-1]

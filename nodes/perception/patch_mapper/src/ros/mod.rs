@@ -184,6 +184,8 @@ struct DepthJob {
     intrinsics: Intrinsics,
     stamp: Time,
     received: Instant,
+    /// The node clock at `received` minus the header stamp (ms): the driver's and DDS's delay.
+    age_ms: f64,
 }
 
 /// What the ROS loop hands the worker.
@@ -288,6 +290,7 @@ impl State {
     /// accepted frames go to the worker, replacing a frame still waiting there.
     fn on_depth(&mut self, msg: &Image, log: &mut RateLimitedLog) {
         let received = Instant::now();
+        let taken_s = self.clock.now_s();
         self.count(|s| s.frames_received += 1);
         let depth = match convert::depth_image(msg) {
             Ok(depth) => depth,
@@ -316,7 +319,8 @@ impl State {
             self.count(|s| s.frames_rejected += 1);
             return;
         }
-        let job = DepthJob { frame_id: msg.header.frame_id.clone(), depth, intrinsics, stamp, received };
+        let age_ms = (taken_s - publish::seconds_from_time(&stamp)) * 1e3;
+        let job = DepthJob { frame_id: msg.header.frame_id.clone(), depth, intrinsics, stamp, received, age_ms };
         if let Err(TrySendError::Full(job)) = self.jobs.try_send(job) {
             // Keep-latest: the waiting frame is dropped for the newer one.
             if self.stale_jobs.try_recv().is_ok() {
@@ -612,8 +616,13 @@ impl Worker {
             s.frames_processed += 1;
             s.patches_in_map = u32::try_from(patches).unwrap_or(u32::MAX);
             let named = output.timings.named();
-            let node_timings =
-                [("queued", queued_ms), ("patches_out", patches_out_ms), ("publish", publish_ms), (diagnostics::LATENCY_NAME, latency_ms)];
+            let node_timings = [
+                ("depth_age", job.age_ms),
+                ("queued", queued_ms),
+                ("patches_out", patches_out_ms),
+                ("publish", publish_ms),
+                (diagnostics::LATENCY_NAME, latency_ms),
+            ];
             s.timing_names = named.iter().map(|(n, _)| *n).chain(node_timings.iter().map(|(n, _)| *n)).map(String::from).collect();
             s.timing_ms = named.iter().map(|(_, ms)| *ms).chain(node_timings.iter().map(|(_, ms)| *ms)).collect();
         });

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sensor_msgs.msg import CameraInfo, Image, Imu
+from sensor_msgs.msg import CameraInfo, Image, Imu, PointCloud2
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 from patchwalk_msgs.msg import MapperStatus, PatchArray
 
 import patchwalk_testing as pw
@@ -221,6 +222,18 @@ def test_tum_sequence_gives_a_patch_array_in_the_map_frame(ros, tum_mapper):
     assert all(p.center[2] < camera_z for p in array.patches)
     got = status.wait_for(lambda s: s.frames_processed >= 10 and s.patches_in_map >= 1 and "total" in s.timing_names)
     assert len(got.timing_names) == len(got.timing_ms)
+    assert tum_mapper.alive()
+
+
+def test_markers_and_birds_eye_cloud_reach_their_subscribers(ros, tum_mapper):
+    # The node builds them only while a subscription is matched (counted every status period).
+    markers = ros.collect(MarkerArray, "/patch_mapper/markers")
+    clouds = ros.collect(PointCloud2, "/patch_mapper/birds_eye_cloud")
+    Player(ros).play(period_s=0.1)
+    array = markers.wait_for(lambda m: len(m.markers) >= 1, timeout=30.0)
+    assert all(m.header.frame_id == "odom" for m in array.markers)
+    cloud = clouds.wait_for(lambda c: c.width * c.height > 0, timeout=30.0)
+    assert cloud.header.frame_id == "odom" and len(cloud.data) == cloud.row_step * cloud.height
     assert tum_mapper.alive()
 
 

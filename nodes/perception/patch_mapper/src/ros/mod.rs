@@ -365,9 +365,39 @@ impl State {
 /// Publishers the worker owns.
 struct Outputs {
     patches: Publisher<PatchArray>,
-    markers: Option<Publisher<MarkerArray>>,
-    birds_eye: Option<Publisher<PointCloud2>>,
+    markers: Option<OnDemand<MarkerArray>>,
+    birds_eye: Option<OnDemand<PointCloud2>>,
     tf: Option<TfBroadcaster>,
+}
+
+/// A publisher whose messages are only built while a subscription is matched, as rclcpp nodes do
+/// with `get_subscription_count()`: the markers and the birds-eye cloud cost about 3 ms of the
+/// pipeline thread per frame, for RViz only. The ROS loop counts the matches (`refresh`, at each
+/// status period), the pipeline thread reads the flag.
+struct OnDemand<M: Serialize> {
+    publisher: Arc<Publisher<M>>,
+    wanted: Arc<AtomicBool>,
+}
+
+impl<M: Serialize> OnDemand<M> {
+    fn new(publisher: Publisher<M>) -> Self {
+        Self { publisher: Arc::new(publisher), wanted: Arc::new(AtomicBool::new(false)) }
+    }
+
+    /// The publisher if some subscription is matched.
+    fn wanted(&self) -> Option<&Publisher<M>> {
+        self.wanted.load(Ordering::Relaxed).then_some(&*self.publisher)
+    }
+
+    /// A handle for the ROS loop, which owns the node that counts the matches.
+    fn share(&self) -> Self {
+        Self { publisher: self.publisher.clone(), wanted: self.wanted.clone() }
+    }
+
+    /// Counts the subscriptions matched to the publisher now.
+    fn refresh(&self, node: &ros2_client::Node) {
+        self.wanted.store(self.publisher.get_subscription_count(node) > 0, Ordering::Relaxed);
+    }
 }
 
 /// The worker: builds the pipeline for the current intrinsics, runs it on each frame, publishes.
@@ -586,14 +616,14 @@ impl Worker {
         node::publish(&self.outputs.patches, PATCHES_TOPIC, array, &mut self.dds_log);
         let latency_ms = job.received.elapsed().as_secs_f64() * 1e3;
         let patches_out_ms = started.elapsed().as_secs_f64() * 1e3;
-        if let Some(markers) = &self.outputs.markers {
+        if let Some(markers) = self.outputs.markers.as_ref().and_then(OnDemand::wanted) {
             let mut msg = publish::markers(map, &job.stamp);
             for marker in &mut msg.markers {
                 marker.header.frame_id = fixed_frame.to_string();
             }
             node::publish(markers, MARKERS_TOPIC, msg, &mut self.dds_log);
         }
-        if let Some(cloud) = &self.outputs.birds_eye {
+        if let Some(cloud) = self.outputs.birds_eye.as_ref().and_then(OnDemand::wanted) {
             let points = birds_eye_points_in_map(&output.birds_eye, &output.map_from_birds_eye);
             node::publish(cloud, BIRDS_EYE_TOPIC, publish::point_cloud(&points, &job.stamp, fixed_frame), &mut self.dds_log);
         }
@@ -764,18 +794,17 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(sub) = goal_sub.as_mut() {
         wakeup.watch(sub)?;
     }
+    let markers = params.publish_markers.then(|| OnDemand::new(markers_pub));
+    let birds_eye = params.publish_birds_eye_cloud.then(|| OnDemand::new(birds_eye_pub));
+    let markers_demand = markers.as_ref().map(OnDemand::share);
+    let birds_eye_demand = birds_eye.as_ref().map(OnDemand::share);
     let worker = Worker {
         config,
         pipeline: None,
         recent_imu: VecDeque::new(),
         status: status.clone(),
         tracking: tracking.clone(),
-        outputs: Outputs {
-            patches: patches_pub,
-            markers: params.publish_markers.then_some(markers_pub),
-            birds_eye: params.publish_birds_eye_cloud.then_some(birds_eye_pub),
-            tf: tf_broadcaster,
-        },
+        outputs: Outputs { patches: patches_pub, markers, birds_eye, tf: tf_broadcaster },
         log: RateLimitedLog::new(log_period),
         dds_log: RateLimitedLog::new(log_period),
         last_reset: None,
@@ -865,6 +894,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             if let Ok(mut s) = status.lock() {
                 s.stamp = clock.now();
                 node::publish(&status_pub, STATUS_TOPIC, s.clone(), &mut dds_log);
+            }
+            if let Some(node) = ros.node_mut() {
+                markers_demand.iter().for_each(|d| d.refresh(node));
+                birds_eye_demand.iter().for_each(|d| d.refresh(node));
             }
             next_status = now + status_period;
         }

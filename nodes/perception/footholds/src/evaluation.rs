@@ -2,7 +2,7 @@
 //! regression error of the CNN, the CNN without tilt ("No angle"), the linear SVM on hand features,
 //! the patch pipeline itself on each single frame (the geometric baseline), and the trivial answer
 //! "a foothold at the centre of every region" (its classification error is the share of negatives,
-//! its regression error the mean distance of the footholds from the region centre), with the time
+//! its regression error the mean distance of the labels' (x, y) from the region centre), with the time
 //! per frame of each; and the picture like CNN Fig. 6. Labels come from each sequence's fused map
 //! ([`crate::labels`]).
 
@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use crate::error::FootholdError;
 use crate::eval::Scores;
-use crate::labels::{is_foothold, pipeline, region_label, visible_footholds, Label, LabelConfig, LabelledFrame};
+use crate::labels::{is_foothold, painted_footholds, pipeline, region_label, Label, LabelConfig, LabelledFrame};
 use crate::model::FootholdModel;
 use crate::render::{Mark, Picture};
 use crate::sequence::Sequence;
@@ -80,16 +80,17 @@ pub struct Methods {
     pub svm: LinearSvm,
 }
 
-/// Scores the methods on the labelled frames of `paths`; draws the first frame's CNN predictions to `picture`.
+/// Scores the methods on the frames of `paths` labelled with `label`; draws the first frame's CNN
+/// predictions to `picture`.
 pub fn evaluate_group(
     group: &str,
     paths: &[PathBuf],
     methods: &Methods,
+    label: &LabelConfig,
     stride: usize,
     picture: &Path,
 ) -> Result<GroupResult, FootholdError> {
     let regions = &methods.cnn.regions;
-    let label = LabelConfig::default();
     let region_px = regions.out_px as f64;
     let mut scores = [Scores::default(); METHODS.len()];
     let mut ms = vec![Vec::new(); METHODS.len()];
@@ -97,7 +98,7 @@ pub fn evaluate_group(
     let mut drawn = false;
     for path in paths {
         let sequence = Sequence::open(path)?;
-        let (_, labelled) = sequence.label(stride, regions, &label)?;
+        let (_, labelled) = sequence.label(stride, regions, label)?;
         for (index, frame) in &labelled {
             let known: Vec<usize> = (0..frame.labels.len()).filter(|&i| frame.labels[i].is_known()).collect();
             if known.is_empty() {
@@ -139,7 +140,7 @@ pub fn evaluate_group(
             ms[2].push(started.elapsed().as_secs_f64() * 1e3);
             scores[2] = add(scores[2], Scores::of(&svm, &targets, region_px));
             // The patch pipeline on this frame alone.
-            let (geometric, pipeline_ms) = single_frame_footholds(&sequence, *index, &depth, frame, &label)?;
+            let (geometric, pipeline_ms) = single_frame_footholds(&sequence, *index, &depth, frame, label)?;
             ms[3].push(pipeline_ms);
             let geometric: Vec<Prediction> = known.iter().map(|&i| geometric[i]).collect();
             scores[3] = add(scores[3], Scores::of(&geometric, &targets, region_px));
@@ -167,8 +168,9 @@ fn add(a: Scores, b: Scores) -> Scores {
     out
 }
 
-/// The patch pipeline on one frame alone (a fresh volume): each region's "prediction" is the
-/// nearest visible foothold in its central 80 % (p = 1) or none (p = 0). Returns them and the
+/// The patch pipeline on one frame alone (a fresh volume): each region's "prediction" is its label
+/// from that frame's footholds ([`region_label`]: p = 1 at the painted centroid when a visible
+/// foothold centre lies in its central 80 %, else p = 0). Returns them and the
 /// pipeline's time (ms).
 fn single_frame_footholds(
     sequence: &Sequence,
@@ -185,11 +187,11 @@ fn single_frame_footholds(
     }
     let output = single.process(depth, timestamp)?;
     let footholds: Vec<_> = single.map().patches().iter().filter(|m| is_foothold(&m.patch, label)).map(|m| m.patch.center).collect();
-    let pixels = visible_footholds(depth, &sequence.dataset.intrinsics, &output.map_from_camera, &footholds, label);
+    let discs = painted_footholds(depth, &sequence.dataset.intrinsics, &output.map_from_camera, &footholds, label);
     let predictions = frame
         .regions
         .iter()
-        .map(|r| match region_label(r, &pixels, label.centre_fraction) {
+        .map(|r| match region_label(r, &discs, label.centre_fraction) {
             Label::Positive { x, y } => Prediction { p: 1.0, x: x as f32, y: y as f32 },
             _ => Prediction { p: 0.0, x: 0.5, y: 0.5 },
         })

@@ -18,14 +18,22 @@
 //! 2. [`label_frame`] projects them into each single frame. A point counts in a frame when it is
 //!    visible there (the frame's depth at its pixel agrees with its depth within
 //!    [`LabelConfig::visibility_tolerance_m`]). A region is positive when a visible foothold centre
-//!    lies in its central 80 % (CNN III-C ignores holds at the border), with (x, y) the centre of the
-//!    foothold nearest the region centre in region coordinates; negative when none does but a visible
-//!    tried-and-rejected point does; unknown (left out of training and scoring) when the pipeline
+//!    lies in its central 80 % (CNN III-C ignores holds at the border); negative when none does but a
+//!    visible tried-and-rejected point does; unknown (left out of training and scoring) when the pipeline
 //!    tried nothing there (e.g. flat ground without salient points: no evidence either way), when
 //!    the sequence's map holds no foothold at all (on the simulated scenes a failed labelling run —
 //!    the map's patches all too small or steep — rather than a scene without any walkable place), or when
 //!    the region's centre point lies outside the area the map covered (the final volume's footprint)
 //!    or outside the volume's height range.
+//! 3. A positive region's (x, y) is where the walkable area lies in it, as CNN III-C's (x, y) is the
+//!    position of a painted foothold area. The footholds come from seeds placed one per
+//!    [`SEED_CELL_M`] cell, so each stands for about a cell of walkable ground: each visible foothold
+//!    is painted as the disc of radius [`LabelConfig::paint_radius_m`] (half a seed cell) on the
+//!    surface around its centre, a disc of `f · r / depth` pixels in the image ([`Disc`]); (x, y) is
+//!    the centroid of the painted part of the region's central 80 %, counted on a [`PAINT_SAMPLES`]²
+//!    grid of points there ([`painted_centroid`]). On flat ground painted throughout that is the
+//!    region centre, whichever seed landed nearest it; next to a step edge it lies inside the
+//!    walkable part.
 
 use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
@@ -57,11 +65,22 @@ pub struct LabelConfig {
     pub visibility_tolerance_m: f64,
     /// Regions whose centre point is closer than this to the covered area's edge are unknown (m).
     pub coverage_margin_m: f64,
+    /// Radius of the disc painted around each visible foothold centre (m, on the surface): half a
+    /// seed cell ([`SEED_CELL_M`]), the area one foothold stands for. 0 paints nothing: a positive
+    /// region's (x, y) is then the foothold centre nearest the region centre.
+    pub paint_radius_m: f64,
 }
 
 impl Default for LabelConfig {
     fn default() -> Self {
-        Self { centre_fraction: 0.8, max_slope_deg: 30.0, min_half_extent_m: 0.045, visibility_tolerance_m: 0.03, coverage_margin_m: 0.04 }
+        Self {
+            centre_fraction: 0.8,
+            max_slope_deg: 30.0,
+            min_half_extent_m: 0.045,
+            visibility_tolerance_m: 0.03,
+            coverage_margin_m: 0.04,
+            paint_radius_m: SEED_CELL_M / 2.0,
+        }
     }
 }
 
@@ -100,6 +119,8 @@ pub fn labelling_mapper_config() -> MapperConfig {
 
 /// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
 pub const SEED_CELL_M: f64 = 0.04;
+/// Points per side of the grid a region's central part is sampled on for the painted centroid.
+pub const PAINT_SAMPLES: usize = 24;
 /// Frames whose depth a fitted volume is sized from (as `patch_mapper replay`).
 pub const FIT_FRAMES: usize = 5;
 /// Seeds per frame of the labelling run at most, whatever the volume.
@@ -339,16 +360,24 @@ fn depth_near(depth: &DepthImage, u: f64, v: f64) -> Option<f64> {
     values.get(values.len() / 2).map(|d| f64::from(*d))
 }
 
-/// Points of the map (footholds or rejected places) visible in a frame, as image pixels (u, v).
-pub fn visible_footholds(
+/// A point of the map visible in a frame: its pixel and its depth (m).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SeenPoint {
+    pub u: f64,
+    pub v: f64,
+    pub depth_m: f64,
+}
+
+/// Points of the map (footholds or rejected places) visible in a frame.
+pub fn visible_points(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
     map_from_camera: &Isometry3<f64>,
-    footholds_in_map: &[Vector3<f64>],
+    points_in_map: &[Vector3<f64>],
     config: &LabelConfig,
-) -> Vec<(f64, f64)> {
+) -> Vec<SeenPoint> {
     let camera_from_map = map_from_camera.inverse();
-    footholds_in_map
+    points_in_map
         .iter()
         .filter_map(|c| {
             let p = camera_from_map * Point3::from(*c);
@@ -357,20 +386,108 @@ pub fn visible_footholds(
                 return None;
             }
             let measured = depth_near(depth, u, v)?;
-            ((measured - p.z).abs() <= config.visibility_tolerance_m).then_some((u, v))
+            ((measured - p.z).abs() <= config.visibility_tolerance_m).then_some(SeenPoint { u, v, depth_m: p.z })
         })
         .collect()
 }
 
-/// The label of a region from the foothold pixels of its frame: the nearest to the region centre
-/// among those in the central fraction.
-pub fn region_label(region: &Region, footholds_px: &[(f64, f64)], centre_fraction: f64) -> Label {
-    footholds_px
+/// Points of the map visible in a frame, as image pixels (u, v).
+pub fn visible_footholds(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    map_from_camera: &Isometry3<f64>,
+    points_in_map: &[Vector3<f64>],
+    config: &LabelConfig,
+) -> Vec<(f64, f64)> {
+    visible_points(depth, intrinsics, map_from_camera, points_in_map, config).iter().map(|p| (p.u, p.v)).collect()
+}
+
+/// A painted foothold: the disc its seed cell stands for, in image pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Disc {
+    /// Centre pixel: the foothold centre.
+    pub u: f64,
+    pub v: f64,
+    pub radius_px: f64,
+}
+
+impl Disc {
+    /// The disc of `radius_m` on the surface around a visible point: `f · r / depth` pixels, with f
+    /// the mean of the focal lengths.
+    pub fn around(point: &SeenPoint, intrinsics: &Intrinsics, radius_m: f64) -> Self {
+        let focal = 0.5 * (intrinsics.fx + intrinsics.fy);
+        Self { u: point.u, v: point.v, radius_px: focal * radius_m / point.depth_m.max(1e-6) }
+    }
+
+    pub fn contains(&self, u: f64, v: f64) -> bool {
+        (u - self.u).powi(2) + (v - self.v).powi(2) <= self.radius_px * self.radius_px
+    }
+}
+
+/// The painted discs of the footholds visible in a frame.
+pub fn painted_footholds(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    map_from_camera: &Isometry3<f64>,
+    footholds_in_map: &[Vector3<f64>],
+    config: &LabelConfig,
+) -> Vec<Disc> {
+    visible_points(depth, intrinsics, map_from_camera, footholds_in_map, config)
         .iter()
-        .map(|&(u, v)| region.to_region(u, v))
+        .map(|p| Disc::around(p, intrinsics, config.paint_radius_m))
+        .collect()
+}
+
+/// The centroid (region coordinates) of the painted part of the region's central fraction, sampled
+/// on a [`PAINT_SAMPLES`]² grid of cell centres there; `None` when no sample is painted (or every
+/// disc has radius 0).
+pub fn painted_centroid(region: &Region, discs: &[Disc], centre_fraction: f64) -> Option<(f64, f64)> {
+    let size = region.size_px as f64;
+    let (u0, v0) = region.origin();
+    let low = 0.5 - centre_fraction / 2.0;
+    let step = centre_fraction / PAINT_SAMPLES as f64;
+    let (u_min, u_max) = (u0 + low * size, u0 + (low + centre_fraction) * size);
+    let (v_min, v_max) = (v0 + low * size, v0 + (low + centre_fraction) * size);
+    let near: Vec<&Disc> = discs
+        .iter()
+        .filter(|d| d.radius_px > 0.0)
+        .filter(|d| d.u + d.radius_px >= u_min && d.u - d.radius_px <= u_max && d.v + d.radius_px >= v_min && d.v - d.radius_px <= v_max)
+        .collect();
+    if near.is_empty() {
+        return None;
+    }
+    let (mut sum_x, mut sum_y, mut count) = (0.0, 0.0, 0usize);
+    for j in 0..PAINT_SAMPLES {
+        let y = low + (j as f64 + 0.5) * step;
+        let v = v0 + y * size;
+        for i in 0..PAINT_SAMPLES {
+            let x = low + (i as f64 + 0.5) * step;
+            if near.iter().any(|d| d.contains(u0 + x * size, v)) {
+                sum_x += x;
+                sum_y += y;
+                count += 1;
+            }
+        }
+    }
+    (count > 0).then(|| (sum_x / count as f64, sum_y / count as f64))
+}
+
+/// The label of a region from the painted footholds of its frame: positive when a foothold centre
+/// lies in the central fraction, at the [`painted_centroid`] there (the nearest such centre to the
+/// region centre if the discs are too small to cover a sample).
+pub fn region_label(region: &Region, discs: &[Disc], centre_fraction: f64) -> Label {
+    let nearest = discs
+        .iter()
+        .map(|d| region.to_region(d.u, d.v))
         .filter(|&(x, y)| Region::in_centre(x, y, centre_fraction))
-        .min_by(|a, b| ((a.0 - 0.5).powi(2) + (a.1 - 0.5).powi(2)).total_cmp(&((b.0 - 0.5).powi(2) + (b.1 - 0.5).powi(2))))
-        .map_or(Label::Negative, |(x, y)| Label::Positive { x, y })
+        .min_by(|a, b| ((a.0 - 0.5).powi(2) + (a.1 - 0.5).powi(2)).total_cmp(&((b.0 - 0.5).powi(2) + (b.1 - 0.5).powi(2))));
+    match nearest {
+        None => Label::Negative,
+        Some(centre) => {
+            let (x, y) = painted_centroid(region, discs, centre_fraction).unwrap_or(centre);
+            Label::Positive { x, y }
+        }
+    }
 }
 
 /// Whether one of the pixels lies in the region's central fraction.
@@ -403,7 +520,7 @@ pub fn label_frame(
 ) -> Result<LabelledFrame, FootholdError> {
     let mut inputs = Vec::new();
     let regions = propose(depth, intrinsics, regions_config, &mut inputs)?;
-    let footholds_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
+    let footholds_px = painted_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
     let rejected_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, rejected_in_map, config);
     let labels = regions
         .iter()
@@ -430,13 +547,58 @@ mod tests {
         Region { row: 0, col: 0, u: 100.0, v: 100.0, depth_m: 0.5, size_px: 100 }
     }
 
+    fn disc(u: f64, v: f64, radius_px: f64) -> Disc {
+        Disc { u, v, radius_px }
+    }
+
+    fn assert_positive_at(label: Label, x: f64, y: f64) {
+        match label {
+            Label::Positive { x: lx, y: ly } => assert!((lx - x).abs() < 1e-9 && (ly - y).abs() < 1e-9, "({lx}, {ly}) != ({x}, {y})"),
+            other => panic!("{other:?} is not positive"),
+        }
+    }
+
     #[test]
-    fn nearest_central_foothold_labels_the_region() {
+    fn a_central_foothold_centre_makes_the_region_positive() {
         let r = region();
         // Region spans [50, 150)²; central 80 %: [60, 140].
         assert_eq!(region_label(&r, &[], 0.8), Label::Negative);
-        assert_eq!(region_label(&r, &[(55.0, 100.0)], 0.8), Label::Negative);
-        assert_eq!(region_label(&r, &[(55.0, 100.0), (120.0, 90.0), (105.0, 100.0)], 0.8), Label::Positive { x: 0.55, y: 0.5 });
+        assert_eq!(region_label(&r, &[disc(55.0, 100.0, 4.0)], 0.8), Label::Negative);
+        // A disc reaching into the centre without its centre there leaves the region negative.
+        assert_eq!(region_label(&r, &[disc(55.0, 100.0, 30.0)], 0.8), Label::Negative);
+        // Samples every 80 / 24 px from 61.67 px; the one disc inside is sampled symmetrically about
+        // its centre (120 and 90 px lie halfway between samples): its centre.
+        assert_positive_at(region_label(&r, &[disc(55.0, 100.0, 4.0), disc(120.0, 90.0, 4.0)], 0.8), 0.7, 0.4);
+        // Two discs of radius 4 px: 4 samples of the one at (120, 90) (offsets ±1.67 px), 6 of the one
+        // at (105, 100) (u offsets 0, ±3.33 px, v offsets ±1.67 px): centroid (111, 96) px.
+        assert_positive_at(region_label(&r, &[disc(55.0, 100.0, 4.0), disc(120.0, 90.0, 4.0), disc(105.0, 100.0, 4.0)], 0.8), 0.61, 0.46);
+    }
+
+    #[test]
+    fn painted_area_sets_the_position() {
+        let r = region();
+        // Fully painted: the region centre, wherever the foothold centre is.
+        assert_positive_at(region_label(&r, &[disc(70.0, 130.0, 1000.0)], 0.8), 0.5, 0.5);
+        // The left half painted (a huge disc whose edge is the line u = 100, plus a small one whose
+        // centre lies in the central 80 %): the 12 sample columns left of it, centroid x = 0.1 + 6 / 30.
+        let half = [disc(100.0 - 1e6, 100.0, 1e6), disc(80.0, 100.0, 5.0)];
+        assert_positive_at(region_label(&r, &half, 0.8), 0.3, 0.5);
+        assert_eq!(painted_centroid(&r, &[disc(10.0, 10.0, 5.0)], 0.8), None);
+        // Radius 0: the foothold centre nearest the region centre.
+        assert_positive_at(region_label(&r, &[disc(120.0, 90.0, 0.0), disc(105.0, 100.0, 0.0)], 0.8), 0.55, 0.5);
+    }
+
+    #[test]
+    fn discs_span_the_seed_cell_area_at_the_points_depth() {
+        let k = Intrinsics::new(64, 48, 50.0, 50.0, 32.0, 24.0).unwrap();
+        let config = LabelConfig::default();
+        let near = Disc::around(&SeenPoint { u: 10.0, v: 20.0, depth_m: 0.5 }, &k, config.paint_radius_m);
+        assert_eq!((near.u, near.v), (10.0, 20.0));
+        // 50 px · 0.02 m / 0.5 m.
+        assert!((near.radius_px - 2.0).abs() < 1e-12);
+        let far = Disc::around(&SeenPoint { u: 10.0, v: 20.0, depth_m: 2.0 }, &k, config.paint_radius_m);
+        assert!((far.radius_px - 0.5).abs() < 1e-12);
+        assert!(near.contains(11.9, 20.0) && !near.contains(12.1, 20.0));
     }
 
     #[test]
@@ -477,5 +639,7 @@ mod tests {
             &config,
         );
         assert_eq!(seen, vec![(32.0, 24.0)]);
+        let painted = painted_footholds(&depth, &k, &pose, &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5)], &config);
+        assert_eq!(painted, vec![Disc { u: 32.0, v: 24.0, radius_px: 1.0 }]);
     }
 }

@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use patchwalk_footholds::evaluation::{evaluate_group, format_table, GroupResult, Methods};
+use patchwalk_footholds::labels::LabelConfig;
 use patchwalk_footholds::model::FootholdModel;
 use patchwalk_footholds::svm::LinearSvm;
 
@@ -37,9 +38,17 @@ pub struct EvalArgs {
     /// Output directory for the pictures and eval.json.
     #[arg(long, default_value = "footholds_eval")]
     pub out: PathBuf,
+    /// Radius (m, on the surface) of the disc painted around each foothold for a positive region's
+    /// (x, y) (see `patchwalk_footholds::labels`); 0 scores against the foothold centre nearest the
+    /// region centre instead.
+    #[arg(long, default_value_t = LabelConfig::default().paint_radius_m)]
+    pub paint_radius_m: f64,
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
+    if !(args.paint_radius_m >= 0.0 && args.paint_radius_m.is_finite()) {
+        anyhow::bail!("--paint-radius-m must be a finite radius >= 0 (m)");
+    }
     let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
     let no_angle_weights = args.no_angle_weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(true));
     let svm_path = args.svm.clone().unwrap_or_else(patchwalk_footholds::shipped_svm_path);
@@ -52,6 +61,7 @@ pub fn run(args: EvalArgs) -> Result<()> {
         serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)
             .with_context(|| format!("parsing {}", svm_path.display()))?;
     let methods = Methods { cnn, no_angle, svm };
+    let label = LabelConfig { paint_radius_m: args.paint_radius_m, ..LabelConfig::default() };
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     // Held-apart datasets grouped by their parent directory, in the order given.
     let mut sources: Vec<(String, Vec<PathBuf>)> = Vec::new();
@@ -65,14 +75,14 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let mut results = Vec::new();
     for (source, paths) in &sources {
         let picture = args.out.join(format!("fig6_{source}.png"));
-        results.push(evaluate_group(&format!("held-apart {source}"), paths, &methods, args.frame_stride, &picture)?);
+        results.push(evaluate_group(&format!("held-apart {source}"), paths, &methods, &label, args.frame_stride, &picture)?);
     }
     if results.len() > 1 {
         let total = GroupResult::merged("held-apart sim scenes, all", &results);
         results.push(total);
     }
     if !args.real.is_empty() {
-        results.push(evaluate_group("real frames", &args.real, &methods, args.frame_stride, &args.out.join("fig6_real.png"))?);
+        results.push(evaluate_group("real frames", &args.real, &methods, &label, args.frame_stride, &args.out.join("fig6_real.png"))?);
     }
     print!("{}", format_table(&results));
     let path = args.out.join("eval.json");

@@ -815,9 +815,17 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         parameters_since: None,
         footholds: stage.clone(),
     };
+    // The worker's loop runs on a thread of the pipeline's own pool, so that the parallel parts of
+    // each frame (the ICP iterations, the raycasts, the mapper's stages: some 35 a frame) are split
+    // among the pool's threads from within, instead of each being handed to the pool from outside
+    // and waited for (two thread wake-ups per part).
+    let pipeline_pool =
+        rayon::ThreadPoolBuilder::new().thread_name(|i| format!("pipeline-{i}")).build().context("the pipeline's thread pool")?;
     let worker_thread = {
         let (jobs, stop) = (job_rx.clone(), stop.clone());
-        std::thread::Builder::new().name("pipeline".into()).spawn(move || worker.run(jobs, input_rx, stop))?
+        std::thread::Builder::new()
+            .name("pipeline".into())
+            .spawn(move || pipeline_pool.install(move || worker.run(jobs, input_rx, stop)))?
     };
 
     // Two logs so the middleware's and the messages' warnings are limited independently.

@@ -71,7 +71,9 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
     """Publishes the bag's depth images, camera infos and IMU samples at their recorded pace, each
     stamp replaced by the wall-clock time of its slot (the CDR header's stamp, bytes 4..12, patched
     in the serialized message), and reports each depth frame's stamp and publication time
-    (`published((sec, nanosec), wall_s)`) when it is out."""
+    (`published((sec, nanosec), wall_s)`) when it is out. The messages are read into memory first,
+    so that reading and parsing the bag does not take CPU while the mapper is measured (a camera
+    driver publishes what it has)."""
     from experiment import with_header_stamp
     from rclpy.qos import qos_profile_sensor_data
     from rosbags.highlevel import AnyReader
@@ -84,9 +86,10 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
         with harness._lock:
             for c in connections:
                 publishers[c.topic] = harness.node.create_publisher(types[c.msgtype], c.topic, qos_profile_sensor_data)
+        messages = [(c.topic, c.msgtype, bag_ns, raw) for c, bag_ns, raw in reader.messages(connections=connections)]
         time.sleep(1.0)  # discovery of the mapper's subscriptions
         start_wall, start_bag = time.time() + 0.1, None
-        for connection, bag_ns, raw in reader.messages(connections=connections):
+        for topic, msgtype, bag_ns, raw in messages:
             if stop.is_set():
                 return
             start_bag = bag_ns if start_bag is None else start_bag
@@ -95,8 +98,8 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
             if delay > 0:
                 time.sleep(delay)
             sec, nanosec = int(slot), int((slot - int(slot)) * 1e9)
-            publishers[connection.topic].publish(with_header_stamp(raw, sec, nanosec))
-            if connection.msgtype == "sensor_msgs/msg/Image":
+            publishers[topic].publish(with_header_stamp(raw, sec, nanosec))
+            if msgtype == "sensor_msgs/msg/Image":
                 published((sec, nanosec), time.time())
 
 

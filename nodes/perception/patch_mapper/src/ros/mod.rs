@@ -816,7 +816,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         footholds: stage.clone(),
     };
     // The worker's loop runs on a thread of the pipeline's own pool, so that the parallel parts of
-    // each frame (the ICP iterations, the raycasts, the mapper's stages: some 35 a frame) are split
+    // each frame (the ICP iterations, the raycasts, the mapper's stages: dozens a frame) are split
     // among the pool's threads from within, instead of each being handed to the pool from outside
     // and waited for (two thread wake-ups per part).
     let pipeline_pool =

@@ -67,7 +67,7 @@ def percentiles(values: list[float]) -> str:
     return f"p50 {pick(0.5):7.2f} ms  p99 {pick(0.99):7.2f} ms  max {ordered[-1]:7.2f} ms  (n = {len(ordered)})"
 
 
-def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
+def play_bag(harness, bag: Path, published) -> None:
     """Publishes the bag's depth images, camera infos and IMU samples at their recorded pace, each
     stamp replaced by the wall-clock time of its slot (the CDR header's stamp, bytes 4..12, patched
     in the serialized message), and reports each depth frame's stamp and publication time
@@ -90,8 +90,6 @@ def play_bag(harness, bag: Path, stop: threading.Event, published) -> None:
         time.sleep(1.0)  # discovery of the mapper's subscriptions
         start_wall, start_bag = time.time() + 0.1, None
         for topic, msgtype, bag_ns, raw in messages:
-            if stop.is_set():
-                return
             start_bag = bag_ns if start_bag is None else start_bag
             slot = start_wall + (bag_ns - start_bag) * 1e-9
             delay = slot - time.time()
@@ -108,7 +106,7 @@ def player_main(bag: Path) -> int:
     harness = pw.RosHarness("bench_patch_mapper_player")
     try:
         harness.wait_for_nodes("/patch_mapper")
-        play_bag(harness, bag, threading.Event(), lambda stamp, wall: print(f"{stamp[0]} {stamp[1]} {wall:.6f}", flush=True))
+        play_bag(harness, bag, lambda stamp, wall: print(f"{stamp[0]} {stamp[1]} {wall:.6f}", flush=True))
     finally:
         harness.shutdown()
     return 0

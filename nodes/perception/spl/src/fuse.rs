@@ -571,7 +571,7 @@ mod tests {
         for o in &observations[1..] {
             fused = fuse(&fused, o, 1.0).unwrap().0;
         }
-        let extents = base.boundary.num_params();
+        let extents = base.boundary.num_extents();
         let scale = |d: &[f64]| {
             DMatrix::from_fn(p, p, |r, c| {
                 if r != c {

@@ -98,8 +98,14 @@ impl Imu {
             Isometry3::from_parts(pose.translation, pose.rotation * self.camera_from_imu)
         };
         let h = DIFF_STEP_S;
-        let (before, now, after) = (world_from_imu(t - h), world_from_imu(t), world_from_imu(t + h));
-        let acceleration_in_world = (after.translation.vector - 2.0 * now.translation.vector + before.translation.vector) / (h * h);
+        // The motion starts at t = 0 (a camera path is held at its start before it): the derivatives
+        // of the first samples come from the stencil one step on, as a recording that begins on the
+        // move feels them. The held start would read the path's speed appearing within a step as an
+        // acceleration of tens of m/s², and the gravity of the first frames with it.
+        let centre = t.max(h);
+        let (before, middle, after) = (world_from_imu(centre - h), world_from_imu(centre), world_from_imu(centre + h));
+        let now = world_from_imu(t);
+        let acceleration_in_world = (after.translation.vector - 2.0 * middle.translation.vector + before.translation.vector) / (h * h);
         let specific_force_in_world = acceleration_in_world + Vector3::new(0.0, 0.0, self.config.gravity_mps2);
         // ω (world) from R(t+h)·R(t−h)ᵀ = exp(2h·[ω]×).
         let angular_velocity_in_world = (after.rotation * before.rotation.inverse()).scaled_axis() / (2.0 * h);
@@ -185,6 +191,19 @@ mod tests {
         // Same seed → same noise.
         let again = imu.sample(|t| motion.world_from_camera(&station, &base_from_camera, t), 0.3, 30);
         assert_eq!(again, samples[30]);
+    }
+
+    #[test]
+    fn a_path_that_starts_on_the_move_reads_only_gravity_at_its_start() {
+        // Held at the origin before t = 0, then walking at 0.15 m/s along x.
+        let imu = Imu::new(ImuConfig { accel_noise_mps2: 0.0, gyro_noise_radps: 0.0, ..ImuConfig::default() }).unwrap();
+        let walk = |t: f64| Isometry3::translation(0.15 * t.max(0.0), 0.0, 0.0);
+        for t in [0.0, 0.001, 0.01] {
+            let sample = imu.sample(walk, t, 1);
+            assert!((sample.linear_acceleration_in_imu.norm() - 9.81).abs() < 1e-6, "t = {t}: {}", sample.linear_acceleration_in_imu);
+            assert!(sample.angular_velocity_in_imu.norm() < 1e-9);
+            assert_eq!(sample.timestamp, t);
+        }
     }
 
     #[test]

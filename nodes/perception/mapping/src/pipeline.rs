@@ -461,16 +461,13 @@ impl Pipeline {
             return if self.config.allow_missing_imu { Ok(None) } else { Err(PipelineError::NoImu) };
         }
         let half_window_s = acquire.accel_half_window_s;
-        let (sum, count) = self
-            .imu
-            .iter()
-            .filter(|s| (s.timestamp - timestamp).abs() <= half_window_s)
-            .fold((Vector3::zeros(), 0usize), |(sum, n), s| (sum + s.acceleration_in_imu, n + 1));
-        if count == 0 {
+        let window: Vec<Vector3<f64>> =
+            self.imu.iter().filter(|s| (s.timestamp - timestamp).abs() <= half_window_s).map(|s| s.acceleration_in_imu).collect();
+        let Some(acceleration) = median_per_axis(&window) else {
             return Err(PipelineError::ImuGap { stamp: timestamp, half_window_s });
-        }
+        };
         let camera_from_imu = acquire.camera_from_imu()?;
-        Ok(Some(gravity_from_accelerometer(&(sum / count as f64), &camera_from_imu)?))
+        Ok(Some(gravity_from_accelerometer(&acceleration, &camera_from_imu)?))
     }
 
     /// J 5.2 step 6: after a remap or re-initialisation the map frame stays put and the grid follows
@@ -490,6 +487,26 @@ impl Pipeline {
         }
         before - self.mapper.map.len()
     }
+}
+
+/// The per-axis median of accelerometer readings (`None` when there are none). J 2.2 averages the
+/// readings around a frame; the median gives the same on a smooth motion and leaves out a short
+/// spike (a foot's impact, a glitch) that would tilt the mean's gravity by tens of degrees.
+pub fn median_per_axis(readings: &[Vector3<f64>]) -> Option<Vector3<f64>> {
+    if readings.is_empty() {
+        return None;
+    }
+    let median = |axis: usize| {
+        let mut values: Vec<f64> = readings.iter().map(|r| r[axis]).collect();
+        values.sort_by(f64::total_cmp);
+        let middle = values.len() / 2;
+        if values.len() % 2 == 1 {
+            values[middle]
+        } else {
+            0.5 * (values[middle - 1] + values[middle])
+        }
+    };
+    Some(Vector3::new(median(0), median(1), median(2)))
 }
 
 /// Points of a birds-eye view in the map frame (for the PointCloud2), skipping pixels without a hit.
@@ -687,6 +704,24 @@ mod tests {
             pipeline.map().patches().iter().filter(|m| (m.patch.center.z - (camera_in_map.z - 0.45)).abs() < 0.005).collect();
         assert!(floor.len() >= 5, "{} floor patches of {}", floor.len(), pipeline.map().len());
         assert!(floor.iter().all(|m| m.patch.normal().z.abs() > 0.99));
+    }
+
+    #[test]
+    fn a_spike_in_the_accelerometer_window_does_not_tilt_gravity() {
+        let g = Vector3::new(0.0, 9.81, 0.0);
+        assert_eq!(median_per_axis(&[]), None);
+        assert_eq!(median_per_axis(&[g, g + Vector3::new(0.2, 0.0, 0.0)]), Some(g + Vector3::new(0.1, 0.0, 0.0)));
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let mut pipeline = Pipeline::new(PipelineConfig::default(), TrackerConfig::default(), default_mapper_config(), intrinsics).unwrap();
+        // Eleven readings of gravity (camera y down, the identity mount) around the frame, one of
+        // them a 75 m/s² spike: the mean would tilt gravity by about 35°.
+        for i in 0..11 {
+            let t = 1.0 + (i as f64 - 5.0) * 0.01;
+            let reading = if i == 3 { -g + Vector3::new(35.5, 0.0, 66.6) } else { -g };
+            pipeline.push_imu(t, reading).unwrap();
+        }
+        let gravity = pipeline.gravity_at(1.0).unwrap().unwrap();
+        assert!((gravity.into_inner() - Vector3::y()).norm() < 1e-9, "{gravity:?}");
     }
 
     #[test]

@@ -150,7 +150,7 @@ pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64
     let depth = dataset.load_depth(0)?;
     let rotation = camera_from_imu.to_rotation_matrix();
     let gravity = dataset
-        .mean_acceleration_near(first.timestamp, mapper.acquire.accel_half_window_s)
+        .acceleration_near(first.timestamp, mapper.acquire.accel_half_window_s)
         .and_then(|a| gravity_from_accelerometer(&a, &rotation).ok())
         .map(nalgebra::Unit::into_inner);
     let (min_depth, max_depth) = (f64::from(tracker.tsdf.min_depth_m), f64::from(tracker.tsdf.max_depth_m));

@@ -160,7 +160,7 @@ pub fn calibrate_dataset(dataset: &Dataset, config: &CalibrationConfig) -> Resul
     }
     let mut pairs = Vec::new();
     for (index, frame) in dataset.frames.iter().enumerate().step_by(config.frame_stride.max(1)) {
-        let Some(acceleration) = dataset.mean_acceleration_near(frame.timestamp, config.accelerometer_half_window_s) else {
+        let Some(acceleration) = dataset.acceleration_near(frame.timestamp, config.accelerometer_half_window_s) else {
             continue;
         };
         let Some(gravity_in_imu) = gravity_from_acceleration(&acceleration) else { continue };

@@ -108,15 +108,15 @@ impl Dataset {
             .copied()
     }
 
-    /// Mean accelerometer reading (m/s², IMU frame) within `half_window` seconds of `timestamp`.
-    pub fn mean_acceleration_near(&self, timestamp: f64, half_window: f64) -> Option<Vector3<f64>> {
+    /// The accelerometer reading (m/s², IMU frame) within `half_window` seconds of `timestamp`: the
+    /// per-axis median of the samples there ([`median_per_axis`]).
+    pub fn acceleration_near(&self, timestamp: f64, half_window: f64) -> Option<Vector3<f64>> {
         let start = self.accelerometer.partition_point(|s| s.timestamp < timestamp - half_window);
         let samples: Vec<_> = self.accelerometer[start..].iter().take_while(|s| s.timestamp <= timestamp + half_window).collect();
         if samples.is_empty() {
             return None;
         }
-        let sum: Vector3<f64> = samples.iter().map(|s| s.acceleration_in_imu).sum();
-        Some(sum / samples.len() as f64)
+        median_per_axis(&samples.iter().map(|s| s.acceleration_in_imu).collect::<Vec<_>>())
     }
 }
 
@@ -413,6 +413,26 @@ pub fn test_data_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../tests/data")
 }
 
+/// The per-axis median of accelerometer readings (`None` when there are none). J 2.2 averages the
+/// readings around a frame; the median gives the same on a smooth motion and leaves out a short
+/// spike (a foot's impact, a glitch) that would tilt the mean's gravity by tens of degrees.
+pub fn median_per_axis(readings: &[Vector3<f64>]) -> Option<Vector3<f64>> {
+    if readings.is_empty() {
+        return None;
+    }
+    let median = |axis: usize| {
+        let mut values: Vec<f64> = readings.iter().map(|r| r[axis]).collect();
+        values.sort_by(f64::total_cmp);
+        let middle = values.len() / 2;
+        if values.len() % 2 == 1 {
+            values[middle]
+        } else {
+            0.5 * (values[middle - 1] + values[middle])
+        }
+    };
+    Some(Vector3::new(median(0), median(1), median(2)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -431,7 +451,7 @@ mod tests {
         let in_range = valid.iter().filter(|d| (0.4..3.0).contains(*d)).count();
         assert!(in_range as f64 > 0.95 * valid.len() as f64);
         // Accelerometer magnitude ≈ g near the first frame.
-        let a = dataset.mean_acceleration_near(dataset.frames[0].timestamp, 0.05).unwrap();
+        let a = dataset.acceleration_near(dataset.frames[0].timestamp, 0.05).unwrap();
         assert!((a.norm() - 9.81).abs() < 0.5, "{}", a.norm());
         let pose = dataset.groundtruth_near(dataset.frames[0].timestamp, 0.02).unwrap();
         assert!((pose.timestamp - dataset.frames[0].timestamp).abs() < 0.02);

@@ -45,7 +45,8 @@ pub struct AcquireConfig {
     /// Row-major rotation `camera_from_imu` (J 2.2: from Procrustes calibration). Identity when
     /// the IMU axes are the optical axes.
     pub camera_from_imu: [[f64; 3]; 3],
-    /// Half window (s) over which accelerometer samples are averaged around a frame timestamp.
+    /// Half window (s) of the accelerometer samples around a frame timestamp whose per-axis median
+    /// gives the frame's gravity.
     pub accel_half_window_s: f64,
     /// Plane gravity (no IMU): which of the dominant planes may be the ground.
     pub plane_prior: PlanePrior,

@@ -1,8 +1,8 @@
 //! The per-frame perception pipeline of the patch_mapper node (J 5.2, "stage II" per frame), ROS-free:
 //!
 //! 1. input checks (stamp order, valid depth fraction),
-//! 2. gravity from the IMU: mean accelerometer reading around the frame stamp through `camera_from_imu`
-//!    (J 2.2, J 4.1 step 2),
+//! 2. gravity from the IMU: the accelerometer readings around the frame stamp (their per-axis
+//!    median) through `camera_from_imu` (J 2.2, J 4.1 step 2),
 //! 3. tracking + fusion: ICP, TSDF integration, moving-volume remap ([`Tracker::process`], J 5.1–5.2
 //!    steps 3–5),
 //! 4. patch tracking on remaps / re-initialisations: the patch map is re-gridded to the new volume and
@@ -33,6 +33,7 @@ use crate::acquire::{gravity_from_accelerometer, AcquireError};
 use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
 use crate::patch_map::{PatchMap, VolumeGrid};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
+use patchwalk_fusion::dataset::median_per_axis;
 use patchwalk_fusion::raycast::BirdsEyeView;
 use patchwalk_fusion::tracking::{FrameReport, LossReason, Tracker, TrackerConfig, TrackingError, TrackingStatus};
 use patchwalk_spl::sensor::ErrorModel;
@@ -453,8 +454,9 @@ impl Pipeline {
         Ok(())
     }
 
-    /// Mean accelerometer reading within `accel_half_window_s` of the stamp, as unit gravity in the
-    /// camera frame: `ĝ = −camera_from_imu · ā / |ā|` (J 2.2).
+    /// The accelerometer readings within `accel_half_window_s` of the stamp (their per-axis median
+    /// ā, see [`median_per_axis`]) as unit gravity in the camera frame: `ĝ = −camera_from_imu · ā / |ā|`
+    /// (J 2.2).
     fn gravity_at(&self, timestamp: f64) -> Result<Option<Unit<Vector3<f64>>>, PipelineError> {
         let acquire = &self.mapper.config.acquire;
         if !self.imu_heard {
@@ -487,26 +489,6 @@ impl Pipeline {
         }
         before - self.mapper.map.len()
     }
-}
-
-/// The per-axis median of accelerometer readings (`None` when there are none). J 2.2 averages the
-/// readings around a frame; the median gives the same on a smooth motion and leaves out a short
-/// spike (a foot's impact, a glitch) that would tilt the mean's gravity by tens of degrees.
-pub fn median_per_axis(readings: &[Vector3<f64>]) -> Option<Vector3<f64>> {
-    if readings.is_empty() {
-        return None;
-    }
-    let median = |axis: usize| {
-        let mut values: Vec<f64> = readings.iter().map(|r| r[axis]).collect();
-        values.sort_by(f64::total_cmp);
-        let middle = values.len() / 2;
-        if values.len() % 2 == 1 {
-            values[middle]
-        } else {
-            0.5 * (values[middle - 1] + values[middle])
-        }
-    };
-    Some(Vector3::new(median(0), median(1), median(2)))
 }
 
 /// Points of a birds-eye view in the map frame (for the PointCloud2), skipping pixels without a hit.

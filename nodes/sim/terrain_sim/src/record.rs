@@ -200,7 +200,7 @@ mod tests {
         // Ground truth and accelerometer match the simulator.
         let pose = dataset.groundtruth_near(dataset.frames[1].timestamp, 1e-3).unwrap();
         assert!((pose.world_from_camera.translation.vector - sim.depth_frame(1).world_from_camera.translation.vector).norm() < 1e-5);
-        let a = dataset.mean_acceleration_near(0.05, 0.06).unwrap();
+        let a = dataset.acceleration_near(0.05, 0.06).unwrap();
         assert!((a.norm() - 9.81).abs() < 0.3, "{}", a.norm());
         let scene: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("scene.json")).unwrap()).unwrap();
         assert_eq!(scene["rocks"].as_array().map(Vec::len), Some(sim.scene.rocks.len()));

@@ -85,14 +85,16 @@ impl<'a> Walk<'a> {
         self.sim.imu.sample(|time| self.world_from_camera(time), t, crate::camera::mix(self.sim.config.seed ^ 0x1a0, index))
     }
 
-    /// Unit gravity (down) in the camera frame at time `t` as the pipeline gets it: the mean
-    /// accelerometer reading within `half_window_s` of `t`, `ĝ = −camera_from_imu · ā / |ā|` (J 2.2).
+    /// Unit gravity (down) in the camera frame at time `t` as the pipeline gets it: the accelerometer
+    /// readings within `half_window_s` of `t` (their per-axis median ā), `ĝ = −camera_from_imu · ā / |ā|`
+    /// (J 2.2).
     pub fn gravity_in_camera(&self, t: f64, half_window_s: f64) -> Option<Vector3<f64>> {
         let rate = self.sim.config.imu.rate_hz;
         let first = ((t - half_window_s) * rate).ceil().max(0.0) as u64;
         let last = ((t + half_window_s) * rate).floor().max(0.0) as u64;
-        let sum: Vector3<f64> = (first..=last).map(|j| self.imu_sample(j).linear_acceleration_in_imu).sum();
-        (-(self.sim.imu.camera_from_imu * sum)).try_normalize(1e-9)
+        let readings: Vec<Vector3<f64>> = (first..=last).map(|j| self.imu_sample(j).linear_acceleration_in_imu).collect();
+        let median = patchwalk_fusion::dataset::median_per_axis(&readings)?;
+        (-(self.sim.imu.camera_from_imu * median)).try_normalize(1e-9)
     }
 
     /// How far the camera moves from frame `a` to frame `b` of the camera clock: (m, deg).

@@ -349,7 +349,7 @@ fn frame_gravity(
     if camera_from_imu.matrix() != &Matrix3::identity() && !dataset.accelerometer.is_empty() {
         let timestamp = dataset.frames[frame].timestamp;
         let acceleration = dataset
-            .mean_acceleration_near(timestamp, config.acquire.accel_half_window_s)
+            .acceleration_near(timestamp, config.acquire.accel_half_window_s)
             .with_context(|| format!("no accelerometer samples near frame {frame} (t = {timestamp:.3})"))?;
         return Ok(gravity_from_accelerometer(&acceleration, &camera_from_imu)?);
     }

@@ -263,7 +263,7 @@ fn frame_gravity(
     if source.starts_with("the accelerometer") {
         let timestamp = dataset.frames[index].timestamp;
         let acceleration = dataset
-            .mean_acceleration_near(timestamp, 0.05)
+            .acceleration_near(timestamp, 0.05)
             .with_context(|| format!("no accelerometer samples near frame {index} (t = {timestamp:.3})"))?;
         return Ok(gravity_from_accelerometer(&acceleration, camera_from_imu)?);
     }

@@ -308,7 +308,7 @@ fn adapt_to_dataset(dataset: &Dataset, config: &mut PatchMapperConfig) -> Result
     let Some(frame) = dataset.frames.first() else { return Ok(()) };
     let depth = dataset.load_depth(0)?;
     let cloud = organized_cloud(&depth, &dataset.intrinsics)?;
-    let gravity = match dataset.mean_acceleration_near(frame.timestamp, config.mapper.acquire.accel_half_window_s) {
+    let gravity = match dataset.acceleration_near(frame.timestamp, config.mapper.acquire.accel_half_window_s) {
         Some(acceleration) => gravity_from_accelerometer(&acceleration, &config.mapper.acquire.camera_from_imu()?).ok(),
         None => gravity_from_ground_plane(&cloud, 0.02, &config.mapper.acquire.plane_prior, 0).ok(),
     };

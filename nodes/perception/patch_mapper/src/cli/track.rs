@@ -153,7 +153,7 @@ pub fn track(args: TrackArgs) -> anyhow::Result<TrackSummary> {
                 .ok()
                 .map(Unit::into_inner),
             GravitySource::Imu => camera_from_imu.and_then(|rotation| {
-                let acceleration = dataset.mean_acceleration_near(dataset.frames.get(index)?.timestamp, 0.02)?;
+                let acceleration = dataset.acceleration_near(dataset.frames.get(index)?.timestamp, 0.02)?;
                 gravity_from_acceleration(&acceleration).map(|g| rotation * g)
             }),
         }

@@ -113,6 +113,14 @@ pub(crate) mod tests {
     use nalgebra::{Translation3, UnitQuaternion};
 
     #[test]
+    fn an_edge_of_whole_blocks_keeps_its_size_through_f32_rounding() {
+        for (size_m, blocks) in [(2.2, 55), (1.28, 32), (1.52, 38), (2.21, 56)] {
+            let volume = TsdfVolume::new(TsdfConfig { voxel_size_m: 0.005, size_m, ..TsdfConfig::default() }).unwrap();
+            assert_eq!(volume.blocks_per_edge(), blocks, "{size_m} m");
+        }
+    }
+
+    #[test]
     fn floor_i_is_floor_and_saturates_outside_the_i32_range() {
         for x in [-2.5f32, -2.0, -0.5, 0.0, 0.5, 2.0, 2.5, 1e6 + 0.5] {
             assert_eq!(floor_i(x), x.floor() as i32, "{x}");

@@ -50,7 +50,10 @@ impl TsdfVolume {
     /// An empty volume (no blocks).
     pub fn new(config: TsdfConfig) -> Result<Self, FusionError> {
         config.validate()?;
-        let blocks_per_edge = (config.size_m / (config.voxel_size_m * BLOCK_EDGE as f32)).ceil().max(1.0) as usize;
+        // Whole blocks covering size_m; an edge that is a whole number of blocks up to f32 rounding
+        // (2.2 m of 4 cm blocks is 55.000001 of them) is that number.
+        let blocks = f64::from(config.size_m) / (f64::from(config.voxel_size_m) * BLOCK_EDGE as f64);
+        let blocks_per_edge = (blocks - 1e-4).ceil().max(1.0) as usize;
         let superblocks_per_edge = blocks_per_edge.div_ceil(SUPERBLOCK_EDGE);
         Ok(Self {
             config,

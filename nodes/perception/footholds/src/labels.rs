@@ -391,17 +391,6 @@ pub fn visible_points(
         .collect()
 }
 
-/// Points of the map visible in a frame, as image pixels (u, v).
-pub fn visible_footholds(
-    depth: &DepthImage,
-    intrinsics: &Intrinsics,
-    map_from_camera: &Isometry3<f64>,
-    points_in_map: &[Vector3<f64>],
-    config: &LabelConfig,
-) -> Vec<(f64, f64)> {
-    visible_points(depth, intrinsics, map_from_camera, points_in_map, config).iter().map(|p| (p.u, p.v)).collect()
-}
-
 /// A painted foothold: the disc its seed cell stands for, in image pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Disc {
@@ -490,10 +479,10 @@ pub fn region_label(region: &Region, discs: &[Disc], centre_fraction: f64) -> La
     }
 }
 
-/// Whether one of the pixels lies in the region's central fraction.
-pub fn tried(region: &Region, pixels: &[(f64, f64)], centre_fraction: f64) -> bool {
-    pixels.iter().any(|&(u, v)| {
-        let (x, y) = region.to_region(u, v);
+/// Whether one of the visible points lies in the region's central fraction.
+pub fn tried(region: &Region, points: &[SeenPoint], centre_fraction: f64) -> bool {
+    points.iter().any(|p| {
+        let (x, y) = region.to_region(p.u, p.v);
         Region::in_centre(x, y, centre_fraction)
     })
 }
@@ -521,7 +510,7 @@ pub fn label_frame(
     let mut inputs = Vec::new();
     let regions = propose(depth, intrinsics, regions_config, &mut inputs)?;
     let footholds_px = painted_footholds(depth, intrinsics, &pose.map_from_camera, footholds_in_map, config);
-    let rejected_px = visible_footholds(depth, intrinsics, &pose.map_from_camera, rejected_in_map, config);
+    let rejected = visible_points(depth, intrinsics, &pose.map_from_camera, rejected_in_map, config);
     let labels = regions
         .iter()
         .map(|r| {
@@ -529,7 +518,7 @@ pub fn label_frame(
                 return Label::Unknown;
             }
             match region_label(r, &footholds_px, config.centre_fraction) {
-                Label::Negative if !tried(r, &rejected_px, config.centre_fraction) => Label::Unknown,
+                Label::Negative if !tried(r, &rejected, config.centre_fraction) => Label::Unknown,
                 label => label,
             }
         })
@@ -604,8 +593,9 @@ mod tests {
     #[test]
     fn negatives_need_a_rejected_point_in_the_centre() {
         let r = region();
-        assert!(tried(&r, &[(70.0, 130.0)], 0.8));
-        assert!(!tried(&r, &[(55.0, 100.0)], 0.8));
+        let at = |u, v| SeenPoint { u, v, depth_m: 0.5 };
+        assert!(tried(&r, &[at(70.0, 130.0)], 0.8));
+        assert!(!tried(&r, &[at(55.0, 100.0)], 0.8));
         assert!(is_rejection(&Verdict::Edge) && is_rejection(&Verdict::Tilt));
         assert!(!is_rejection(&Verdict::Skipped) && !is_rejection(&Verdict::Valid { id: 1 }));
         assert!(!is_rejection(&Verdict::FitFailed("x".into())) && !is_rejection(&Verdict::Coverage));
@@ -631,14 +621,14 @@ mod tests {
         let depth = DepthImage::new(64, 48, vec![1.0; 64 * 48]).unwrap();
         let pose = Isometry3::identity();
         let config = LabelConfig::default();
-        let seen = visible_footholds(
+        let seen = visible_points(
             &depth,
             &k,
             &pose,
             &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5), Vector3::new(5.0, 0.0, 1.0)],
             &config,
         );
-        assert_eq!(seen, vec![(32.0, 24.0)]);
+        assert_eq!(seen.iter().map(|p| (p.u, p.v)).collect::<Vec<_>>(), vec![(32.0, 24.0)]);
         let painted = painted_footholds(&depth, &k, &pose, &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5)], &config);
         assert_eq!(painted, vec![Disc { u: 32.0, v: 24.0, radius_px: 1.0 }]);
     }

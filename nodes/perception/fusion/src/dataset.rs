@@ -112,11 +112,12 @@ impl Dataset {
     /// per-axis median of the samples there ([`median_per_axis`]).
     pub fn acceleration_near(&self, timestamp: f64, half_window: f64) -> Option<Vector3<f64>> {
         let start = self.accelerometer.partition_point(|s| s.timestamp < timestamp - half_window);
-        let samples: Vec<_> = self.accelerometer[start..].iter().take_while(|s| s.timestamp <= timestamp + half_window).collect();
-        if samples.is_empty() {
-            return None;
-        }
-        median_per_axis(&samples.iter().map(|s| s.acceleration_in_imu).collect::<Vec<_>>())
+        let readings: Vec<Vector3<f64>> = self.accelerometer[start..]
+            .iter()
+            .take_while(|s| s.timestamp <= timestamp + half_window)
+            .map(|s| s.acceleration_in_imu)
+            .collect();
+        median_per_axis(&readings)
     }
 }
 

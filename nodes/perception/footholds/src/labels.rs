@@ -117,9 +117,6 @@ pub fn labelling_mapper_config() -> MapperConfig {
     config
 }
 
-/// Birds-eye resolution of the labelling run (px): 5 mm pixels over the 1.28 m volume, the voxel
-/// size, finer than the node's 200 px; the shipped weights were trained on its labels.
-pub const LABELLING_BIRDS_EYE_PX: usize = 240;
 /// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
 pub const SEED_CELL_M: f64 = 0.04;
 /// Points per side of the grid a region's central part is sampled on for the painted centroid.
@@ -145,7 +142,6 @@ pub struct LabellingConfigs {
 /// [`SEED_CELL_M`] cells and scales its seed budget with the area (at most [`MAX_SEEDS`]).
 pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64>) -> Result<LabellingConfigs, FootholdError> {
     let mut tracker = TrackerConfig::default();
-    tracker.birds_eye.resolution_px = LABELLING_BIRDS_EYE_PX;
     let mut mapper = labelling_mapper_config();
     let mut fitted_edge_m = None;
     let Some(first) = dataset.frames.first() else {

@@ -117,6 +117,10 @@ pub fn labelling_mapper_config() -> MapperConfig {
     config
 }
 
+/// The camera's place in the labelling run's moving volume (fractions of the edge along x, y down,
+/// z forward): J's middle of the cube, where the shipped weights' labels were made (a fitted volume
+/// places the camera itself).
+pub const LABELLING_NOMINAL_POSITION_FRACTION: [f64; 3] = [0.5, 0.5, 0.5];
 /// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
 pub const SEED_CELL_M: f64 = 0.04;
 /// Points per side of the grid a region's central part is sampled on for the painted centroid.
@@ -142,6 +146,7 @@ pub struct LabellingConfigs {
 /// [`SEED_CELL_M`] cells and scales its seed budget with the area (at most [`MAX_SEEDS`]).
 pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64>) -> Result<LabellingConfigs, FootholdError> {
     let mut tracker = TrackerConfig::default();
+    tracker.moving_volume.nominal_position_fraction = LABELLING_NOMINAL_POSITION_FRACTION;
     let mut mapper = labelling_mapper_config();
     let mut fitted_edge_m = None;
     let Some(first) = dataset.frames.first() else {

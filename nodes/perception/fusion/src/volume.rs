@@ -22,8 +22,13 @@ pub struct MovingVolumeConfig {
     /// ca: remap when the camera's heading (rotation about the vertical) differs from the volume's z
     /// axis by more than this (deg). J gives no value.
     pub angle_threshold_deg: f64,
-    /// Nominal camera position as fractions of the cube edge along x, y, z (J 5.2: "the initial
-    /// camera position is in the middle of the volume").
+    /// Nominal camera position as fractions of the cube edge along x, y (down), z (forward). J 5.2
+    /// puts it "in the middle of the volume"; a camera looking down from a robot's head never sees
+    /// above itself, so the default puts it a quarter of the edge below the top face: 0.96 m of the
+    /// 1.28 m cube lie below the camera, 0.49 m below the feet of a 0.47 m high head, and the
+    /// ground stays inside when the robot looks down off a ledge or walks down a slope (in the
+    /// middle, with 0.17 m below its feet, tracking lost the ground walking down the simulated
+    /// course).
     pub nominal_position_fraction: [f64; 3],
     /// Whether remaps happen at all (a fixed volume otherwise, e.g. for benchmarks against Open3D).
     pub enabled: bool,
@@ -31,7 +36,7 @@ pub struct MovingVolumeConfig {
 
 impl Default for MovingVolumeConfig {
     fn default() -> Self {
-        Self { distance_threshold_m: 0.3, angle_threshold_deg: 30.0, nominal_position_fraction: [0.5, 0.5, 0.5], enabled: true }
+        Self { distance_threshold_m: 0.3, angle_threshold_deg: 30.0, nominal_position_fraction: [0.5, 0.25, 0.5], enabled: true }
     }
 }
 
@@ -322,10 +327,30 @@ mod tests {
         assert!((pose.rotation * gravity_in_camera - Vector3::y()).norm() < 1e-12);
         let forward = pose.rotation * Vector3::z();
         assert!(forward.x.abs() < 1e-12 && forward.z > 0.8, "{forward}");
-        assert!((pose.translation.vector - Vector3::repeat(0.64)).norm() < 1e-12);
+        // A quarter of the edge below the top face, in the middle across and along.
+        assert!((pose.translation.vector - Vector3::new(0.64, 0.32, 0.64)).norm() < 1e-12);
         assert!(camera_heading(&pose).abs() < 1e-12);
         // Right-handed map rotation: volume y (down) is map −z.
         assert!((map_from_volume_rotation() * Vector3::y() + Vector3::z()).norm() < 1e-12);
+    }
+
+    #[test]
+    fn ground_that_falls_away_below_a_robot_head_stays_inside_the_cube() {
+        // RPBP's head camera 0.47 m above its feet, pitched 45° down, in the default 1.28 m cube.
+        let pitch = 45f64.to_radians();
+        let gravity_in_camera = Vector3::new(0.0, pitch.cos(), pitch.sin());
+        let inside = |config: &MovingVolumeConfig, drop_m: f64, ahead_m: f64| {
+            let camera = initial_volume_from_camera(Some(gravity_in_camera), 1.28, config).translation.vector;
+            // Volume y is down, z forward.
+            let ground = camera + Vector3::new(0.0, 0.47 + drop_m, ahead_m);
+            ground.iter().all(|c| (0.0..1.28).contains(c))
+        };
+        let default = MovingVolumeConfig::default();
+        // Looking down off a 0.4 m ledge, 0.5 m ahead.
+        assert!(inside(&default, 0.4, 0.5));
+        // With the camera in the middle of the cube (J 5.2), 0.17 m of it lie below the feet.
+        let middle = MovingVolumeConfig { nominal_position_fraction: [0.5; 3], ..default };
+        assert!(inside(&middle, 0.15, 0.5) && !inside(&middle, 0.4, 0.5));
     }
 
     #[test]
@@ -338,8 +363,9 @@ mod tests {
         let remap = plan_remap(&config, &moved, 1.28, 0.04).unwrap();
         assert!(remap.rotation.angle() < 1e-12);
         assert!((remap.translation.x + 0.24).abs() < 1e-9, "{}", remap.translation.x);
+        let nominal = config.nominal_position(1.28);
         let after = remap * moved;
-        assert!((after.translation.vector - Vector3::repeat(0.64)).norm() < 0.021);
+        assert!((after.translation.vector - nominal).norm() < 0.021);
         // Turned 40° about the vertical: rotation about y only, heading back to 0, y stays vertical.
         let turned = Isometry3::from_parts(
             start.translation,
@@ -349,7 +375,7 @@ mod tests {
         let after = remap * turned;
         assert!(camera_heading(&after).abs() < 1e-9);
         assert!((remap.rotation * Vector3::y() - Vector3::y()).norm() < 1e-12);
-        assert!((after.translation.vector - Vector3::repeat(0.64)).norm() < 1e-9);
+        assert!((after.translation.vector - nominal).norm() < 1e-9);
         let disabled = MovingVolumeConfig { enabled: false, ..config };
         assert!(plan_remap(&disabled, &turned, 1.28, 0.04).is_none());
     }

@@ -54,9 +54,11 @@ pub struct SaliencyConfig {
     pub depth_edge_clearance: f64,
     /// Largest RMS distance (m) of the foot window's points from the plane through their mean
     /// along the coarse normal N ([`crate::window_flatness`]): a window spread further holds a step
-    /// or a bump a foot disc cannot stand on (a paraboloid at J's κ_max = 19.7 m⁻¹ over r = 5 cm
-    /// spreads 7 mm; a 2 cm step through the window's middle, 1 cm). Infinite turns the check off,
-    /// J's step 6 as written.
+    /// or a bump a foot disc cannot stand on. The window is a square of half side r (on a surface
+    /// facing the camera): a step of height h through its middle spreads h/2 (5 mm: a 1 cm step),
+    /// a paraboloid of curvature κ centred in it `κ r² √(2/45)` (5 mm at κ = 9.5 m⁻¹ and r = 5 cm,
+    /// below J's κ_max = 19.7 m⁻¹: the apex of a rounder bump gets no seed, the bump's patches are
+    /// seeded around it). Infinite turns the check off, J's step 6 as written.
     pub window_rms_max_m: f64,
 }
 

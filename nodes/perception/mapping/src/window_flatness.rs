@@ -5,7 +5,8 @@
 //! be a step of a few centimetres or a tight bump, which the fit then drapes (J 3.3's curvature
 //! limit) or the foot disc straddles (the foothold edge test). The spread of the window's points
 //! about their plane says so before any patch is fitted: for a paraboloid of curvature κ over a disc
-//! of radius r it is `κ r² / √48` (7 mm at J's κ_max = 19.7 m⁻¹ and r = 5 cm), and a step of height h
+//! of radius r it is `κ r² / √48` (7 mm at J's κ_max = 19.7 m⁻¹ and r = 5 cm), over the square of half
+//! side r the saliency's foot window covers `κ r² √(2/45)` (10.4 mm), and a step of height h
 //! through a window's middle gives about h/2 about the window's mean.
 
 use nalgebra::{Matrix3, Vector3};

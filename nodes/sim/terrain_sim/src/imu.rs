@@ -104,7 +104,7 @@ impl Imu {
         // acceleration of tens of m/s², and the gravity of the first frames with it.
         let centre = t.max(h);
         let (before, middle, after) = (world_from_imu(centre - h), world_from_imu(centre), world_from_imu(centre + h));
-        let now = world_from_imu(t);
+        let now = if t < h { world_from_imu(t) } else { middle };
         let acceleration_in_world = (after.translation.vector - 2.0 * middle.translation.vector + before.translation.vector) / (h * h);
         let specific_force_in_world = acceleration_in_world + Vector3::new(0.0, 0.0, self.config.gravity_mps2);
         // ω (world) from R(t+h)·R(t−h)ᵀ = exp(2h·[ω]×).

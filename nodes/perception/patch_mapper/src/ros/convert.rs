@@ -92,31 +92,32 @@ pub fn depth_image(msg: &Image) -> Result<DepthImage, ImageError> {
     let (w, h) = (width as usize, height as usize);
     match encoding {
         DepthEncoding::MillimetresU16 => {
-            let raw: Vec<u16> = rows
-                .flat_map(|row| row.chunks_exact(2))
-                .map(|b| {
+            // Filled row by row into the final size (a flattened iterator does not know its length).
+            let mut raw: Vec<u16> = Vec::with_capacity(w * h);
+            for row in rows {
+                raw.extend(row.chunks_exact(2).map(|b| {
                     let bytes = [b[0], b[1]];
                     if big_endian {
                         u16::from_be_bytes(bytes)
                     } else {
                         u16::from_le_bytes(bytes)
                     }
-                })
-                .collect();
+                }));
+            }
             Ok(DepthImage::from_u16(w, h, &raw, 0.001)?)
         }
         DepthEncoding::MetresF32 => {
-            let depth_m: Vec<f32> = rows
-                .flat_map(|row| row.chunks_exact(4))
-                .map(|b| {
+            let mut depth_m: Vec<f32> = Vec::with_capacity(w * h);
+            for row in rows {
+                depth_m.extend(row.chunks_exact(4).map(|b| {
                     let bytes = [b[0], b[1], b[2], b[3]];
                     if big_endian {
                         f32::from_be_bytes(bytes)
                     } else {
                         f32::from_le_bytes(bytes)
                     }
-                })
-                .collect();
+                }));
+            }
             Ok(DepthImage::new(w, h, depth_m)?)
         }
     }

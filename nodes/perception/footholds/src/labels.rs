@@ -104,11 +104,13 @@ impl Label {
 }
 
 /// The mapper of the labelling run: the node's configuration (the RPBP foot, the birds-eye input)
-/// with seeds over the whole volume (no fixation ball, 4 cm cells, up to 1,024 seeds per frame) and
-/// a time limit that does not cut the fit short.
+/// with seeds over the whole volume (no fixation ball, 4 cm cells, up to 1,024 seeds per frame), a
+/// time limit that does not cut the fit short, and the foot window's plane test alone (no
+/// quadric), as when the shipped weights' labels were made.
 pub fn labelling_mapper_config() -> MapperConfig {
     let mut config = default_mapper_config();
     config.saliency.fixation_radius_m = f64::INFINITY;
+    config.saliency.window_quadric_rms_max_m = 0.0;
     config.seeds.cells_per_side = 32;
     config.seeds.per_cell = 1;
     config.seeds.max_seeds = 1024;
@@ -121,6 +123,9 @@ pub fn labelling_mapper_config() -> MapperConfig {
 /// z forward): J's middle of the cube, where the shipped weights' labels were made (a fitted volume
 /// places the camera itself).
 pub const LABELLING_NOMINAL_POSITION_FRACTION: [f64; 3] = [0.5, 0.5, 0.5];
+/// Birds-eye resolution of the labelling run (px): 5 mm pixels over the 1.28 m volume, the voxel
+/// size, finer than the node's 200 px; the shipped weights were trained on its labels.
+pub const LABELLING_BIRDS_EYE_PX: usize = 240;
 /// Side of a seed cell of the labelling run (m): 32 cells over the 1.28 m volume.
 pub const SEED_CELL_M: f64 = 0.04;
 /// Points per side of the grid a region's central part is sampled on for the painted centroid.
@@ -147,6 +152,7 @@ pub struct LabellingConfigs {
 pub fn labelling_configs(dataset: &Dataset, camera_from_imu: &UnitQuaternion<f64>) -> Result<LabellingConfigs, FootholdError> {
     let mut tracker = TrackerConfig::default();
     tracker.moving_volume.nominal_position_fraction = LABELLING_NOMINAL_POSITION_FRACTION;
+    tracker.birds_eye.resolution_px = LABELLING_BIRDS_EYE_PX;
     let mut mapper = labelling_mapper_config();
     let mut fitted_edge_m = None;
     let Some(first) = dataset.frames.first() else {

@@ -533,8 +533,13 @@ impl MapperConfig {
 /// `validate.tilt_max_deg` when that test is on, since a seed whose surface normal is steeper than the
 /// limit can only fit a patch the tilt test rejects (fitting it costs time and takes the place of a
 /// seed that could stand). With the tilt test off (`ValidateConfig::j33`) φ_g is J's as configured.
+/// Likewise a window's quadric keeps a bump only within the validator's `curvature_max`.
 pub fn seed_saliency_config(config: &MapperConfig) -> SaliencyConfig {
-    SaliencyConfig { dong_max_deg: config.saliency.dong_max_deg.min(config.validate.tilt_max_deg), ..config.saliency.clone() }
+    SaliencyConfig {
+        dong_max_deg: config.saliency.dong_max_deg.min(config.validate.tilt_max_deg),
+        window_curvature_max: config.saliency.window_curvature_max.min(config.validate.curvature_max),
+        ..config.saliency.clone()
+    }
 }
 
 /// The checks [`Mapper::new`] makes on a configuration.

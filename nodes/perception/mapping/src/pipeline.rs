@@ -509,11 +509,12 @@ pub fn birds_eye_points_in_map(view: &BirdsEyeView, map_from_birds_eye: &Isometr
     points
 }
 
-/// Runs `op` on a thread of rayon's pool (inline when already on one), the calling thread waiting
-/// once. A frame runs dozens of parallel loops (the raycasts' rows, each ICP iteration's reduction,
-/// the mapper's tables); started from a thread outside the pool (the node's worker, the replay
-/// loop), each of them would be handed to the pool and waited for across threads. Replays of a
-/// walk: ICP p99 6.7 → 4.9 ms, frame p99 18.6 → 17.7 ms (means of 6 runs).
+/// Runs `op` on a thread of rayon's pool (inline when already on one, as in the ROS node, whose
+/// worker runs in a pool of its own), the calling thread waiting once. A frame runs dozens of
+/// parallel loops (the raycasts' rows, each ICP iteration's reduction, the mapper's tables); started
+/// from a thread outside any pool (the replay loop, the benches), each of them would be handed to
+/// the pool and waited for across threads, and the offline timings would not be the node's. Replays
+/// of a walk: ICP p99 6.7 → 4.9 ms, frame p99 18.6 → 17.7 ms (means of 6 runs).
 fn on_thread_pool<R: Send>(op: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| op())
 }

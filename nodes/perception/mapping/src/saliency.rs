@@ -60,6 +60,16 @@ pub struct SaliencyConfig {
     /// below J's κ_max = 19.7 m⁻¹: the apex of a rounder bump gets no seed, the bump's patches are
     /// seeded around it). Infinite turns the check off, J's step 6 as written.
     pub window_rms_max_m: f64,
+    /// A window spread further than `window_rms_max_m` is kept when the quadric that fits it best
+    /// leaves no more than this RMS (m) and curves no more than `window_curvature_max`: a smooth
+    /// bump (a rock's top), which the plane test cannot tell from a step. A step of height h
+    /// through the window's middle leaves h/4 (2 mm: an 8 mm step), so steps stay out. 0 turns
+    /// the quadric off (the plane test alone).
+    pub window_quadric_rms_max_m: f64,
+    /// Largest principal curvature (m⁻¹) of a window's quadric for `window_quadric_rms_max_m` to
+    /// keep it. J 3.3.3's κ_max = 19.7; the mapper uses the lower of this and the validator's
+    /// `curvature_max`.
+    pub window_curvature_max: f64,
 }
 
 impl Default for SaliencyConfig {
@@ -75,6 +85,8 @@ impl Default for SaliencyConfig {
             depth_edge_jump: 0.04,
             depth_edge_clearance: 1.0,
             window_rms_max_m: 0.005,
+            window_quadric_rms_max_m: 0.002,
+            window_curvature_max: 19.7,
         }
     }
 }
@@ -214,7 +226,15 @@ pub fn hiking_saliency(
     let jump = if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 };
     let ((integral, edges), moments) = rayon::join(
         || rayon::join(|| IntegralCloud::new(depth, intrinsics), || EdgeDistance::new(depth, jump)),
-        || config.window_rms_max_m.is_finite().then(|| WindowMoments::new(depth, intrinsics)),
+        || {
+            config.window_rms_max_m.is_finite().then(|| {
+                if config.window_quadric_rms_max_m > 0.0 {
+                    WindowMoments::with_quadrics(depth, intrinsics)
+                } else {
+                    WindowMoments::new(depth, intrinsics)
+                }
+            })
+        },
     );
     let frame = LabelInput {
         depth,
@@ -319,10 +339,7 @@ fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> S
                     SaliencyLabel::Irregular // 6.4 DoN
                 } else if -n.dot(&g) < cos_dong {
                     SaliencyLabel::Steep // 6.5 DoNG
-                } else if moments
-                    .and_then(|m| m.rms_off_plane(u, v, half, &n, config.min_support_fraction * ((2 * half + 1) as f64).powi(2)))
-                    .is_some_and(|rms| rms > config.window_rms_max_m)
-                {
+                } else if moments.is_some_and(|m| uneven(m, u, v, half, &n, config)) {
                     SaliencyLabel::Uneven
                 } else {
                     let cos_view = (n.dot(&point) / point.norm()).abs().max(0.1);
@@ -334,6 +351,18 @@ fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> S
         })
         .sum();
     Saliency { width, height, labels, normals_in_camera, fixation_in_camera: *fixation, salient_area_m2, dtfp_fallback: None }
+}
+
+/// Whether the foot window of half size `half` at `(u, v)` spreads off its plane along the coarse
+/// normal `n` (a step or a bump) and is not a smooth bump a quadric explains either.
+fn uneven(moments: &WindowMoments, u: usize, v: usize, half: usize, n: &Vector3<f64>, config: &SaliencyConfig) -> bool {
+    let min_points = config.min_support_fraction * ((2 * half + 1) as f64).powi(2);
+    let spread = moments.rms_off_plane(u, v, half, n, min_points).is_some_and(|rms| rms > config.window_rms_max_m);
+    spread
+        && !(config.window_quadric_rms_max_m > 0.0
+            && moments
+                .quadric(u, v, half, min_points)
+                .is_some_and(|q| q.rms_m <= config.window_quadric_rms_max_m && q.curvature_max <= config.window_curvature_max))
 }
 
 #[cfg(test)]
@@ -556,5 +585,30 @@ pub(crate) mod tests {
         // A fixation point on the rig's floor needs no fallback.
         let on_rig = SaliencyConfig { fixation_down_m: 0.4, fixation_forward_m: 1.0, ..config };
         assert!(hiking_saliency(&depth, &intrinsics, &g, 0.05, &on_rig).dtfp_fallback.is_none());
+    }
+
+    #[test]
+    fn the_top_of_a_smooth_bump_is_salient_and_a_step_is_not() {
+        // Looking straight down from 1 m (foot window half size 7 px): a κ = 12 m⁻¹ bump spreads
+        // 6.3 mm off the plane at its top, more than window_rms_max_m, but its quadric explains it;
+        // a 2 cm step (below the depth-edge jump) does not get in that way, nor does a bump
+        // rounder than window_curvature_max.
+        let intrinsics = small_camera();
+        let g = gravity_from_vector(Vector3::z()).unwrap();
+        let config = SaliencyConfig { fixation_radius_m: f64::INFINITY, ..Default::default() };
+        let bump = |kappa: f64| render(&intrinsics, move |p| 1.0 - kappa / 2.0 * (p.x * p.x + p.y * p.y) - p.z);
+        let top = 60 * 160 + 80;
+        let label_at_top = |kappa: f64, config: &SaliencyConfig| hiking_saliency(&bump(kappa), &intrinsics, &g, 0.05, config).labels[top];
+        assert_eq!(label_at_top(12.0, &config), SaliencyLabel::Salient);
+        let plane_only = SaliencyConfig { window_quadric_rms_max_m: 0.0, ..config.clone() };
+        assert_eq!(label_at_top(12.0, &plane_only), SaliencyLabel::Uneven);
+        assert_eq!(label_at_top(25.0, &config), SaliencyLabel::Uneven);
+        // The step along x = 0: the pixels whose window it crosses near the middle stay uneven.
+        let step = render(&intrinsics, |p| if p.x < 0.0 { 0.98 - p.z } else { 1.0 - p.z });
+        let with_quadric = hiking_saliency(&step, &intrinsics, &g, 0.05, &config);
+        let without = hiking_saliency(&step, &intrinsics, &g, 0.05, &plane_only);
+        let uneven = without.count(SaliencyLabel::Uneven);
+        assert!(uneven > 100, "{uneven}");
+        assert_eq!(with_quadric.count(SaliencyLabel::Uneven), uneven);
     }
 }

@@ -24,7 +24,7 @@ pub const REPLAY_NOW_S: f64 = 1.0e9;
 /// refused as over the budget (the node itself takes up to 16,384 px a side).
 pub const PIPELINE_MAX_PIXELS: usize = 64 * 48;
 
-/// Birds-eye raycast resolution of the [`pipeline_frame`] pipeline (px; the node uses 240).
+/// Birds-eye raycast resolution of the [`pipeline_frame`] pipeline (px; the node uses 200).
 const PIPELINE_BIRDS_EYE_PX: usize = 48;
 
 /// Why a serialized input was refused: each names the stage.

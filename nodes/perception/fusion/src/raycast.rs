@@ -111,8 +111,20 @@ pub fn raycast_birds_eye(
     birds_eye: &BirdsEyeConfig,
     volume_from_camera: &Isometry3<f64>,
 ) -> BirdsEyeView {
+    raycast_birds_eye_within(volume, config, birds_eye, volume_from_camera, None)
+}
+
+/// [`raycast_birds_eye`] of only the pixels `within` marks (row-major, one per pixel of the view;
+/// the others are left without a hit), or of all of them.
+pub fn raycast_birds_eye_within(
+    volume: &TsdfVolume,
+    config: &RaycastConfig,
+    birds_eye: &BirdsEyeConfig,
+    volume_from_camera: &Isometry3<f64>,
+    within: Option<&[bool]>,
+) -> BirdsEyeView {
     let (intrinsics, volume_from_birds_eye) = birds_eye_camera(birds_eye, volume_from_camera);
-    let model = raycast(volume, config, &intrinsics, &volume_from_birds_eye);
+    let model = raycast_pixels(volume, config, &intrinsics, &volume_from_birds_eye, None, within);
     BirdsEyeView { depth: model.depth, intrinsics, volume_from_birds_eye, normals_in_volume: model.normals_in_volume }
 }
 
@@ -162,6 +174,19 @@ pub fn raycast_guided(
     volume_from_camera: &Isometry3<f64>,
     hint: Option<RayHint<'_>>,
 ) -> ModelRaycast {
+    raycast_pixels(volume, config, intrinsics, volume_from_camera, hint, None)
+}
+
+/// [`raycast_guided`] of the pixels `within` marks (all of them when it does not match the image).
+fn raycast_pixels(
+    volume: &TsdfVolume,
+    config: &RaycastConfig,
+    intrinsics: &Intrinsics,
+    volume_from_camera: &Isometry3<f64>,
+    hint: Option<RayHint<'_>>,
+    within: Option<&[bool]>,
+) -> ModelRaycast {
+    let within = within.filter(|w| w.len() == intrinsics.width * intrinsics.height);
     let hint = hint.filter(|h| h.depth.width == intrinsics.width && h.depth.height == intrinsics.height);
     // The finer image must be an integer multiple of the raycast resolution.
     let fine = hint.and_then(|h| h.fine).and_then(|fine| {
@@ -189,6 +214,9 @@ pub fn raycast_guided(
                 return;
             };
             let start_ray = |u: usize| {
+                if within.is_some_and(|w| !w.get(v * width + u).copied().unwrap_or(false)) {
+                    return None;
+                }
                 let ray_in_camera = Vector3::new((u as f32 - cx) / fx, (v as f32 - cy) / fy, 1.0);
                 let ray_length = ray_in_camera.norm();
                 let direction = rotation * (ray_in_camera / ray_length);
@@ -559,5 +587,30 @@ mod tests {
         // A camera outside the cube looking away hits nothing either.
         let model = raycast(&volume, &RaycastConfig::default(), &intrinsics, &Isometry3::translation(-5.0, 0.0, 0.0));
         assert_eq!(model.hit_count(), 0);
+    }
+
+    #[test]
+    fn a_birds_eye_view_within_a_region_is_the_whole_view_there() {
+        let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
+        let mut volume = TsdfVolume::new(config).unwrap();
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_4);
+        let pose = Isometry3::from_parts(Translation3::new(0.64, 0.5, 0.3), tilt);
+        volume.integrate(&render_plane(&intrinsics, &pose, Vector3::y(), 1.0), &intrinsics, &pose).unwrap();
+        let birds_eye = BirdsEyeConfig::default();
+        let whole = raycast_birds_eye(&volume, &RaycastConfig::default(), &birds_eye, &pose);
+        let br = birds_eye.resolution_px;
+        let within: Vec<bool> = (0..br * br).map(|i| (i % br) % 3 == 0 && (i / br) % 2 == 0).collect();
+        let part = raycast_birds_eye_within(&volume, &RaycastConfig::default(), &birds_eye, &pose, Some(&within));
+        let mut hits = 0;
+        for (i, (a, b)) in whole.depth.depth_m.iter().zip(&part.depth.depth_m).enumerate() {
+            if within[i] {
+                assert!(a.to_bits() == b.to_bits(), "pixel {i}: {a} vs {b}");
+                hits += usize::from(b.is_finite());
+            } else {
+                assert!(b.is_nan(), "pixel {i} outside the region has depth {b}");
+            }
+        }
+        assert!(hits > 1000, "{hits}");
     }
 }

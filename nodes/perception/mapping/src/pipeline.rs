@@ -12,7 +12,8 @@
 //!    the patch map is kept; the next frame that aligns against the kept model is `Relocalised` and
 //!    mapped as usual. Only a real loss (more than `tracker.relocalisation.max_lost_frames` failed
 //!    frames in a row) resets the whole map (J 5.2),
-//! 5. birds-eye raycast of the volume (J 5.2 step 8),
+//! 5. birds-eye raycast of the volume (J 5.2 step 8), of the part the mapper reads: around the DtFP
+//!    ball and the patches it re-fits this frame (`PipelineConfig::raycast_mapped_region`),
 //! 6. patch mapping on the birds-eye view ([`Mapper::process`], J 4 stages i–v, J 5.2 step 9): seeds
 //!    fill the gravity-aligned grid nearest-cell-first around the camera, i.e. around and in front of
 //!    the feet; the saliency fixation point sits `fixation_forward_m` ahead.
@@ -30,8 +31,10 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point3, Rotation3, Unit, Vector3};
 
 use crate::acquire::{gravity_from_accelerometer, AcquireError};
-use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
+use crate::mapper::{seed_saliency_config, FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
+use crate::patch_fusion::revisits;
 use crate::patch_map::{PatchMap, VolumeGrid};
+use crate::saliency::fixation_point;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::median_per_axis;
 use patchwalk_fusion::raycast::BirdsEyeView;
@@ -54,13 +57,24 @@ pub struct PipelineConfig {
     pub allow_missing_imu: bool,
     /// Accelerometer samples older than this (s) before the newest one are forgotten.
     pub imu_buffer_s: f64,
+    /// Raycast only the part of the birds-eye view the mapper reads (true), or all of it: the DtFP
+    /// ball (J 4.2.1 step 6.2) and the map patches it re-fits this frame, widened by
+    /// [`REGION_MARGIN_RADII`] foot radii. The whole view is raycast without a DtFP ball (an infinite
+    /// `mapper.saliency.fixation_radius_m`), after a frame whose ball held no salient point (the
+    /// saliency then looks at the whole view), and while [`Pipeline::set_whole_view`] asks for it.
+    pub raycast_mapped_region: bool,
 }
 
 impl Default for PipelineConfig {
     fn default() -> Self {
-        Self { min_valid_fraction: 0.05, allow_missing_imu: true, imu_buffer_s: 2.0 }
+        Self { min_valid_fraction: 0.05, allow_missing_imu: true, imu_buffer_s: 2.0, raycast_mapped_region: true }
     }
 }
+
+/// How far (foot radii r) the raycast region reaches past the DtFP ball and past the anchors of
+/// the patches re-fitted: a seed's foot window and neighbourhood (r), and the foot disc of the patch
+/// fitted there, whose centre may lie another r out.
+pub const REGION_MARGIN_RADII: f64 = 2.0;
 
 /// The mapper configuration of the node: J's values (`MapperConfig::default()`) except where the
 /// birds-eye input and the robot's size ask otherwise.
@@ -261,6 +275,10 @@ pub struct Pipeline {
     imu_heard: bool,
     last_stamp: Option<f64>,
     intrinsics: Intrinsics,
+    /// The last frame's saliency fell back to the whole view (its DtFP ball held no salient point).
+    fell_back: bool,
+    /// A caller wants the whole birds-eye view (e.g. to show it).
+    whole_view: bool,
 }
 
 impl Pipeline {
@@ -285,7 +303,17 @@ impl Pipeline {
             )));
         }
         let mapper = Mapper::new(mapper, MAP_FRAME, tracker.map_from_volume().inverse())?;
-        Ok(Self { config, tracker, mapper, imu: VecDeque::new(), imu_heard: false, last_stamp: None, intrinsics })
+        Ok(Self {
+            config,
+            tracker,
+            mapper,
+            imu: VecDeque::new(),
+            imu_heard: false,
+            last_stamp: None,
+            intrinsics,
+            fell_back: false,
+            whole_view: false,
+        })
     }
 
     /// New mapper parameters from the next frame on; see [`Mapper::set_config`].
@@ -310,6 +338,39 @@ impl Pipeline {
     /// once they are out (the ROS node does, after publishing), or let the next `process` do it.
     pub fn prepare_next_frame(&mut self) {
         on_thread_pool(|| self.tracker.prepare_model());
+    }
+
+    /// The pixels of the birds-eye view the mapper reads this frame (see
+    /// `PipelineConfig::raycast_mapped_region`), `None` for all of them: the DtFP ball and the
+    /// patches the mapper will re-fit, those whose anchor it sees (one ray each), least recently
+    /// observed first ([`revisits`], the mapper's own choice), each [`REGION_MARGIN_RADII`] foot
+    /// radii wider.
+    fn mapped_region(&self) -> Option<Vec<bool>> {
+        let config = &self.mapper.config;
+        let saliency = seed_saliency_config(config);
+        if !self.config.raycast_mapped_region || self.whole_view || self.fell_back || !saliency.fixation_radius_m.is_finite() {
+            return None;
+        }
+        let (intrinsics, volume_from_birds_eye) = self.tracker.birds_eye_camera();
+        let margin = REGION_MARGIN_RADII * config.foot_radius_m;
+        let mut region = vec![false; intrinsics.width * intrinsics.height];
+        // The birds-eye camera looks along gravity, its z axis.
+        let fixation = fixation_point(&Vector3::z_axis(), saliency.fixation_down_m, saliency.fixation_forward_m);
+        mark_ball(&mut region, &intrinsics, &fixation, saliency.fixation_radius_m + margin);
+        let birds_eye_from_map = volume_from_birds_eye.inverse() * self.mapper.map.grid().volume_from_map;
+        let mut anchor_pixels = vec![false; region.len()];
+        for patch in self.mapper.map.patches() {
+            if let Some((u, v)) = intrinsics.pixel_of(&(birds_eye_from_map * Point3::from(patch.anchor)).coords) {
+                if let Some(pixel) = anchor_pixels.get_mut(v * intrinsics.width + u) {
+                    *pixel = true;
+                }
+            }
+        }
+        let anchors = self.tracker.birds_eye_within(&anchor_pixels);
+        for revisit in revisits(&self.mapper.map, &birds_eye_from_map, &anchors.depth, &intrinsics, config.foot_radius_m, &config.fusion) {
+            mark_ball(&mut region, &intrinsics, &revisit.anchor_in_camera, margin);
+        }
+        Some(region)
     }
 
     /// The tracker (volume, pose).
@@ -359,6 +420,13 @@ impl Pipeline {
         self.mapper.set_seed_priors(Vec::new());
         self.last_stamp = None;
         self.imu.clear();
+        self.fell_back = false;
+    }
+
+    /// Raycast the whole birds-eye view from the next frame on (true), or only the part the mapper
+    /// reads when `raycast_mapped_region` is on (false).
+    pub fn set_whole_view(&mut self, whole: bool) {
+        self.whole_view = whole;
     }
 
     /// The stamp of the last processed frame (s), `None` after a reset.
@@ -400,8 +468,11 @@ impl Pipeline {
         let t_track = Instant::now();
         let patches_dropped = self.track_patches(&report);
         let t_patch = Instant::now();
-        // 5. Birds-eye raycast (J 5.2 step 8).
-        let birds_eye = self.tracker.birds_eye();
+        // 5. Birds-eye raycast (J 5.2 step 8), of the part the mapper reads.
+        let birds_eye = match self.mapped_region() {
+            Some(region) => self.tracker.birds_eye_within(&region),
+            None => self.tracker.birds_eye(),
+        };
         let map_from_birds_eye = self.tracker.map_from_birds_eye(&birds_eye);
         let t_birds_eye = Instant::now();
         // 6. Patch mapping on the birds-eye view (J 5.2 step 9, J 4).
@@ -411,6 +482,7 @@ impl Pipeline {
             volume_from_camera: birds_eye.volume_from_birds_eye,
             timestamp,
         })?;
+        self.fell_back = mapped.saliency.dtfp_fallback.is_some();
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         let timings = PipelineTimings {
             gravity_ms: ms(start, t_gravity),
@@ -507,6 +579,38 @@ pub fn birds_eye_points_in_map(view: &BirdsEyeView, map_from_birds_eye: &Isometr
         }
     }
     points
+}
+
+/// Marks the pixels of the rectangle that holds the image of the ball of `radius` around `centre`
+/// (camera frame), all of them when the ball reaches the camera's plane.
+fn mark_ball(region: &mut [bool], intrinsics: &Intrinsics, centre: &Vector3<f64>, radius: f64) {
+    let near = centre.z - radius;
+    if !(near > 1e-3 && radius.is_finite() && centre.x.is_finite() && centre.y.is_finite()) {
+        region.fill(true);
+        return;
+    }
+    // Over the ball's bounding box (z > 0), x/z and y/z are monotonic in each coordinate: its
+    // corners bound the image.
+    let span = |along: f64, focal: f64, principal: f64, size: usize| {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for a in [along - radius, along + radius] {
+            for depth in [near, centre.z + radius] {
+                let pixel = focal * a / depth + principal;
+                lo = lo.min(pixel);
+                hi = hi.max(pixel);
+            }
+        }
+        let first = lo.floor().clamp(0.0, size as f64) as usize;
+        let end = (hi.ceil() + 1.0).clamp(0.0, size as f64) as usize;
+        first..end.max(first)
+    };
+    let columns = span(centre.x, intrinsics.fx, intrinsics.cx, intrinsics.width);
+    for v in span(centre.y, intrinsics.fy, intrinsics.cy, intrinsics.height) {
+        let row = v * intrinsics.width;
+        if let Some(pixels) = region.get_mut(row + columns.start..row + columns.end) {
+            pixels.fill(true);
+        }
+    }
 }
 
 /// Runs `op` on a thread of rayon's pool (inline when already on one, as in the ROS node, whose
@@ -665,6 +769,61 @@ mod tests {
             assert_eq!(patch.covariance.shape(), (patch.dof(), patch.dof()));
         }
         assert!(floor >= 5, "{floor} floor patches");
+    }
+
+    #[test]
+    fn the_marked_rectangle_holds_the_image_of_the_ball() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        for (centre, radius) in
+            [(Vector3::new(0.1, -0.2, 0.9), 0.15), (Vector3::new(-0.5, 0.3, 1.2), 0.1), (Vector3::new(2.0, 0.0, 1.0), 0.2)]
+        {
+            let mut region = vec![false; intrinsics.width * intrinsics.height];
+            mark_ball(&mut region, &intrinsics, &centre, radius);
+            let mut inside = 0;
+            for i in 0..2000 {
+                // Points spread over the ball (a deterministic spiral of directions and radii).
+                let (a, b, r) = (i as f64 * 2.399, (i as f64 / 2000.0 * 2.0 - 1.0).acos(), radius * ((i % 7) as f64 / 6.0));
+                let point = centre + Vector3::new(b.sin() * a.cos(), b.sin() * a.sin(), b.cos()) * r;
+                if let Some((u, v)) = intrinsics.pixel_of(&point) {
+                    assert!(region[v * intrinsics.width + u], "{point:?} at ({u}, {v}) not marked");
+                    inside += 1;
+                }
+            }
+            assert!(inside > 0 || centre.x > 1.0);
+            let marked = region.iter().filter(|m| **m).count();
+            assert!(marked < region.len() / 2, "{marked}");
+        }
+        // A ball reaching the camera's plane marks everything.
+        let mut region = vec![false; 12];
+        mark_ball(&mut region, &Intrinsics::new(4, 3, 2.0, 2.0, 1.5, 1.0).unwrap(), &Vector3::new(0.0, 0.0, 0.1), 0.2);
+        assert!(region.iter().all(|m| *m));
+    }
+
+    #[test]
+    fn raycasting_only_what_the_mapper_reads_maps_the_same_patches() {
+        // The robot scene mapped twice, the birds-eye view raycast whole and only where the mapper
+        // reads (the DtFP ball, the patches it re-fits): the same patches, from fewer rays.
+        let run = |region: bool| {
+            let (mut pipeline, depth, down) = robot_scene_pipeline();
+            pipeline.config.raycast_mapped_region = region;
+            let mut raycast = 0;
+            for frame in 0..8 {
+                let t = frame as f64 / 30.0;
+                pipeline.push_imu(t - 0.005, -down * 9.81).unwrap();
+                raycast += pipeline.process(&depth, t).unwrap().birds_eye.depth.valid_count();
+            }
+            let centres: Vec<_> = pipeline.map().patches().iter().map(|m| (m.id, m.patch.center, m.observations)).collect();
+            (centres, raycast)
+        };
+        let (whole, whole_hits) = run(false);
+        let (part, part_hits) = run(true);
+        assert!(whole.len() >= 8, "{}", whole.len());
+        assert_eq!(whole.len(), part.len());
+        for ((id_a, a, seen_a), (id_b, b, seen_b)) in whole.iter().zip(&part) {
+            assert_eq!((id_a, seen_a), (id_b, seen_b));
+            assert!((a - b).norm() < 1e-9, "patch {id_a}: {a:?} vs {b:?}");
+        }
+        assert!(part_hits < whole_hits, "{part_hits} of {whole_hits} birds-eye hits");
     }
 
     #[test]

@@ -37,7 +37,10 @@ pub mod relocalise;
 
 use crate::camera::{DepthImage, Intrinsics};
 use crate::fusion::{FusionError, TsdfConfig, TsdfVolume};
-use crate::raycast::{raycast_birds_eye, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint, RaycastConfig};
+use crate::raycast::{
+    birds_eye_camera, raycast_birds_eye, raycast_birds_eye_within, raycast_guided, BirdsEyeConfig, BirdsEyeView, ModelRaycast, RayHint,
+    RaycastConfig,
+};
 use crate::volume::{initial_volume_from_camera, map_from_volume_rotation, plan_remap, remap_tsdf, MovingVolumeConfig};
 use icp::plan_source;
 pub use icp::{build_pyramid, downsample, icp, level_plan, IcpResult, LevelPlan, SourceLevel, PYRAMID_SCALES};
@@ -461,6 +464,16 @@ impl Tracker {
     /// Birds-eye raycast at the current camera pose (J 5.2 step 8).
     pub fn birds_eye(&self) -> BirdsEyeView {
         raycast_birds_eye(&self.volume, &self.config.raycast, &self.config.birds_eye, &self.volume_from_camera)
+    }
+
+    /// [`Tracker::birds_eye`] of only the pixels `within` marks ([`raycast_birds_eye_within`]).
+    pub fn birds_eye_within(&self, within: &[bool]) -> BirdsEyeView {
+        raycast_birds_eye_within(&self.volume, &self.config.raycast, &self.config.birds_eye, &self.volume_from_camera, Some(within))
+    }
+
+    /// The birds-eye camera's intrinsics and pose in the volume at the current camera pose.
+    pub fn birds_eye_camera(&self) -> (Intrinsics, Isometry3<f64>) {
+        birds_eye_camera(&self.config.birds_eye, &self.volume_from_camera)
     }
 
     /// Birds-eye view pose in the map frame.

@@ -71,7 +71,9 @@ pub struct ReplayArgs {
     /// Output directory for patches.jsonl, seeds.jsonl, trajectory.txt, timings.csv, stats.json and pictures.
     #[arg(long, default_value = "replay_out")]
     pub out: PathBuf,
-    /// Write a birds-eye picture every n frames (0: only the last frame).
+    /// Write a birds-eye picture every n frames (0: only the last frame). These frames raycast the
+    /// whole birds-eye view, the others only the part the mapper reads (`pipeline.raycast_mapped_region`):
+    /// for timings, use 0.
     #[arg(long, default_value_t = 10)]
     pub picture_every: usize,
     /// Process at most this many frames.
@@ -440,6 +442,10 @@ impl<'a> Replay<'a> {
             }
             self.next_imu += 1;
         }
+        // A frame that is drawn shows the whole birds-eye view, not just the part the mapper reads.
+        let last = index + 1 == self.count;
+        let pictured = last || (self.picture_every > 0 && index % self.picture_every == 0);
+        self.pipeline.set_whole_view(pictured);
         let output = match depth.map_err(anyhow::Error::msg).and_then(|d| Ok(self.pipeline.process(&d, timestamp)?)) {
             Ok(output) => output,
             Err(err) => {
@@ -471,8 +477,7 @@ impl<'a> Replay<'a> {
             serde_json::to_writer(&mut self.seeds_out, &line)?;
             self.seeds_out.write_all(b"\n")?;
         }
-        let last = index + 1 == self.count;
-        if last || (self.picture_every > 0 && index % self.picture_every == 0) {
+        if pictured {
             let path = self.out.join(format!("birds_eye_{index:05}.png"));
             render_patches(&output.birds_eye.depth, &output.birds_eye.intrinsics, &output.seeds).save_png(&path)?;
         }

@@ -551,6 +551,8 @@ impl Worker {
                 return;
             }
         }
+        // The birds-eye cloud shows the whole view; without it the pipeline raycasts what it maps.
+        pipeline.set_whole_view(self.outputs.birds_eye.as_ref().is_some_and(|cloud| cloud.wanted().is_some()));
         let output = match pipeline.process(&job.depth, publish::seconds_from_time(&job.stamp)) {
             Ok(output) => output,
             Err(PipelineError::Relocalising { frames_lost, max_lost_frames, reason }) => {

@@ -95,18 +95,19 @@ def test_read_write_and_eeprom_lock(sdk):
     result, error = packet.write1ByteTxRx(port, 4, ADDR_RETURN_DELAY, 10)  # EEPROM, torque on
     assert result == dxl.COMM_SUCCESS and error == ACCESS_ERROR
     ok(*packet.write4ByteTxRx(port, 4, ADDR_GOAL, 2548))
+    # Arrived: the present position is the goal and the servo has stopped. Present Position is
+    # rounded to ticks, so it can read the goal in the last tick of the move, still moving.
     deadline = time.time() + 3.0
-    present = 2048
+    present, moving = 2048, 1
     while time.time() < deadline:
         present, result, error = packet.read4ByteTxRx(port, 4, ADDR_PRESENT)
         ok(result, error)
-        if present == 2548:
+        moving, result, error = packet.read1ByteTxRx(port, 4, ADDR_MOVING)
+        ok(result, error)
+        if present == 2548 and moving == 0:
             break
         time.sleep(0.01)
-    assert present == 2548
-    moving, result, error = packet.read1ByteTxRx(port, 4, ADDR_MOVING)
-    ok(result, error)
-    assert moving == 0
+    assert (present, moving) == (2548, 0)
 
 
 def test_group_sync_write_and_sync_read_twelve_servos(sdk):

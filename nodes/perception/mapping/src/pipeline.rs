@@ -58,7 +58,8 @@ pub struct PipelineConfig {
     /// Accelerometer samples older than this (s) before the newest one are forgotten.
     pub imu_buffer_s: f64,
     /// Raycast only the part of the birds-eye view the mapper reads (true), or all of it: the DtFP
-    /// ball (J 4.2.1 step 6.2) and the map patches it re-fits this frame, widened by
+    /// ball (J 4.2.1 step 6.2), the map patches it re-fits this frame and the predicted footholds it
+    /// may seed at (`mapper.seeds.order`), widened by
     /// [`REGION_MARGIN_RADII`] foot radii. The whole view is raycast without a DtFP ball (an infinite
     /// `mapper.saliency.fixation_radius_m`), after a frame whose ball held no salient point (the
     /// saliency then looks at the whole view), and while [`Pipeline::set_whole_view`] asks for it.
@@ -341,10 +342,10 @@ impl Pipeline {
     }
 
     /// The pixels of the birds-eye view the mapper reads this frame (see
-    /// `PipelineConfig::raycast_mapped_region`), `None` for all of them: the DtFP ball and the
-    /// patches the mapper will re-fit, those whose anchor it sees (one ray each), least recently
-    /// observed first ([`revisits`], the mapper's own choice), each [`REGION_MARGIN_RADII`] foot
-    /// radii wider.
+    /// `PipelineConfig::raycast_mapped_region`), `None` for all of them: the DtFP ball, the patches
+    /// the mapper will re-fit, those whose anchor it sees (one ray each), least recently observed
+    /// first ([`revisits`], the mapper's own choice), and the predicted footholds of the learned seed
+    /// orders, each [`REGION_MARGIN_RADII`] foot radii wider.
     fn mapped_region(&self) -> Option<Vec<bool>> {
         let config = &self.mapper.config;
         let saliency = seed_saliency_config(config);
@@ -369,6 +370,10 @@ impl Pipeline {
         let anchors = self.tracker.birds_eye_within(&anchor_pixels);
         for revisit in revisits(&self.mapper.map, &birds_eye_from_map, &anchors.depth, &intrinsics, config.foot_radius_m, &config.fusion) {
             mark_ball(&mut region, &intrinsics, &revisit.anchor_in_camera, margin);
+        }
+        // Predicted footholds seed where they are, in or out of the ball (the learned seed orders).
+        for (point, _) in self.mapper.seed_priors() {
+            mark_ball(&mut region, &intrinsics, &(birds_eye_from_map * Point3::from(*point)).coords, margin);
         }
         Some(region)
     }

@@ -15,8 +15,9 @@ from test_step_executor_sim_bus import patch_map, sim_bus, train_rock1  # noqa: 
 
 @pytest.fixture
 def executor_with_deadman(ros, start_node, sim_bus, tmp_path):
-    """The executor on the simulated chain with a 1.0 s deadman: shorter than rock1 (1.4 s), so the
-    hold comes while it plays, and longer than a Python heartbeat thread stalls on a loaded host."""
+    """The executor on the simulated chain with a 1.0 s deadman: longer than a Python heartbeat
+    thread stalls on a loaded host, and well within the motion the test trains (4.2 s), so the hold
+    comes while it plays even when its PLAYING status reaches the test late."""
     node = start_node("step_executor", "--param", f"bus.port={sim_bus.device}",
                       "--param", "bus.response_timeout_ms=1000",
                       "--param", f"library_path={tmp_path / 'motions.yaml'}",
@@ -53,7 +54,7 @@ def test_heartbeats_stopping_disarm_within_the_timeout(ros, step_executor):
 
 
 def test_a_matched_motion_is_held_when_heartbeats_stop(ros, sim_bus, executor_with_deadman):
-    pub = train_rock1(ros, sim_bus)
+    pub = train_rock1(ros, sim_bus, seconds=2.0)
     status = ros.collect(ExecutorStatus, "/step_executor/status")
     heartbeat = ros.heartbeat()
     heartbeat.wait_for_executor()

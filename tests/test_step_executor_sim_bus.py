@@ -61,17 +61,17 @@ def executor_on_sim_bus(ros, start_node, sim_bus, tmp_path):
     return node
 
 
-def train_rock1(ros, sim_bus):
+def train_rock1(ros, sim_bus, seconds: float = 0.6):
     """Torque off, pose by hand (both knees bent), record, straighten the right knee, record, select
-    the patch and save."""
+    the patch and save. Each keyframe moves for `seconds` (the first then pauses 0.2 s)."""
     assert ros.call(SetBool, "/step_executor/set_torque", SetBool.Request(data=False)).success
     sim_bus.command(f"move 7 {2048 + round(0.4 * TICKS_PER_RAD)}")
     sim_bus.command(f"move 8 {2048 + round(0.4 * TICKS_PER_RAD)}")
-    first = ros.call(RecordKeyframe, "/step_executor/record_keyframe", RecordKeyframe.Request(duration=0.6, pause=0.2))
+    first = ros.call(RecordKeyframe, "/step_executor/record_keyframe", RecordKeyframe.Request(duration=seconds, pause=0.2))
     assert first.success, first.message
     assert abs(first.positions[R_KNEE] - 0.4) < 0.01 and abs(first.positions[L_KNEE] - 0.4) < 0.01
     sim_bus.command("move 7 2048")
-    second = ros.call(RecordKeyframe, "/step_executor/record_keyframe", RecordKeyframe.Request(duration=0.6, pause=0.0))
+    second = ros.call(RecordKeyframe, "/step_executor/record_keyframe", RecordKeyframe.Request(duration=seconds, pause=0.0))
     assert second.success and second.keyframe_index == 1
     assert abs(second.positions[R_KNEE]) < 0.01
 

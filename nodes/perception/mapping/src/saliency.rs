@@ -55,16 +55,16 @@ pub struct SaliencyConfig {
     /// Largest RMS distance (m) of the foot window's points from the plane through their mean
     /// along the coarse normal N ([`crate::window_flatness`]): a window spread further holds a step
     /// or a bump a foot disc cannot stand on. The window is a square of half side r (on a surface
-    /// facing the camera): a step of height h through its middle spreads h/2 (5 mm: a 1 cm step),
-    /// a paraboloid of curvature κ centred in it `κ r² √(2/45)` (5 mm at κ = 9.5 m⁻¹ and r = 5 cm,
-    /// below J's κ_max = 19.7 m⁻¹: the apex of a rounder bump gets no seed, the bump's patches are
-    /// seeded around it). Infinite turns the check off, J's step 6 as written.
+    /// facing the camera): N tilts towards a step through its middle, so that seen from 1 m steps
+    /// of 2 cm and more are caught (1.5 cm not); a paraboloid of curvature κ centred in it spreads
+    /// `κ r² √(2/45)` (5 mm at κ = 9.5 m⁻¹ and r = 5 cm, below J's κ_max = 19.7 m⁻¹, which is what
+    /// `window_quadric_rms_max_m` is for). Infinite turns the check off, J's step 6 as written.
     pub window_rms_max_m: f64,
     /// A window spread further than `window_rms_max_m` is kept when the quadric that fits it best
     /// leaves no more than this RMS (m) and curves no more than `window_curvature_max`: a smooth
     /// bump (a rock's top), which the plane test cannot tell from a step. A step of height h
-    /// through the window's middle leaves h/4 (2 mm: an 8 mm step), so steps stay out. 0 turns
-    /// the quadric off (the plane test alone).
+    /// through the window's middle leaves h/4 (5 mm for the 2 cm steps the plane test catches), so
+    /// steps stay out. 0 turns the quadric off (the plane test alone).
     pub window_quadric_rms_max_m: f64,
     /// Largest principal curvature (m⁻¹) of a window's quadric for `window_quadric_rms_max_m` to
     /// keep it. J 3.3.3's κ_max = 19.7; the mapper uses the lower of this and the validator's

@@ -7,7 +7,8 @@
 //! about their plane says so before any patch is fitted: for a paraboloid of curvature κ over a disc
 //! of radius r it is `κ r² / √48` (7 mm at J's κ_max = 19.7 m⁻¹ and r = 5 cm), over the square of half
 //! side r the saliency's foot window covers `κ r² √(2/45)` (10.4 mm), and a step of height h
-//! through a window's middle gives about h/2 about the window's mean.
+//! through a window's middle gives about h/2 about the window's mean along the levels' normal (less
+//! along a normal tilted towards the step, as the saliency's coarse one is).
 //!
 //! A smooth bump within κ_max is a foothold all the same (a rock's top), and the plane cannot tell
 //! it from a step. A quadric can: the least-squares `z = c + a·(x, y) + (x, y) H (x, y)ᵀ / 2` over the

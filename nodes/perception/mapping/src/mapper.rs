@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Unit, Vector3};
+use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use rand::{rngs::StdRng, SeedableRng};
 use rayon::prelude::*;
 
@@ -21,7 +21,7 @@ use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, Neighbour
 use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobserved};
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
-use crate::saliency::{hiking_saliency, Saliency, SaliencyConfig};
+use crate::saliency::{fixation_point, hiking_saliency, Saliency, SaliencyConfig};
 use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig, SeedPrior};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
@@ -398,6 +398,48 @@ impl Mapper {
         &self.seed_priors_in_map
     }
 
+    /// The pixels of a view (`intrinsics`, at `volume_from_view`, looking along gravity as the
+    /// birds-eye camera does) that the next [`Mapper::process`] reads: the DtFP ball (step 6.2), the
+    /// patches it will re-fit ([`revisits`]: those whose anchor the view sees, found by
+    /// `anchor_depth`, the view's depth at the marked anchor pixels), and the predicted footholds of
+    /// the learned seed orders, each [`REGION_MARGIN_RADII`] foot radii wider. `None` (all of them)
+    /// without a DtFP ball.
+    pub fn read_region(
+        &self,
+        intrinsics: &Intrinsics,
+        volume_from_view: &Isometry3<f64>,
+        anchor_depth: impl FnOnce(&[bool]) -> DepthImage,
+    ) -> Option<Vec<bool>> {
+        let config = &self.config;
+        let saliency = seed_saliency_config(config);
+        if !saliency.fixation_radius_m.is_finite() {
+            return None;
+        }
+        let margin = REGION_MARGIN_RADII * config.foot_radius_m;
+        let mut region = vec![false; intrinsics.width * intrinsics.height];
+        // The view looks along gravity, its z axis.
+        let fixation = fixation_point(&Vector3::z_axis(), saliency.fixation_down_m, saliency.fixation_forward_m);
+        mark_ball(&mut region, intrinsics, &fixation, saliency.fixation_radius_m + margin);
+        let view_from_map = volume_from_view.inverse() * self.map.grid().volume_from_map;
+        let mut anchor_pixels = vec![false; region.len()];
+        for patch in self.map.patches() {
+            if let Some((u, v)) = intrinsics.pixel_of(&(view_from_map * Point3::from(patch.anchor)).coords) {
+                if let Some(pixel) = anchor_pixels.get_mut(v * intrinsics.width + u) {
+                    *pixel = true;
+                }
+            }
+        }
+        let anchors = anchor_depth(&anchor_pixels);
+        for revisit in revisits(&self.map, &view_from_map, &anchors, intrinsics, config.foot_radius_m, &config.fusion) {
+            mark_ball(&mut region, intrinsics, &revisit.anchor_in_camera, margin);
+        }
+        // Predicted footholds seed where they are, in or out of the ball (the learned seed orders).
+        for (point, _) in &self.seed_priors_in_map {
+            mark_ball(&mut region, intrinsics, &(view_from_map * Point3::from(*point)).coords, margin);
+        }
+        Some(region)
+    }
+
     /// New parameters from the next frame on (a node's parameter set). The map's grid (volume edge,
     /// seed cells per side) is fixed for the mapper's life; a change of it is refused.
     pub fn set_config(&mut self, config: MapperConfig) -> Result<(), MapperError> {
@@ -539,6 +581,43 @@ pub fn seed_saliency_config(config: &MapperConfig) -> SaliencyConfig {
         dong_max_deg: config.saliency.dong_max_deg.min(config.validate.tilt_max_deg),
         window_curvature_max: config.saliency.window_curvature_max.min(config.validate.curvature_max),
         ..config.saliency.clone()
+    }
+}
+
+/// How far (foot radii r) [`Mapper::read_region`] reaches past the DtFP ball and past the anchors
+/// of the patches re-fitted: a seed's foot window and neighbourhood (r), and the foot disc of the
+/// patch fitted there, whose centre may lie another r out.
+pub const REGION_MARGIN_RADII: f64 = 2.0;
+
+/// Marks the pixels of the rectangle that holds the image of the ball of `radius` around `centre`
+/// (camera frame), all of them when the ball reaches the camera's plane.
+fn mark_ball(region: &mut [bool], intrinsics: &Intrinsics, centre: &Vector3<f64>, radius: f64) {
+    let near = centre.z - radius;
+    if !(near > 1e-3 && radius.is_finite() && centre.x.is_finite() && centre.y.is_finite()) {
+        region.fill(true);
+        return;
+    }
+    // Over the ball's bounding box (z > 0), x/z and y/z are monotonic in each coordinate: its
+    // corners bound the image.
+    let span = |along: f64, focal: f64, principal: f64, size: usize| {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for a in [along - radius, along + radius] {
+            for depth in [near, centre.z + radius] {
+                let pixel = focal * a / depth + principal;
+                lo = lo.min(pixel);
+                hi = hi.max(pixel);
+            }
+        }
+        let first = lo.floor().clamp(0.0, size as f64) as usize;
+        let end = (hi.ceil() + 1.0).clamp(0.0, size as f64) as usize;
+        first..end.max(first)
+    };
+    let columns = span(centre.x, intrinsics.fx, intrinsics.cx, intrinsics.width);
+    for v in span(centre.y, intrinsics.fy, intrinsics.cy, intrinsics.height) {
+        let row = v * intrinsics.width;
+        if let Some(pixels) = region.get_mut(row + columns.start..row + columns.end) {
+            pixels.fill(true);
+        }
     }
 }
 
@@ -892,5 +971,33 @@ mod tests {
             assert!(s.mean_residual_m() < 0.005, "{name}: {s:?}");
             assert_eq!(mapper.map.len(), s.valid);
         }
+    }
+
+    #[test]
+    fn the_marked_rectangle_holds_the_image_of_the_ball() {
+        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
+        for (centre, radius) in
+            [(Vector3::new(0.1, -0.2, 0.9), 0.15), (Vector3::new(-0.5, 0.3, 1.2), 0.1), (Vector3::new(2.0, 0.0, 1.0), 0.2)]
+        {
+            let mut region = vec![false; intrinsics.width * intrinsics.height];
+            mark_ball(&mut region, &intrinsics, &centre, radius);
+            let mut inside = 0;
+            for i in 0..2000 {
+                // Points spread over the ball (a deterministic spiral of directions and radii).
+                let (a, b, r) = (i as f64 * 2.399, (i as f64 / 2000.0 * 2.0 - 1.0).acos(), radius * ((i % 7) as f64 / 6.0));
+                let point = centre + Vector3::new(b.sin() * a.cos(), b.sin() * a.sin(), b.cos()) * r;
+                if let Some((u, v)) = intrinsics.pixel_of(&point) {
+                    assert!(region[v * intrinsics.width + u], "{point:?} at ({u}, {v}) not marked");
+                    inside += 1;
+                }
+            }
+            assert!(inside > 0 || centre.x > 1.0);
+            let marked = region.iter().filter(|m| **m).count();
+            assert!(marked < region.len() / 2, "{marked}");
+        }
+        // A ball reaching the camera's plane marks everything.
+        let mut region = vec![false; 12];
+        mark_ball(&mut region, &Intrinsics::new(4, 3, 2.0, 2.0, 1.5, 1.0).unwrap(), &Vector3::new(0.0, 0.0, 0.1), 0.2);
+        assert!(region.iter().all(|m| *m));
     }
 }

@@ -31,10 +31,8 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point3, Rotation3, Unit, Vector3};
 
 use crate::acquire::{gravity_from_accelerometer, AcquireError};
-use crate::mapper::{seed_saliency_config, FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
-use crate::patch_fusion::revisits;
+use crate::mapper::{FrameInput, FrameSummary, Mapper, MapperConfig, MapperError, SeedOutcome};
 use crate::patch_map::{PatchMap, VolumeGrid};
-use crate::saliency::fixation_point;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_fusion::dataset::median_per_axis;
 use patchwalk_fusion::raycast::BirdsEyeView;
@@ -60,7 +58,7 @@ pub struct PipelineConfig {
     /// Raycast only the part of the birds-eye view the mapper reads (true), or all of it: the DtFP
     /// ball (J 4.2.1 step 6.2), the map patches it re-fits this frame and the predicted footholds it
     /// may seed at (`mapper.seeds.order`), widened by
-    /// [`REGION_MARGIN_RADII`] foot radii. The whole view is raycast without a DtFP ball (an infinite
+    /// [`crate::mapper::REGION_MARGIN_RADII`] foot radii. The whole view is raycast without a DtFP ball (an infinite
     /// `mapper.saliency.fixation_radius_m`), after a frame whose ball held no salient point (the
     /// saliency then looks at the whole view), and while [`Pipeline::set_whole_view`] asks for it.
     pub raycast_mapped_region: bool,
@@ -71,11 +69,6 @@ impl Default for PipelineConfig {
         Self { min_valid_fraction: 0.05, allow_missing_imu: true, imu_buffer_s: 2.0, raycast_mapped_region: true }
     }
 }
-
-/// How far (foot radii r) the raycast region reaches past the DtFP ball and past the anchors of
-/// the patches re-fitted: a seed's foot window and neighbourhood (r), and the foot disc of the patch
-/// fitted there, whose centre may lie another r out.
-pub const REGION_MARGIN_RADII: f64 = 2.0;
 
 /// The mapper configuration of the node: J's values (`MapperConfig::default()`) except where the
 /// birds-eye input and the robot's size ask otherwise.
@@ -341,41 +334,14 @@ impl Pipeline {
         on_thread_pool(|| self.tracker.prepare_model());
     }
 
-    /// The pixels of the birds-eye view the mapper reads this frame (see
-    /// `PipelineConfig::raycast_mapped_region`), `None` for all of them: the DtFP ball, the patches
-    /// the mapper will re-fit, those whose anchor it sees (one ray each), least recently observed
-    /// first ([`revisits`], the mapper's own choice), and the predicted footholds of the learned seed
-    /// orders, each [`REGION_MARGIN_RADII`] foot radii wider.
+    /// The pixels of the birds-eye view the mapper reads this frame ([`Mapper::read_region`]),
+    /// `None` for all of them (see `PipelineConfig::raycast_mapped_region`).
     fn mapped_region(&self) -> Option<Vec<bool>> {
-        let config = &self.mapper.config;
-        let saliency = seed_saliency_config(config);
-        if !self.config.raycast_mapped_region || self.whole_view || self.fell_back || !saliency.fixation_radius_m.is_finite() {
+        if !self.config.raycast_mapped_region || self.whole_view || self.fell_back {
             return None;
         }
         let (intrinsics, volume_from_birds_eye) = self.tracker.birds_eye_camera();
-        let margin = REGION_MARGIN_RADII * config.foot_radius_m;
-        let mut region = vec![false; intrinsics.width * intrinsics.height];
-        // The birds-eye camera looks along gravity, its z axis.
-        let fixation = fixation_point(&Vector3::z_axis(), saliency.fixation_down_m, saliency.fixation_forward_m);
-        mark_ball(&mut region, &intrinsics, &fixation, saliency.fixation_radius_m + margin);
-        let birds_eye_from_map = volume_from_birds_eye.inverse() * self.mapper.map.grid().volume_from_map;
-        let mut anchor_pixels = vec![false; region.len()];
-        for patch in self.mapper.map.patches() {
-            if let Some((u, v)) = intrinsics.pixel_of(&(birds_eye_from_map * Point3::from(patch.anchor)).coords) {
-                if let Some(pixel) = anchor_pixels.get_mut(v * intrinsics.width + u) {
-                    *pixel = true;
-                }
-            }
-        }
-        let anchors = self.tracker.birds_eye_within(&anchor_pixels);
-        for revisit in revisits(&self.mapper.map, &birds_eye_from_map, &anchors.depth, &intrinsics, config.foot_radius_m, &config.fusion) {
-            mark_ball(&mut region, &intrinsics, &revisit.anchor_in_camera, margin);
-        }
-        // Predicted footholds seed where they are, in or out of the ball (the learned seed orders).
-        for (point, _) in self.mapper.seed_priors() {
-            mark_ball(&mut region, &intrinsics, &(birds_eye_from_map * Point3::from(*point)).coords, margin);
-        }
-        Some(region)
+        self.mapper.read_region(&intrinsics, &volume_from_birds_eye, |pixels| self.tracker.birds_eye_within(pixels).depth)
     }
 
     /// The tracker (volume, pose).
@@ -586,38 +552,6 @@ pub fn birds_eye_points_in_map(view: &BirdsEyeView, map_from_birds_eye: &Isometr
     points
 }
 
-/// Marks the pixels of the rectangle that holds the image of the ball of `radius` around `centre`
-/// (camera frame), all of them when the ball reaches the camera's plane.
-fn mark_ball(region: &mut [bool], intrinsics: &Intrinsics, centre: &Vector3<f64>, radius: f64) {
-    let near = centre.z - radius;
-    if !(near > 1e-3 && radius.is_finite() && centre.x.is_finite() && centre.y.is_finite()) {
-        region.fill(true);
-        return;
-    }
-    // Over the ball's bounding box (z > 0), x/z and y/z are monotonic in each coordinate: its
-    // corners bound the image.
-    let span = |along: f64, focal: f64, principal: f64, size: usize| {
-        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for a in [along - radius, along + radius] {
-            for depth in [near, centre.z + radius] {
-                let pixel = focal * a / depth + principal;
-                lo = lo.min(pixel);
-                hi = hi.max(pixel);
-            }
-        }
-        let first = lo.floor().clamp(0.0, size as f64) as usize;
-        let end = (hi.ceil() + 1.0).clamp(0.0, size as f64) as usize;
-        first..end.max(first)
-    };
-    let columns = span(centre.x, intrinsics.fx, intrinsics.cx, intrinsics.width);
-    for v in span(centre.y, intrinsics.fy, intrinsics.cy, intrinsics.height) {
-        let row = v * intrinsics.width;
-        if let Some(pixels) = region.get_mut(row + columns.start..row + columns.end) {
-            pixels.fill(true);
-        }
-    }
-}
-
 /// Runs `op` on a thread of rayon's pool (inline when already on one, as in the ROS node, whose
 /// worker runs in a pool of its own), the calling thread waiting once. A frame runs dozens of
 /// parallel loops (the raycasts' rows, each ICP iteration's reduction, the mapper's tables); started
@@ -774,34 +708,6 @@ mod tests {
             assert_eq!(patch.covariance.shape(), (patch.dof(), patch.dof()));
         }
         assert!(floor >= 5, "{floor} floor patches");
-    }
-
-    #[test]
-    fn the_marked_rectangle_holds_the_image_of_the_ball() {
-        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
-        for (centre, radius) in
-            [(Vector3::new(0.1, -0.2, 0.9), 0.15), (Vector3::new(-0.5, 0.3, 1.2), 0.1), (Vector3::new(2.0, 0.0, 1.0), 0.2)]
-        {
-            let mut region = vec![false; intrinsics.width * intrinsics.height];
-            mark_ball(&mut region, &intrinsics, &centre, radius);
-            let mut inside = 0;
-            for i in 0..2000 {
-                // Points spread over the ball (a deterministic spiral of directions and radii).
-                let (a, b, r) = (i as f64 * 2.399, (i as f64 / 2000.0 * 2.0 - 1.0).acos(), radius * ((i % 7) as f64 / 6.0));
-                let point = centre + Vector3::new(b.sin() * a.cos(), b.sin() * a.sin(), b.cos()) * r;
-                if let Some((u, v)) = intrinsics.pixel_of(&point) {
-                    assert!(region[v * intrinsics.width + u], "{point:?} at ({u}, {v}) not marked");
-                    inside += 1;
-                }
-            }
-            assert!(inside > 0 || centre.x > 1.0);
-            let marked = region.iter().filter(|m| **m).count();
-            assert!(marked < region.len() / 2, "{marked}");
-        }
-        // A ball reaching the camera's plane marks everything.
-        let mut region = vec![false; 12];
-        mark_ball(&mut region, &Intrinsics::new(4, 3, 2.0, 2.0, 1.5, 1.0).unwrap(), &Vector3::new(0.0, 0.0, 0.1), 0.2);
-        assert!(region.iter().all(|m| *m));
     }
 
     #[test]

@@ -354,15 +354,15 @@ fn label_pixels(frame: &LabelInput, radius_m: f64, config: &SaliencyConfig) -> S
 }
 
 /// Whether the foot window of half size `half` at `(u, v)` spreads off its plane along the coarse
-/// normal `n` (a step or a bump) and is not a smooth bump a quadric explains either.
+/// normal `n` (a step or a bump) and is not a smooth bump a quadric explains either (`moments`
+/// without quadric tables have no quadric).
 fn uneven(moments: &WindowMoments, u: usize, v: usize, half: usize, n: &Vector3<f64>, config: &SaliencyConfig) -> bool {
     let min_points = config.min_support_fraction * ((2 * half + 1) as f64).powi(2);
     let spread = moments.rms_off_plane(u, v, half, n, min_points).is_some_and(|rms| rms > config.window_rms_max_m);
     spread
-        && !(config.window_quadric_rms_max_m > 0.0
-            && moments
-                .quadric(u, v, half, min_points)
-                .is_some_and(|q| q.rms_m <= config.window_quadric_rms_max_m && q.curvature_max <= config.window_curvature_max))
+        && !moments
+            .quadric(u, v, half, min_points)
+            .is_some_and(|q| q.rms_m <= config.window_quadric_rms_max_m && q.curvature_max <= config.window_curvature_max)
 }
 
 #[cfg(test)]

@@ -53,13 +53,20 @@ impl Sequence {
     }
 
     /// The fused sequence and every `stride`-th tracked frame labelled from it: (frame index, frame).
+    /// The sequence is fused on one thread: tracking and fitting sum in parallel, and sums split
+    /// differently from run to run move a pose by a rounding error, which can turn a patch at the
+    /// edge of the validator's limits. On one thread the labels are the same in every run.
     pub fn label(
         &self,
         stride: usize,
         regions: &RegionConfig,
         label: &LabelConfig,
     ) -> Result<(FusedSequence, Vec<(usize, LabelledFrame)>), FootholdError> {
-        let fused = fuse_sequence(&self.dataset, &self.camera_from_imu, &self.configs, None, label)?;
+        let one_thread = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .map_err(|e| FootholdError::Config(format!("a labelling thread: {e}")))?;
+        let fused = one_thread.install(|| fuse_sequence(&self.dataset, &self.camera_from_imu, &self.configs, None, label))?;
         let mut frames = Vec::new();
         for pose in fused.frames.iter().step_by(stride.max(1)) {
             let depth = self.dataset.load_depth(pose.index)?;

@@ -11,6 +11,7 @@ use patchwalk_footholds::render::{Mark, Picture};
 use patchwalk_footholds::samples::{Augment, SampleSet};
 use patchwalk_fusion::camera::DepthImage;
 use rand::SeedableRng;
+use rayon::prelude::*;
 
 use patchwalk_footholds::sequence::Sequence;
 
@@ -71,10 +72,17 @@ pub fn run(args: LabelArgs) -> Result<()> {
     let mut set = SampleSet::new(regions.clone());
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     let (mut frames, mut unknown, mut known) = (0usize, 0usize, 0usize);
-    for path in &args.datasets {
+    // Each sequence is fused on one thread (the labels do not depend on the run), so the datasets
+    // are labelled side by side, a core's worth at a time, and reported in the order given.
+    let label_one = |path: &PathBuf| -> Result<_> {
         let sequence = Sequence::open(path)?;
         let (fused, labelled) =
             sequence.label(args.frame_stride, &regions, &label).with_context(|| format!("labelling {}", path.display()))?;
+        Ok((path.clone(), sequence, fused, labelled))
+    };
+    let chunks = args.datasets.chunks(rayon::current_num_threads().max(1));
+    for labelled_set in chunks.flat_map(|chunk| chunk.par_iter().map(label_one).collect::<Vec<_>>()) {
+        let (path, sequence, fused, labelled) = labelled_set?;
         let positives: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| matches!(l, Label::Positive { .. })).count()).sum();
         let seq_known: usize = labelled.iter().map(|(_, f)| f.labels.iter().filter(|l| l.is_known()).count()).sum();
         let seq_all: usize = labelled.iter().map(|(_, f)| f.labels.len()).sum();
@@ -90,7 +98,7 @@ pub fn run(args: LabelArgs) -> Result<()> {
             seq_all - seq_known
         );
         if let (Some(dir), Some((index, frame))) = (&args.pictures, labelled.first()) {
-            draw_labels(&sequence.dataset.load_depth(*index)?, frame, &dir.join(format!("{}.png", picture_name(path))))?;
+            draw_labels(&sequence.dataset.load_depth(*index)?, frame, &dir.join(format!("{}.png", picture_name(&path))))?;
         }
         for (index, frame) in &labelled {
             set.add_frame(frame, &sequence.name, *index, augment, &mut rng)?;

@@ -16,6 +16,7 @@ use crate::error::FootholdError;
 use crate::eval::Scores;
 use crate::labels::{is_foothold, painted_footholds, pipeline, region_label, Label, LabelConfig, LabelledFrame};
 use crate::model::FootholdModel;
+use crate::regions::Region;
 use crate::render::{Mark, Picture};
 use crate::sequence::Sequence;
 use crate::svm::{features, LinearSvm};
@@ -37,6 +38,50 @@ pub struct GroupResult {
     /// Per method the time of every frame (ms), for merging groups.
     #[serde(skip)]
     pub frame_ms: Vec<Vec<f64>>,
+    /// Every known region with each method's answer, for error analysis.
+    #[serde(skip)]
+    pub rows: Vec<RegionRow>,
+}
+
+/// One known region of an evaluated frame and what each method said of it.
+#[derive(Debug, Clone)]
+pub struct RegionRow {
+    pub dataset: String,
+    pub frame: usize,
+    pub region: Region,
+    /// The fraction of the region's resampled cells without a valid depth pixel.
+    pub invalid_fraction: f64,
+    pub tilt_deg: f64,
+    /// The label's (x, y) when positive.
+    pub target: Option<(f32, f32)>,
+    /// Per method of [`METHODS`], its answer.
+    pub predictions: [Prediction; METHODS.len()],
+}
+
+/// The rows as CSV: one line per known region and method answers side by side.
+pub fn format_region_rows(results: &[GroupResult]) -> String {
+    use std::fmt::Write;
+    let mut out = String::from("group,dataset,frame,row,col,u,v,depth_m,size_px,invalid_fraction,tilt_deg,positive,x,y");
+    for m in 0..METHODS.len() {
+        let _ = write!(out, ",p{m},x{m},y{m}");
+    }
+    out.push('\n');
+    for group in results {
+        for row in &group.rows {
+            let r = &row.region;
+            let (positive, (x, y)) = row.target.map_or((0, (f32::NAN, f32::NAN)), |t| (1, t));
+            let _ = write!(
+                out,
+                "{},{},{},{},{},{:.1},{:.1},{:.3},{},{:.3},{:.2},{positive},{x:.3},{y:.3}",
+                group.group, row.dataset, row.frame, r.row, r.col, r.u, r.v, r.depth_m, r.size_px, row.invalid_fraction, row.tilt_deg
+            );
+            for p in &row.predictions {
+                let _ = write!(out, ",{:.4},{:.3},{:.3}", p.p, p.x, p.y);
+            }
+            out.push('\n');
+        }
+    }
+    out
 }
 
 fn median(values: &[f64]) -> f64 {
@@ -96,7 +141,9 @@ pub fn evaluate_group(
     let mut ms = vec![Vec::new(); METHODS.len()];
     let (mut frames, mut region_count, mut positives) = (0, 0, 0);
     let mut drawn = false;
+    let mut rows = Vec::new();
     for path in paths {
+        let dataset = path.file_name().map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
         let sequence = Sequence::open(path)?;
         let (_, labelled) = sequence.label(stride, regions, label)?;
         for (index, frame) in &labelled {
@@ -148,6 +195,19 @@ pub fn evaluate_group(
             let everywhere = vec![Prediction { p: 1.0, x: 0.5, y: 0.5 }; known.len()];
             ms[4].push(0.0);
             scores[4] = add(scores[4], Scores::of(&everywhere, &targets, region_px));
+            let cells = regions.out_px * regions.out_px;
+            for (k, &i) in known.iter().enumerate() {
+                let depth_cells = &frame.inputs[i * len..i * len + cells];
+                rows.push(RegionRow {
+                    dataset: dataset.clone(),
+                    frame: *index,
+                    region: frame.regions[i].clone(),
+                    invalid_fraction: depth_cells.iter().filter(|&&c| c == 0.0).count() as f64 / cells as f64,
+                    tilt_deg: frame.tilt.degrees,
+                    target: targets[k],
+                    predictions: [nets[0][k], nets[1][k], svm[k], geometric[k], everywhere[k]],
+                });
+            }
             if !drawn {
                 draw(&depth, frame, &known, &nets[0], &targets, picture)?;
                 drawn = true;
@@ -159,6 +219,7 @@ pub fn evaluate_group(
     result.frames = frames;
     result.regions = region_count;
     result.positives = positives;
+    result.rows = rows;
     Ok(result)
 }
 
@@ -290,5 +351,32 @@ mod tests {
         assert!((error - 0.25).abs() < 1e-12 && (scores.regression_px() - 6.0).abs() < 1e-9);
         assert_eq!(*ms, 30.0);
         assert!(format_table(&[total]).contains("all (2 datasets, 3 frames, 4 regions, 50.0 % positive)"));
+    }
+
+    #[test]
+    fn region_rows_are_a_csv_of_one_line_per_region_with_every_method() {
+        let mut g = group("real frames", 1, true, 10.0);
+        let region = Region { row: 3, col: 4, u: 100.0, v: 200.0, depth_m: 0.8, size_px: 96 };
+        let answer = |p: f32| Prediction { p, x: 0.25, y: 0.75 };
+        let predictions = [answer(0.9), answer(0.2), answer(0.6), answer(0.0), answer(1.0)];
+        for target in [Some((0.5, 0.5)), None] {
+            let row = RegionRow {
+                dataset: "tum".into(),
+                frame: 5,
+                region: region.clone(),
+                invalid_fraction: 0.125,
+                tilt_deg: 44.0,
+                target,
+                predictions,
+            };
+            g.rows.push(row);
+        }
+        let csv = format_region_rows(&[g]);
+        let lines: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
+        assert_eq!(lines.len(), 3);
+        assert!(lines.iter().all(|l| l.len() == 14 + 3 * METHODS.len()), "{csv}");
+        assert_eq!(&lines[1][..12], ["real frames", "tum", "5", "3", "4", "100.0", "200.0", "0.800", "96", "0.125", "44.00", "1"]);
+        assert_eq!(lines[2][11], "0");
+        assert_eq!(&lines[1][14..17], ["0.9000", "0.250", "0.750"]);
     }
 }

@@ -9,7 +9,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use patchwalk_footholds::evaluation::{evaluate_group, format_table, GroupResult, Methods};
+use patchwalk_footholds::evaluation::{evaluate_group, format_region_rows, format_table, GroupResult, Methods};
 use patchwalk_footholds::labels::LabelConfig;
 use patchwalk_footholds::model::FootholdModel;
 use patchwalk_footholds::svm::LinearSvm;
@@ -87,8 +87,10 @@ pub fn run(args: EvalArgs) -> Result<()> {
     print!("{}", format_table(&results));
     let path = args.out.join("eval.json");
     std::fs::write(&path, serde_json::to_string_pretty(&results)?).with_context(|| format!("writing {}", path.display()))?;
+    let path = args.out.join("regions.csv");
+    std::fs::write(&path, format_region_rows(&results)).with_context(|| format!("writing {}", path.display()))?;
     println!(
-        "pictures (CNN Fig. 6: red dot true positive, yellow cross false positive, blue square missed) and eval.json in {}",
+        "pictures (CNN Fig. 6: red dot true positive, yellow cross false positive, blue square missed), eval.json and regions.csv (every known region, each method's answer) in {}",
         args.out.display()
     );
     Ok(())

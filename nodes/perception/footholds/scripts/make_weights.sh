@@ -24,7 +24,7 @@
 # --test shipped_weights rewrites weights/reference_predictions.json.
 # Environment: CARGO_TARGET_DIR (binaries), WORK (scratch, default build/footholds), ROCK_TRAIN,
 # ROCK_TEST, COURSE_TRAIN, COURSE_TEST, STAIRS_TRAIN, STAIRS_TEST (seed lists), FRAMES, EPOCHS,
-# MAX_SAMPLES (0: all), LR_DECAY, POSITIVE_SHARE (empty: the set's own shares), REAL.
+# MAX_SAMPLES (0: all), LR_DECAY, DROPOUT, POSITIVE_SHARE (empty: the set's own shares), REAL.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../../../.." && pwd)
 BIN=${CARGO_TARGET_DIR:-$ROOT/target}/release
@@ -41,6 +41,7 @@ FRAMES=${FRAMES:-15}
 EPOCHS=${EPOCHS:-6}
 MAX_SAMPLES=${MAX_SAMPLES:-0}
 LR_DECAY=${LR_DECAY:-0.6}
+DROPOUT=${DROPOUT:-0}
 POSITIVE_SHARE=${POSITIVE_SHARE:-}
 STAGE=${STAGE:-all}
 REAL=${REAL:-$ROOT/tests/data/tum_fr1_xyz}
@@ -113,10 +114,10 @@ fi
 if [[ $STAGE == all ]]; then
   share=(); [[ -n $POSITIVE_SHARE ]] && share=(--positive-share "$POSITIVE_SHARE")
   subset=(); [[ $MAX_SAMPLES != 0 ]] && subset=(--max-samples "$MAX_SAMPLES")
-  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --lr-decay "$LR_DECAY" \
+  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --lr-decay "$LR_DECAY" --dropout "$DROPOUT" \
     "${subset[@]}" "${share[@]}" --out "$WEIGHTS/foot_d.safetensors" --svm-out "$WEIGHTS/svm.json" > "$WORK/train.log" &
   with_angle=$!
-  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --lr-decay "$LR_DECAY" \
+  "$BIN/patch_mapper" footholds train --set "$WORK/train.safetensors" --epochs "$EPOCHS" --lr-decay "$LR_DECAY" --dropout "$DROPOUT" \
     "${subset[@]}" "${share[@]}" --no-angle --out "$WEIGHTS/foot_d_noangle.safetensors" > "$WORK/train_noangle.log" &
   no_angle=$!
   wait "$with_angle" && wait "$no_angle"

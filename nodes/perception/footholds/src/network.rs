@@ -17,7 +17,7 @@
 use std::collections::HashMap;
 
 use candle_core::{DType, Device, Tensor, Var, D};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_distr::Distribution;
 
 use crate::error::FootholdError;
@@ -201,6 +201,19 @@ impl FootholdNet {
 
     /// Forward pass: `inputs` `[N, C, S, S]`, `side` `[N, 3]` (ignored without side channels).
     pub fn forward(&self, inputs: &Tensor, side: &Tensor) -> Result<Output, FootholdError> {
+        self.forward_with_dropout(inputs, side, None)
+    }
+
+    /// The training forward pass: with `dropout` = (rate, generator), each neuron of the two fully
+    /// connected layers is zeroed with that probability and the others scaled by 1 / (1 − rate)
+    /// (inverted dropout, so prediction needs no change). The masks come from the seeded generator,
+    /// so training stays reproducible.
+    pub fn forward_with_dropout(
+        &self,
+        inputs: &Tensor,
+        side: &Tensor,
+        mut dropout: Option<(f64, &mut rand::rngs::StdRng)>,
+    ) -> Result<Output, FootholdError> {
         let c = &self.config;
         let dims = inputs.dims();
         if dims.len() != 4 || dims[1] != c.in_channels || dims[2] != c.input_px || dims[3] != c.input_px {
@@ -231,8 +244,20 @@ impl FootholdNet {
             let b = self.param(2 * layer + 1);
             Ok(x.matmul(&w.t()?)?.broadcast_add(b)?)
         };
-        let x = linear(&x, 4)?.relu()?;
-        let x = linear(&x, 5)?.relu()?;
+        let mut drop = |x: Tensor| -> Result<Tensor, FootholdError> {
+            match dropout.as_mut() {
+                Some((rate, rng)) if *rate > 0.0 => {
+                    let keep = 1.0 - *rate;
+                    let mask: Vec<f32> =
+                        (0..x.elem_count()).map(|_| if rng.random_bool(keep) { (1.0 / keep) as f32 } else { 0.0 }).collect();
+                    let mask = Tensor::from_vec(mask, x.dims(), x.device())?.to_dtype(x.dtype())?;
+                    Ok(x.mul(&mask)?)
+                }
+                _ => Ok(x),
+            }
+        };
+        let x = drop(linear(&x, 4)?.relu()?)?;
+        let x = drop(linear(&x, 5)?.relu()?)?;
         let out = linear(&x, 6)?.reshape((n, c.body_parts, 4))?;
         let logits = out.narrow(2, 0, 2)?.reshape((n, 2 * c.body_parts))?;
         let coords = candle_nn::ops::sigmoid(&out.narrow(2, 2, 2)?)?.reshape((n, 2 * c.body_parts))?;
@@ -315,6 +340,22 @@ mod tests {
         let flat = |n: &FootholdNet| n.param(0).flatten_all().unwrap().to_vec1::<f32>().unwrap();
         assert_eq!(flat(&a), flat(&b));
         assert_ne!(flat(&a), flat(&c));
+    }
+
+    #[test]
+    fn dropout_is_seeded_and_absent_at_rate_zero() {
+        let net = FootholdNet::new(tiny(), 7, DType::F32).unwrap();
+        let c = net.config.clone();
+        let inputs = Tensor::randn(0f32, 1f32, (4, c.in_channels, c.input_px, c.input_px), &Device::Cpu).unwrap();
+        let side = Tensor::ones((4, SIDE_CHANNELS), DType::F32, &Device::Cpu).unwrap();
+        let logits = |dropout: Option<(f64, &mut rand::rngs::StdRng)>| {
+            net.forward_with_dropout(&inputs, &side, dropout).unwrap().logits.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        };
+        let plain = logits(None);
+        assert_eq!(logits(Some((0.0, &mut rand::rngs::StdRng::seed_from_u64(1)))), plain);
+        let dropped = logits(Some((0.5, &mut rand::rngs::StdRng::seed_from_u64(1))));
+        assert_ne!(dropped, plain);
+        assert_eq!(logits(Some((0.5, &mut rand::rngs::StdRng::seed_from_u64(1)))), dropped);
     }
 
     /// Backpropagated against central finite differences of the loss on a tiny f64 network, for the

@@ -28,11 +28,13 @@ pub struct TrainConfig {
     /// (reshuffled) when it runs out; an epoch ends when the larger class has been seen once.
     /// `None`: batches follow the set's own class shares.
     pub positive_share: Option<f64>,
+    /// Dropout rate of the two fully connected layers while training (0: none).
+    pub dropout: f64,
 }
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        Self { epochs: 6, batch: 64, learning_rate: 1e-3, lambda: 1.0, seed: 1, lr_decay: 1.0, positive_share: None }
+        Self { epochs: 6, batch: 64, learning_rate: 1e-3, lambda: 1.0, seed: 1, lr_decay: 1.0, positive_share: None, dropout: 0.0 }
     }
 }
 
@@ -145,10 +147,14 @@ pub fn train(
             net.config.input_px
         )));
     }
+    if !(0.0..1.0).contains(&config.dropout) {
+        return Err(FootholdError::Config(format!("dropout rate {} is not in [0, 1)", config.dropout)));
+    }
     let dtype = net.vars()[0].dtype();
     let params = candle_nn::ParamsAdamW { lr: config.learning_rate, weight_decay: 0.0, ..Default::default() };
     let mut optimiser = candle_nn::AdamW::new(net.vars(), params)?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(config.seed);
+    let mut dropout_rng = rand::rngs::StdRng::seed_from_u64(config.seed.wrapping_add(1));
     let mut losses = Vec::with_capacity(config.epochs);
     for epoch in 0..config.epochs {
         optimiser.set_learning_rate(config.learning_rate * config.lr_decay.powi(epoch as i32));
@@ -156,7 +162,8 @@ pub fn train(
         let mut total = 0.0;
         for chunk in order.chunks(config.batch.max(1)) {
             let (inputs, side, targets) = batch(set, chunk, dtype)?;
-            let loss = multitask_loss(&net.forward(&inputs, &side)?, &targets, config.lambda)?;
+            let output = net.forward_with_dropout(&inputs, &side, Some((config.dropout, &mut dropout_rng)))?;
+            let loss = multitask_loss(&output, &targets, config.lambda)?;
             optimiser.backward_step(&loss)?;
             total += loss.to_dtype(DType::F64)?.to_scalar::<f64>()? * chunk.len() as f64;
         }
@@ -253,18 +260,33 @@ mod tests {
     fn training_reduces_the_loss_deterministically() {
         let set = synthetic(48);
         let config = TrainConfig { epochs: 12, batch: 8, learning_rate: 5e-3, lr_decay: 0.95, ..TrainConfig::default() };
-        let run = || {
+        let run = |config: &TrainConfig| {
             let net = FootholdNet::new(tiny(), 5, DType::F32).unwrap();
-            let before = mean_loss(&net, &set, &config).unwrap();
-            train(&net, &set, &config, |_, _| {}).unwrap();
-            let after = mean_loss(&net, &set, &config).unwrap();
+            let before = mean_loss(&net, &set, config).unwrap();
+            train(&net, &set, config, |_, _| {}).unwrap();
+            let after = mean_loss(&net, &set, config).unwrap();
             let weights = net.named_tensors()[0].1.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             (before, after, weights)
         };
-        let (before, after, weights) = run();
+        let (before, after, weights) = run(&config);
         assert!(after < 0.7 * before, "loss {before} -> {after}");
-        let (before2, after2, weights2) = run();
-        assert_eq!((before, after, weights), (before2, after2, weights2));
+        assert_eq!(run(&config), (before, after, weights.clone()));
+        // With dropout: still learning, still reproducible, and not the same run.
+        let dropout = TrainConfig { dropout: 0.3, ..config };
+        let (before_d, after_d, weights_d) = run(&dropout);
+        assert!(after_d < 0.7 * before_d, "loss with dropout {before_d} -> {after_d}");
+        assert_ne!(weights_d, weights);
+        assert_eq!(run(&dropout), (before_d, after_d, weights_d));
+    }
+
+    #[test]
+    fn a_dropout_rate_outside_0_to_1_is_refused() {
+        let set = synthetic(8);
+        let net = FootholdNet::new(tiny(), 5, DType::F32).unwrap();
+        for rate in [1.0, -0.1, f64::NAN] {
+            let err = train(&net, &set, &TrainConfig { dropout: rate, ..TrainConfig::default() }, |_, _| {}).unwrap_err();
+            assert!(err.to_string().contains("dropout"), "{err}");
+        }
     }
 
     #[test]

@@ -34,6 +34,9 @@ pub struct TrainArgs {
     /// Learning rate of epoch e: `learning_rate · lr_decay^e`.
     #[arg(long, default_value_t = TrainConfig::default().lr_decay)]
     pub lr_decay: f64,
+    /// Dropout rate of the two fully connected layers while training (0: none).
+    #[arg(long, default_value_t = TrainConfig::default().dropout)]
+    pub dropout: f64,
     /// Balanced batches with this share of positives (default: the set's own shares).
     #[arg(long)]
     pub positive_share: Option<f64>,
@@ -87,6 +90,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         seed: args.seed,
         lr_decay: args.lr_decay,
         positive_share: args.positive_share,
+        dropout: args.dropout,
         ..TrainConfig::default()
     };
     let per_epoch = patchwalk_footholds::train::epoch_order(&set, &config, &mut rand::rngs::StdRng::seed_from_u64(config.seed)).len();

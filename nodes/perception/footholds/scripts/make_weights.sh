@@ -6,7 +6,7 @@
 # on the held-apart scenes and the real TUM frames.
 #
 # Sources and how training and evaluation are kept apart:
-#   rocks   the rock table; training seeds 1-30, held-apart seeds 101-106 (other untrained rocks).
+#   rocks   the rock table; training seeds 1-60, held-apart seeds 101-106 (other untrained rocks).
 #   course  tests/data/heightmaps/terrain.png at 2 cm per pixel, heights 0-0.5 m (10 x 10 m: blocks,
 #           walls, stepping stones, stairs, slopes, rough ground), in 5 m quadrants: training walks
 #           start and look into the lower-left and upper-right quadrants, held-apart walks into the
@@ -24,24 +24,25 @@
 # --test shipped_weights rewrites weights/reference_predictions.json.
 # Environment: CARGO_TARGET_DIR (binaries), WORK (scratch, default build/footholds), ROCK_TRAIN,
 # ROCK_TEST, COURSE_TRAIN, COURSE_TEST, STAIRS_TRAIN, STAIRS_TEST (seed lists), FRAMES, EPOCHS,
-# MAX_SAMPLES (0: all), LR_DECAY, DROPOUT, POSITIVE_SHARE (empty: the set's own shares), REAL.
+# MAX_SAMPLES (0: all), LR_DECAY, DROPOUT, HOLE_COPIES, POSITIVE_SHARE (empty: the set's own shares), REAL.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../../../.." && pwd)
 BIN=${CARGO_TARGET_DIR:-$ROOT/target}/release
 WORK=${WORK:-$ROOT/build/footholds}
 WEIGHTS=$ROOT/nodes/perception/footholds/weights
 MAPS=$ROOT/tests/data/heightmaps
-ROCK_TRAIN=${ROCK_TRAIN:-$(seq 1 30)}
+ROCK_TRAIN=${ROCK_TRAIN:-$(seq 1 60)}
 ROCK_TEST=${ROCK_TEST:-$(seq 101 106)}
-COURSE_TRAIN=${COURSE_TRAIN:-$(seq 1 30)}
+COURSE_TRAIN=${COURSE_TRAIN:-$(seq 1 60)}
 COURSE_TEST=${COURSE_TEST:-$(seq 101 108)}
 STAIRS_TRAIN=${STAIRS_TRAIN:-}
 STAIRS_TEST=${STAIRS_TEST:-$(seq 101 106)}
 FRAMES=${FRAMES:-15}
-EPOCHS=${EPOCHS:-6}
+EPOCHS=${EPOCHS:-3}
 MAX_SAMPLES=${MAX_SAMPLES:-0}
-LR_DECAY=${LR_DECAY:-0.6}
+LR_DECAY=${LR_DECAY:-0.36}
 DROPOUT=${DROPOUT:-0}
+HOLE_COPIES=${HOLE_COPIES:-1}
 POSITIVE_SHARE=${POSITIVE_SHARE:-}
 STAGE=${STAGE:-all}
 REAL=${REAL:-$ROOT/tests/data/tum_fr1_xyz}
@@ -108,7 +109,7 @@ for s in $STAIRS_TEST; do record_stairs "$s"; test_dirs+=("$WORK/sim/stairs/seed
 
 if [[ $STAGE == all || $STAGE == label ]]; then
   [[ -f $WORK/train.safetensors ]] ||
-    "$BIN/patch_mapper" footholds label --out "$WORK/train.safetensors" --mirror --noisy-copies 1 \
+    "$BIN/patch_mapper" footholds label --out "$WORK/train.safetensors" --mirror --noisy-copies 1 --hole-copies "$HOLE_COPIES" \
       --pictures "$WORK/label_pictures" "${train_dirs[@]}" | tee "$WORK/label.log"
 fi
 if [[ $STAGE == all ]]; then

@@ -49,10 +49,52 @@ pub struct Augment {
     /// Add copies with Gaussian depth noise of this σ (m; 0: none), as many as `noisy_copies`.
     pub noise_sigma_m: f64,
     pub noisy_copies: usize,
+    /// Add this many copies with holes in the depth ([`punch_holes`]).
+    pub hole_copies: usize,
 }
 
 impl Augment {
-    pub const NONE: Augment = Augment { mirror: false, noise_sigma_m: 0.0, noisy_copies: 0 };
+    pub const NONE: Augment = Augment { mirror: false, noise_sigma_m: 0.0, noisy_copies: 0, hole_copies: 0 };
+}
+
+/// Removes the depth of one to three random elliptical blobs of a region's cells, 5–40 % of the
+/// region in all, and re-centres the depth left on its mean (cells without depth are 0 in every
+/// channel, as [`crate::regions`] makes them). A real depth camera loses dark, shiny and distant
+/// surfaces anywhere in the image, where the simulator loses depth only at occlusion edges; a hole
+/// says nothing about the ground's shape, so the label stays. Returns false, leaving `input` as it
+/// was, when less than `min_valid_fraction` of the cells would keep a depth.
+pub fn punch_holes(input: &mut [f32], channels: usize, side: usize, min_valid_fraction: f64, rng: &mut impl Rng) -> bool {
+    let cells = side * side;
+    let fraction = rng.random_range(0.05..0.40);
+    let blobs = rng.random_range(1..=3usize);
+    let mut hole = vec![false; cells];
+    for _ in 0..blobs {
+        let radius = side as f64 * (fraction / (blobs as f64 * std::f64::consts::PI)).sqrt();
+        let aspect: f64 = rng.random_range(0.5..2.0);
+        let (rx, ry) = (radius * aspect.sqrt(), radius / aspect.sqrt());
+        let (cx, cy) = (rng.random_range(0.0..side as f64), rng.random_range(0.0..side as f64));
+        for (k, h) in hole.iter_mut().enumerate() {
+            let (x, y) = ((k % side) as f64 + 0.5, (k / side) as f64 + 0.5);
+            if ((x - cx) / rx).powi(2) + ((y - cy) / ry).powi(2) <= 1.0 {
+                *h = true;
+            }
+        }
+    }
+    let depth = &input[..cells];
+    let kept: Vec<usize> = (0..cells).filter(|&k| !hole[k] && depth[k] != 0.0).collect();
+    if (kept.len() as f64) < min_valid_fraction * cells as f64 {
+        return false;
+    }
+    let mean = kept.iter().map(|&k| f64::from(depth[k])).sum::<f64>() / kept.len() as f64;
+    for k in kept {
+        input[k] -= mean as f32;
+    }
+    for c in 0..channels {
+        for (k, _) in hole.iter().enumerate().filter(|(_, &h)| h) {
+            input[c * cells + k] = 0.0;
+        }
+    }
+    true
 }
 
 impl SampleSet {
@@ -136,6 +178,12 @@ impl SampleSet {
                         *v += normal.sample(rng) as f32;
                     }
                     self.push(&noisy, side, target, augmented.clone());
+                }
+            }
+            for _ in 0..augment.hole_copies {
+                let mut holed = input.to_vec();
+                if punch_holes(&mut holed, channels, out, self.regions.min_valid_fraction, rng) {
+                    self.push(&holed, side, target, augmented.clone());
                 }
             }
         }
@@ -245,7 +293,7 @@ mod tests {
     fn unknown_regions_are_left_out_and_mirrors_flip_x() {
         let mut set = SampleSet::new(RegionConfig { out_px: 8, ..RegionConfig::default() });
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
-        set.add_frame(&frame(), "a", 3, Augment { mirror: true, noise_sigma_m: 0.002, noisy_copies: 1 }, &mut rng).unwrap();
+        set.add_frame(&frame(), "a", 3, Augment { mirror: true, noise_sigma_m: 0.002, noisy_copies: 1, hole_copies: 0 }, &mut rng).unwrap();
         // 2 known regions × (original + mirror + noisy).
         assert_eq!(set.len(), 6);
         assert_eq!(set.targets[0], Some((0.25, 0.5)));
@@ -258,6 +306,44 @@ mod tests {
         assert_eq!(sub.len(), 4);
         assert_eq!(sub, set.subsample(4, 7));
         assert_eq!(set.subsample(100, 7), set);
+    }
+
+    #[test]
+    fn holes_take_depth_away_and_recentre_what_is_left() {
+        // A 3-channel 20 × 20 region: a depth ramp (mean 0) with its first row already without depth.
+        let side = 20;
+        let cells = side * side;
+        let mut region = vec![0.5f32; 3 * cells];
+        for k in 0..cells {
+            region[k] = if k < side { 0.0 } else { (k % side) as f32 * 0.1 - 0.95 };
+        }
+        let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+        let mut fractions = Vec::new();
+        for _ in 0..50 {
+            let mut holed = region.clone();
+            if !punch_holes(&mut holed, 3, side, 0.3, &mut rng) {
+                assert_eq!(holed, region);
+                continue;
+            }
+            let holes: Vec<usize> = (side..cells).filter(|&k| holed[k] == 0.0).collect();
+            fractions.push(holes.len() as f64 / cells as f64);
+            // Every channel is empty in the holes, the depth left has mean 0 and its slope.
+            assert!(holes.iter().all(|&k| holed[cells + k] == 0.0 && holed[2 * cells + k] == 0.0));
+            let kept: Vec<usize> = (side..cells).filter(|&k| holed[k] != 0.0).collect();
+            let mean = kept.iter().map(|&k| f64::from(holed[k])).sum::<f64>() / kept.len() as f64;
+            assert!(mean.abs() < 1e-5, "{mean}");
+            let shift = holed[kept[0]] - region[kept[0]];
+            assert!(kept.iter().all(|&k| (holed[k] - region[k] - shift).abs() < 1e-5));
+        }
+        assert!(fractions.len() > 40);
+        let (least, most) = fractions.iter().fold((1.0f64, 0.0f64), |(a, b), &f| (a.min(f), b.max(f)));
+        assert!(least > 0.01 && most < 0.45 && most > 0.2, "hole fractions {least}..{most}");
+        // A region that would keep too little depth is left as it was.
+        let mut sparse = region.clone();
+        sparse[..cells / 2].fill(0.0);
+        let before = sparse.clone();
+        assert!(!punch_holes(&mut sparse, 3, side, 0.6, &mut rng));
+        assert_eq!(sparse, before);
     }
 
     #[test]

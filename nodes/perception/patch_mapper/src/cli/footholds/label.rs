@@ -35,6 +35,10 @@ pub struct LabelArgs {
     pub noisy_copies: usize,
     #[arg(long, default_value_t = 0.002)]
     pub noise_sigma_m: f64,
+    /// Add this many copies with holes in the depth (1-3 blobs, 5-40 % of the region), as a real
+    /// camera loses dark, shiny and distant surfaces.
+    #[arg(long, default_value_t = 0)]
+    pub hole_copies: usize,
     /// Add the surface-normal channels (nx, ny) to the depth channel.
     #[arg(long)]
     pub normals: bool,
@@ -68,7 +72,8 @@ pub fn run(args: LabelArgs) -> Result<()> {
     let started = Instant::now();
     let regions = RegionConfig { normals: args.normals, ..RegionConfig::default() };
     let label = LabelConfig::default();
-    let augment = Augment { mirror: args.mirror, noise_sigma_m: args.noise_sigma_m, noisy_copies: args.noisy_copies };
+    let augment =
+        Augment { mirror: args.mirror, noise_sigma_m: args.noise_sigma_m, noisy_copies: args.noisy_copies, hole_copies: args.hole_copies };
     let mut set = SampleSet::new(regions.clone());
     let mut rng = rand::rngs::StdRng::seed_from_u64(args.seed);
     let (mut frames, mut unknown, mut known) = (0usize, 0usize, 0usize);

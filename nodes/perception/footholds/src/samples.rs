@@ -314,8 +314,8 @@ mod tests {
         let side = 20;
         let cells = side * side;
         let mut region = vec![0.5f32; 3 * cells];
-        for k in 0..cells {
-            region[k] = if k < side { 0.0 } else { (k % side) as f32 * 0.1 - 0.95 };
+        for (k, depth) in region.iter_mut().take(cells).enumerate() {
+            *depth = if k < side { 0.0 } else { (k % side) as f32 * 0.1 - 0.95 };
         }
         let mut rng = rand::rngs::StdRng::seed_from_u64(4);
         let mut fractions = Vec::new();

@@ -5,14 +5,14 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use candle_core::{Device, Tensor};
 use rand::Rng;
 use rand_distr::Distribution;
 
 use crate::error::FootholdError;
 use crate::labels::{Label, LabelledFrame};
 use crate::regions::{mirror_input, RegionConfig};
-use crate::tensors_io;
+use crate::tensors_io::{self, RawTensor};
+use safetensors::{Dtype, SafeTensors};
 
 /// Where a sample came from and its region's geometry in its image.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -227,45 +227,42 @@ impl SampleSet {
         out
     }
 
-    /// Writes the set as safetensors (`inputs` [N, C, S, S], `side` [N, 3], `positive` [N], `coords` [N, 2]).
+    /// Writes the set as safetensors (`inputs` [N, C, S, S], `side` [N, 3], `positive` [N], `coords` [N, 2]),
+    /// atomically and without copying the inputs.
     pub fn save(&self, path: &Path) -> Result<(), FootholdError> {
         let n = self.len();
-        let dev = Device::Cpu;
         let s = self.regions.out_px;
         let side: Vec<f32> = self.side.iter().flatten().copied().collect();
         let positive: Vec<u8> = self.targets.iter().map(|t| u8::from(t.is_some())).collect();
         let coords: Vec<f32> = self.targets.iter().flat_map(|t| t.map_or([0.0, 0.0], |(x, y)| [x, y])).collect();
-        let tensors = vec![
-            ("inputs".to_string(), Tensor::from_slice(&self.inputs, (n, self.regions.channels(), s, s), &dev)?),
-            ("side".to_string(), Tensor::from_vec(side, (n, 3), &dev)?),
-            ("positive".to_string(), Tensor::from_vec(positive, n, &dev)?),
-            ("coords".to_string(), Tensor::from_vec(coords, (n, 2), &dev)?),
+        let tensors = [
+            ("inputs", RawTensor::f32(&self.inputs, vec![n, self.regions.channels(), s, s])),
+            ("side", RawTensor::f32(&side, vec![n, 3])),
+            ("positive", RawTensor::u8(&positive, vec![n])),
+            ("coords", RawTensor::f32(&coords, vec![n, 2])),
         ];
         let metadata = HashMap::from([
             ("regions".to_string(), tensors_io::to_json(&self.regions)?),
             ("meta".to_string(), tensors_io::to_json(&self.meta)?),
         ]);
-        tensors_io::save(path, &tensors, metadata)
+        tensors_io::save_views(path, tensors.iter().map(|(name, t)| (*name, t)), metadata)
     }
 
     /// Reads a set written by [`SampleSet::save`].
     pub fn load(path: &Path) -> Result<SampleSet, FootholdError> {
-        let (tensors, metadata) = tensors_io::load(path)?;
+        let (bytes, metadata) = tensors_io::read(path)?;
         let regions: RegionConfig = tensors_io::meta_json(path, &metadata, "regions")?;
         let meta: Vec<SampleMeta> = tensors_io::meta_json(path, &metadata, "meta")?;
-        let get = |name: &str| {
-            tensors.get(name).ok_or_else(|| FootholdError::Format { path: path.to_path_buf(), reason: format!("tensor '{name}' missing") })
-        };
-        let inputs = get("inputs")?.flatten_all()?.to_vec1::<f32>()?;
-        let side = get("side")?.to_vec2::<f32>()?;
-        let positive = get("positive")?.to_vec1::<u8>()?;
-        let coords = get("coords")?.to_vec2::<f32>()?;
+        let file =
+            SafeTensors::deserialize(&bytes).map_err(|e| FootholdError::Format { path: path.to_path_buf(), reason: e.to_string() })?;
         let n = meta.len();
-        if inputs.len() != n * regions.input_len() || side.len() != n || positive.len() != n || coords.len() != n {
-            return Err(FootholdError::Format { path: path.to_path_buf(), reason: format!("tensor sizes disagree with {n} samples") });
-        }
-        let side = side.iter().map(|s| [s[0], s[1], s[2]]).collect();
-        let targets = positive.iter().zip(&coords).map(|(p, c)| (*p > 0).then(|| (c[0], c[1]))).collect();
+        let tensor = |name: &str, dtype: Dtype, len: usize| tensors_io::tensor_bytes(path, &file, name, dtype, len);
+        let inputs = tensors_io::f32_from_le(tensor("inputs", Dtype::F32, n * regions.input_len())?);
+        let side = tensors_io::f32_from_le(tensor("side", Dtype::F32, n * 3)?);
+        let positive = tensor("positive", Dtype::U8, n)?;
+        let coords = tensors_io::f32_from_le(tensor("coords", Dtype::F32, n * 2)?);
+        let side = side.chunks_exact(3).map(|s| [s[0], s[1], s[2]]).collect();
+        let targets = positive.iter().zip(coords.chunks_exact(2)).map(|(p, c)| (*p > 0).then(|| (c[0], c[1]))).collect();
         Ok(SampleSet { regions, inputs, side, targets, meta })
     }
 }
@@ -357,5 +354,22 @@ mod tests {
         assert_eq!(SampleSet::load(&path).unwrap(), set);
         std::fs::write(&path, b"not a safetensors file").unwrap();
         assert!(SampleSet::load(&path).unwrap_err().to_string().contains("set.safetensors"));
+        // A new save replaces the file whole and leaves nothing else behind.
+        let mut bigger = set.clone();
+        bigger.extend(set.clone()).unwrap();
+        set.save(&path).unwrap();
+        bigger.save(&path).unwrap();
+        assert_eq!(SampleSet::load(&path).unwrap(), bigger);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        // A file cut short (a write killed half way) is refused with its name.
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 8]).unwrap();
+        assert!(SampleSet::load(&path).unwrap_err().to_string().contains("set.safetensors"));
+        // Saving into a directory that cannot hold the file fails and leaves no temporary file.
+        let blocked = dir.path().join("blocked");
+        std::fs::create_dir(&blocked).unwrap();
+        std::fs::create_dir(blocked.join("set.safetensors")).unwrap();
+        assert!(set.save(&blocked.join("set.safetensors")).is_err());
+        assert_eq!(std::fs::read_dir(&blocked).unwrap().count(), 1);
     }
 }

@@ -69,6 +69,20 @@ impl Deadman {
         self.engaged = false;
     }
 
+    /// The armed step ended by itself (its motion is over) at `now`: disengage. When the heartbeats
+    /// had already stopped for longer than the timeout, the deadman should have held the motion
+    /// before it ended, and the loop did not run in time to: say so.
+    pub fn end_step(&mut self, now: Instant) -> Option<String> {
+        let was_engaged = std::mem::replace(&mut self.engaged, false);
+        let age = self.age(now).filter(|age| was_engaged && *age > self.timeout)?;
+        Some(format!(
+            "deadman: the armed step ended {:.2} s after the last heartbeat on {HEARTBEAT_TOPIC}, past the {:.2} s timeout, \
+             without being held: the executor's loop did not run in between",
+            age.as_secs_f64(),
+            self.timeout.as_secs_f64()
+        ))
+    }
+
     pub fn engaged(&self) -> bool {
         self.engaged
     }
@@ -143,5 +157,13 @@ mod tests {
         deadman.engage();
         deadman.disengage();
         assert_eq!(deadman.expired(t0 + Duration::from_secs(1)), None);
+        // A step that ends in time says nothing; one that ends after the timeout unheld says so.
+        deadman.engage();
+        assert_eq!(deadman.end_step(t0 + Duration::from_millis(400)), None);
+        assert!(!deadman.engaged());
+        deadman.engage();
+        let late = deadman.end_step(t0 + Duration::from_secs(4)).unwrap();
+        assert!(late.contains("4.00 s") && late.contains("without being held"), "{late}");
+        assert_eq!(deadman.end_step(t0 + Duration::from_secs(5)), None, "not engaged any more");
     }
 }

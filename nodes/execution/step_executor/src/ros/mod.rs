@@ -139,7 +139,9 @@ impl Executor {
     fn check_deadman(&mut self, now: Instant) {
         let status = self.runtime.status();
         if self.deadman.engaged() && !status.armed && status.state != RunState::Playing {
-            self.deadman.disengage();
+            if let Some(late) = self.deadman.end_step(now) {
+                tracing::warn!("{late}");
+            }
         }
         if let Some(reason) = self.deadman.expired(now) {
             tracing::warn!("{reason}");

@@ -505,16 +505,21 @@ mod tests {
         assert!(mean < 0.001, "mean depth error {mean}");
     }
 
-    #[test]
-    fn birds_eye_looks_down_from_above_the_camera() {
+    /// A 1.28 m volume holding the floor at y = 1.0 as a forward-looking camera tilted 45° down at
+    /// (0.64, 0.5, 0.3) sees it; the volume and that camera's pose.
+    fn floor_seen_from_a_tilted_camera() -> (TsdfVolume, Isometry3<f64>) {
         let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
         let mut volume = TsdfVolume::new(config).unwrap();
         let intrinsics = Intrinsics::primesense_default().scaled(0.5);
-        // A forward-looking camera tilted 45° down at (0.64, 0.5, 0.3) sees a floor at y = 1.0.
         let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_4);
         let pose = Isometry3::from_parts(Translation3::new(0.64, 0.5, 0.3), tilt);
-        let depth = render_plane(&intrinsics, &pose, Vector3::y(), 1.0);
-        volume.integrate(&depth, &intrinsics, &pose).unwrap();
+        volume.integrate(&render_plane(&intrinsics, &pose, Vector3::y(), 1.0), &intrinsics, &pose).unwrap();
+        (volume, pose)
+    }
+
+    #[test]
+    fn birds_eye_looks_down_from_above_the_camera() {
+        let (volume, pose) = floor_seen_from_a_tilted_camera();
         let birds_eye = BirdsEyeConfig::default();
         let view = raycast_birds_eye(&volume, &RaycastConfig::default(), &birds_eye, &pose);
         let br = birds_eye.resolution_px;
@@ -591,12 +596,7 @@ mod tests {
 
     #[test]
     fn a_birds_eye_view_within_a_region_is_the_whole_view_there() {
-        let config = TsdfConfig { voxel_size_m: 0.01, size_m: 1.28, ..TsdfConfig::default() };
-        let mut volume = TsdfVolume::new(config).unwrap();
-        let intrinsics = Intrinsics::primesense_default().scaled(0.5);
-        let tilt = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), -std::f64::consts::FRAC_PI_4);
-        let pose = Isometry3::from_parts(Translation3::new(0.64, 0.5, 0.3), tilt);
-        volume.integrate(&render_plane(&intrinsics, &pose, Vector3::y(), 1.0), &intrinsics, &pose).unwrap();
+        let (volume, pose) = floor_seen_from_a_tilted_camera();
         let birds_eye = BirdsEyeConfig::default();
         let whole = raycast_birds_eye(&volume, &RaycastConfig::default(), &birds_eye, &pose);
         let br = birds_eye.resolution_px;

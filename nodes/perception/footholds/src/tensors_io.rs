@@ -15,9 +15,10 @@ pub fn save(path: &Path, tensors: &[(String, Tensor)], metadata: HashMap<String,
     save_views(path, tensors.iter().map(|(n, t)| (n.as_str(), t)), metadata)
 }
 
-/// Writes named tensors and metadata to a safetensors file atomically: into a temporary file beside
-/// it, synced to disk, then renamed over it, so a write that is interrupted (a full disk, a kill)
-/// leaves the old file, or none, never a truncated one.
+/// Writes named tensors and metadata to a safetensors file atomically, the steps of the motion
+/// library's `write_atomically` (temporary file beside it, synced, renamed over it, directory
+/// synced), streamed from the views instead of one buffer: a write that is interrupted (a full
+/// disk, a kill) leaves the old file, or none, never a truncated one.
 pub fn save_views<'a, V: View>(
     path: &Path,
     tensors: impl IntoIterator<Item = (&'a str, V)>,
@@ -30,7 +31,8 @@ pub fn save_views<'a, V: View>(
     let written = safetensors::serialize_to_file(tensors, Some(metadata), &temporary)
         .map_err(|e| FootholdError::Weights { path: path.to_path_buf(), reason: e.to_string() })
         .and_then(|()| std::fs::File::open(&temporary).and_then(|f| f.sync_all()).map_err(io_error(&temporary)))
-        .and_then(|()| std::fs::rename(&temporary, path).map_err(io_error(path)));
+        .and_then(|()| std::fs::rename(&temporary, path).map_err(io_error(path)))
+        .and_then(|()| std::fs::File::open(parent).and_then(|d| d.sync_all()).map_err(io_error(parent)));
     if written.is_err() {
         let _ = std::fs::remove_file(&temporary);
     }

@@ -23,8 +23,8 @@
 //!    tried nothing there (e.g. flat ground without salient points: no evidence either way), when
 //!    the sequence's map holds no foothold at all (on the simulated scenes a failed labelling run —
 //!    the map's patches all too small or steep — rather than a scene without any walkable place), or when
-//!    the region's centre point lies outside the area the map covered (the final volume's footprint)
-//!    or outside the volume's height range.
+//!    part of the region's central 80 % lies outside the area the map covered (the final volume's
+//!    footprint) or outside the volume's height range.
 //! 3. A positive region's (x, y) is where the walkable area lies in it, as CNN III-C's (x, y) is the
 //!    position of a painted foothold area. The footholds come from seeds placed one per
 //!    [`SEED_CELL_M`] cell, so each stands for about a cell of walkable ground: each visible foothold
@@ -63,7 +63,9 @@ pub struct LabelConfig {
     pub min_half_extent_m: f64,
     /// A foothold is visible in a frame when the frame's depth at its pixel is within this of its depth (m).
     pub visibility_tolerance_m: f64,
-    /// Regions whose centre point is closer than this to the covered area's edge are unknown (m).
+    /// Regions with a point of their central part closer than this to the covered area's edge are
+    /// unknown (m): the map holds no foothold centre nearer its edge than a foot radius, whose seed
+    /// cell ([`SEED_CELL_M`]) is painted to within about this of the edge.
     pub coverage_margin_m: f64,
     /// Radius of the disc painted around each visible foothold centre (m, on the surface): half a
     /// seed cell ([`SEED_CELL_M`]), the area one foothold stands for. 0 paints nothing: a positive
@@ -130,6 +132,8 @@ pub const LABELLING_BIRDS_EYE_PX: usize = 240;
 pub const SEED_CELL_M: f64 = 0.04;
 /// Points per side of the grid a region's central part is sampled on for the painted centroid.
 pub const PAINT_SAMPLES: usize = 24;
+/// Points per side of the grid on which a region's central part must lie in the covered area.
+pub const COVERAGE_SAMPLES: usize = 5;
 /// Frames whose depth a fitted volume is sized from (as `patch_mapper replay`).
 pub const FIT_FRAMES: usize = 5;
 /// Seeds per frame of the labelling run at most, whatever the volume.
@@ -498,12 +502,32 @@ pub fn tried(region: &Region, points: &[SeenPoint], centre_fraction: f64) -> boo
     })
 }
 
-/// Whether the region's centre point (back-projected at its depth) lies in the covered area.
-fn covered(region: &Region, intrinsics: &Intrinsics, map_from_camera: &Isometry3<f64>, grid: &VolumeGrid, margin: f64) -> bool {
-    let p = intrinsics.back_project(region.u, region.v, region.depth_m);
-    let in_volume = grid.volume_from_map * (map_from_camera * Point3::from(p));
+/// Whether the region's central part lies in the covered area: every point of a
+/// [`COVERAGE_SAMPLES`]² grid over it (corners and centre included), back-projected at the frame's
+/// depth there (at the region's depth where the frame has none), lies at least `margin` inside the
+/// final volume. Where part of a region lies outside the map, that part has neither footholds nor
+/// rejected places, so its (x, y) would lean away from the volume's edge for a reason the image
+/// does not show.
+fn covered(
+    region: &Region,
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    map_from_camera: &Isometry3<f64>,
+    grid: &VolumeGrid,
+    config: &LabelConfig,
+) -> bool {
+    let low = 0.5 - config.centre_fraction / 2.0;
+    let step = config.centre_fraction / (COVERAGE_SAMPLES - 1) as f64;
     let e = grid.edge_m;
-    [in_volume.x, in_volume.y, in_volume.z].iter().all(|c| *c >= margin && *c <= e - margin)
+    let margin = config.coverage_margin_m;
+    (0..COVERAGE_SAMPLES * COVERAGE_SAMPLES).all(|k| {
+        let (x, y) = (low + (k % COVERAGE_SAMPLES) as f64 * step, low + (k / COVERAGE_SAMPLES) as f64 * step);
+        let (u, v) = region.to_image(x, y);
+        let z = depth_near(depth, u, v).unwrap_or(region.depth_m);
+        let p = intrinsics.back_project(u, v, z);
+        let in_volume = grid.volume_from_map * (map_from_camera * Point3::from(p));
+        [in_volume.x, in_volume.y, in_volume.z].iter().all(|c| *c >= margin && *c <= e - margin)
+    })
 }
 
 /// Proposes and labels the regions of one frame.
@@ -525,7 +549,7 @@ pub fn label_frame(
     let labels = regions
         .iter()
         .map(|r| {
-            if footholds_in_map.is_empty() || !covered(r, intrinsics, &pose.map_from_camera, grid, config.coverage_margin_m) {
+            if footholds_in_map.is_empty() || !covered(r, depth, intrinsics, &pose.map_from_camera, grid, config) {
                 return Label::Unknown;
             }
             match region_label(r, &footholds_px, config.centre_fraction) {
@@ -642,5 +666,29 @@ mod tests {
         assert_eq!(seen.iter().map(|p| (p.u, p.v)).collect::<Vec<_>>(), vec![(32.0, 24.0)]);
         let painted = painted_footholds(&depth, &k, &pose, &[Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.0, 0.0, 0.5)], &config);
         assert_eq!(painted, vec![Disc { u: 32.0, v: 24.0, radius_px: 1.0 }]);
+    }
+
+    #[test]
+    fn the_whole_central_part_must_lie_in_the_covered_area() {
+        // A wall 1 m in front of the camera (map frame = camera frame); a 20 px region at the image
+        // centre spans 0.4 m of it, its central 80 % x ∈ [-0.16, 0.16] m.
+        let k = Intrinsics::new(64, 48, 50.0, 50.0, 32.0, 24.0).unwrap();
+        let depth = DepthImage::new(64, 48, vec![1.0; 64 * 48]).unwrap();
+        let region = Region { row: 0, col: 0, u: 32.0, v: 24.0, depth_m: 1.0, size_px: 20 };
+        let config = LabelConfig::default();
+        let grid = |x: f64| VolumeGrid { volume_from_map: Isometry3::translation(x, 0.5, -0.5), edge_m: 1.0, cells_per_side: 25 };
+        let pose = Isometry3::identity();
+        // Centred in the 1 m cube: covered.
+        assert!(covered(&region, &depth, &k, &pose, &grid(0.5), &config));
+        // The region centre 0.15 m inside the cube's edge, its central part's left side 0.01 m
+        // outside: not covered.
+        assert!(!covered(&region, &depth, &k, &pose, &grid(0.15), &config));
+        // Within the margin of the edge counts as outside too (0.03 m inside).
+        assert!(!covered(&region, &depth, &k, &pose, &grid(0.19), &config));
+        assert!(covered(&region, &depth, &k, &pose, &grid(0.21), &config));
+        // Where the frame has no depth the region's depth is used: the same answers.
+        let holes = DepthImage::new(64, 48, vec![0.0; 64 * 48]).unwrap();
+        assert!(covered(&region, &holes, &k, &pose, &grid(0.5), &config));
+        assert!(!covered(&region, &holes, &k, &pose, &grid(0.15), &config));
     }
 }

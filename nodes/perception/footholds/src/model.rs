@@ -11,7 +11,7 @@ use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use crate::error::FootholdError;
 use crate::inference::FastNet;
 use crate::network::{FootholdNet, NetConfig};
-use crate::regions::{propose, Region, RegionConfig};
+use crate::regions::{mirror_input, propose, Region, RegionConfig};
 use crate::tensors_io;
 use crate::tilt::Tilt;
 use crate::train::{predict, Prediction};
@@ -25,6 +25,10 @@ pub struct FootholdModel {
     pub regions: RegionConfig,
     /// Training provenance (set sizes, seeds, epochs, losses), stored with the weights.
     pub notes: serde_json::Value,
+    /// Average each region's answer with its mirror image's (the mirrored copies of CNN III-C's
+    /// augmentation, at test time): p and y averaged, x averaged with the mirror's 1 − x. On by
+    /// default; it doubles the network's work.
+    pub mirror_average: bool,
     fast: FastNet,
 }
 
@@ -78,7 +82,7 @@ impl FootholdModel {
         }
         let net = FootholdNet::new(net, seed, DType::F32)?;
         let fast = FastNet::from_net(&net)?;
-        Ok(Self { net, regions, notes: serde_json::Value::Null, fast })
+        Ok(Self { net, regions, notes: serde_json::Value::Null, mirror_average: true, fast })
     }
 
     /// Takes a new snapshot of the network's weights for prediction (after training `net` in place).
@@ -116,12 +120,41 @@ impl FootholdModel {
         self.predict_inputs_with(inputs, side, Inference::Fast)
     }
 
-    /// [`FootholdModel::predict_inputs`] through the chosen forward pass.
+    /// [`FootholdModel::predict_inputs`] through the chosen forward pass: one pass over the regions
+    /// and, with [`FootholdModel::mirror_average`], their mirror images in the same batch.
     pub fn predict_inputs_with(&self, inputs: &[f32], side: &[[f32; 3]], path: Inference) -> Result<Vec<Vec<Prediction>>, FootholdError> {
-        match path {
+        let forward = |inputs: &[f32], side: &[[f32; 3]]| match path {
             Inference::Fast => self.fast.predict(inputs, side),
             Inference::Candle => predict(&self.net, inputs, side, 128),
+        };
+        if !self.mirror_average {
+            return forward(inputs, side);
         }
+        let (channels, out) = (self.regions.channels(), self.regions.out_px);
+        if inputs.len() != side.len() * channels * out * out {
+            return Err(FootholdError::Shape(format!(
+                "{} input values for {} regions of {}",
+                inputs.len(),
+                side.len(),
+                channels * out * out
+            )));
+        }
+        let mut both = Vec::with_capacity(2 * inputs.len());
+        both.extend_from_slice(inputs);
+        both.extend_from_slice(inputs);
+        for region in both[inputs.len()..].chunks_mut(channels * out * out) {
+            mirror_input(region, channels, out);
+        }
+        let mut sides = side.to_vec();
+        sides.extend_from_slice(side);
+        let mut predictions = forward(&both, &sides)?;
+        let mirrored = predictions.split_off(side.len());
+        for (parts, mirror) in predictions.iter_mut().zip(&mirrored) {
+            for (p, m) in parts.iter_mut().zip(mirror) {
+                *p = Prediction { p: 0.5 * (p.p + m.p), x: 0.5 * (p.x + 1.0 - m.x), y: 0.5 * (p.y + m.y) };
+            }
+        }
+        Ok(predictions)
     }
 
     /// Regions and predictions of one depth frame at camera tilt `tilt`.
@@ -170,6 +203,40 @@ mod tests {
         assert_eq!(before.regions.len(), 266);
         let err = FootholdModel::new(NetConfig::default(), RegionConfig { normals: true, ..RegionConfig::default() }, 1).err().unwrap();
         assert!(err.to_string().contains("3 channels"), "{err}");
+    }
+
+    #[test]
+    fn mirror_averaging_is_the_mean_with_the_mirror_image_and_mirrors_with_it() {
+        let mut model = FootholdModel::new(NetConfig::default(), RegionConfig::default(), 7).unwrap();
+        let len = model.regions.input_len();
+        let out = model.regions.out_px;
+        // Two regions: a ramp rising to the right with a bump left of centre, and its mirror image.
+        let region: Vec<f32> = (0..len)
+            .map(|i| {
+                let (x, y) = ((i % out) as f32, (i / out) as f32);
+                0.01 * x - 0.3 * (-((x - 20.0).powi(2) + (y - 25.0).powi(2)) / 40.0).exp()
+            })
+            .collect();
+        let mut mirrored = region.clone();
+        mirror_input(&mut mirrored, 1, out);
+        let inputs = [region.clone(), mirrored.clone()].concat();
+        let side = [[0.7f32, 0.7, 0.5]; 2];
+        model.mirror_average = false;
+        let single = model.predict_inputs(&inputs, &side).unwrap();
+        assert_ne!(single[0][0], single[1][0], "the network is not mirror symmetric by itself");
+        model.mirror_average = true;
+        let averaged = model.predict_inputs(&inputs, &side).unwrap();
+        let (a, m) = (single[0][0], single[1][0]);
+        let expected = Prediction { p: 0.5 * (a.p + m.p), x: 0.5 * (a.x + 1.0 - m.x), y: 0.5 * (a.y + m.y) };
+        let close = |p: Prediction, q: Prediction| (p.p - q.p).abs() < 1e-6 && (p.x - q.x).abs() < 1e-6 && (p.y - q.y).abs() < 1e-6;
+        assert!(close(averaged[0][0], expected), "{:?} vs {expected:?}", averaged[0][0]);
+        // The mirror image's answer is the original's, mirrored.
+        let b = averaged[1][0];
+        assert!(close(b, Prediction { x: 1.0 - averaged[0][0].x, ..averaged[0][0] }), "{b:?} vs {:?}", averaged[0][0]);
+        // The candle forward averages the same way; a wrong input length is still refused.
+        let candle = model.predict_inputs_with(&inputs, &side, Inference::Candle).unwrap();
+        assert!(close(candle[0][0], averaged[0][0]));
+        assert!(model.predict_inputs(&inputs[1..], &side).is_err());
     }
 
     /// The whole-frame prediction gives the candle forward's answers on a recorded frame.

@@ -101,7 +101,7 @@ fn main() -> Result<()> {
     let depth = dataset.load_depth(args.frame)?;
     let k = dataset.intrinsics;
     let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
-    let model = FootholdModel::load(&weights).with_context(|| format!("loading {}", weights.display()))?;
+    let mut model = FootholdModel::load(&weights).with_context(|| format!("loading {}", weights.display()))?;
     let svm_path = args.svm.clone().unwrap_or_else(patchwalk_footholds::shipped_svm_path);
     let svm: LinearSvm =
         serde_json::from_str(&std::fs::read_to_string(&svm_path).with_context(|| format!("reading {}", svm_path.display()))?)?;
@@ -122,6 +122,8 @@ fn main() -> Result<()> {
     model.predict_frame_with(&depth, &k, tilt, Inference::Candle)?;
     let fast = time_cnn(&model, &depth, &k, tilt, Inference::Fast, runs)?;
     let candle = time_cnn(&model, &depth, &k, tilt, Inference::Candle, args.candle_runs.max(1))?;
+    model.mirror_average = false;
+    let single = time_cnn(&model, &depth, &k, tilt, Inference::Fast, runs)?;
     let mut svm_total = Vec::new();
     let s = model.regions.out_px;
     let len = model.regions.input_len();
@@ -144,7 +146,9 @@ fn main() -> Result<()> {
         warm.footholds(0.5).len()
     );
     println!("{:<40} {:>10} {:>10} {:>10}", "per frame", "median ms", "p90 ms", "CPU ms");
-    for (name, (times, cpu)) in [("CNN, fast path", &fast), ("CNN, candle forward", &candle)] {
+    for (name, (times, cpu)) in
+        [("CNN, fast path", &fast), ("CNN, candle forward", &candle), ("CNN, fast path, no mirror average", &single)]
+    {
         let row = |label: &str, v: &Vec<f64>, cpu: Option<f64>| {
             let (m, p) = percentiles(v.clone());
             let cpu = cpu.map(|c| format!("{c:.1}")).unwrap_or_default();

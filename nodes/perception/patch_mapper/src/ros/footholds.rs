@@ -52,8 +52,8 @@ pub const DEFAULT_WEIGHTS: &str = "weights/foot_d.safetensors";
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FootholdParams {
-    /// Run the stage. Off by default: the network takes 0.5–1 s per 640 × 480 frame on one core
-    /// (`bench_footholds_cnn`), so it would predict every 15th–30th frame while loading a core.
+    /// Run the stage. Off by default: it takes a core's share of 10–50 ms per 640 × 480 frame
+    /// (`bench_footholds_cnn`) that the mapper would otherwise have.
     pub enabled: bool,
     /// Weights (safetensors with their network and region configuration, `patch_mapper footholds
     /// train`); relative paths are looked up as [`DEFAULT_WEIGHTS`] is.
@@ -68,6 +68,9 @@ pub struct FootholdParams {
     pub publish_markers: bool,
     /// Hand the predictions to the mapper's learned seed orders (`mapper.seeds.order`).
     pub seed_priors: bool,
+    /// Average each region's answer with its mirror image's (`FootholdModel::mirror_average`): fewer
+    /// errors, twice the network's time.
+    pub mirror_average: bool,
 }
 
 impl Default for FootholdParams {
@@ -80,6 +83,7 @@ impl Default for FootholdParams {
             threads: 1,
             publish_markers: true,
             seed_priors: true,
+            mirror_average: true,
         }
     }
 }

@@ -695,8 +695,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let model = if params.footholds.enabled {
             let path = footholds::find_weights(&params.footholds.weights_path)
                 .with_context(|| format!("ros.footholds.weights_path: {} not found", params.footholds.weights_path))?;
-            let model = patchwalk_footholds::model::FootholdModel::load(&path)
+            let mut model = patchwalk_footholds::model::FootholdModel::load(&path)
                 .with_context(|| format!("ros.footholds.weights_path: cannot load {}", path.display()))?;
+            model.mirror_average = params.footholds.mirror_average;
             tracing::info!("foothold stage: weights {}", path.display());
             Some(model)
         } else {

@@ -43,6 +43,9 @@ pub struct EvalArgs {
     /// region centre instead.
     #[arg(long, default_value_t = LabelConfig::default().paint_radius_m)]
     pub paint_radius_m: f64,
+    /// Score both networks on each region alone, without averaging with its mirror image.
+    #[arg(long)]
+    pub single_pass: bool,
 }
 
 pub fn run(args: EvalArgs) -> Result<()> {
@@ -52,8 +55,10 @@ pub fn run(args: EvalArgs) -> Result<()> {
     let weights = args.weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(false));
     let no_angle_weights = args.no_angle_weights.clone().unwrap_or_else(|| patchwalk_footholds::shipped_weights_path(true));
     let svm_path = args.svm.clone().unwrap_or_else(patchwalk_footholds::shipped_svm_path);
-    let cnn = FootholdModel::load(&weights)?;
-    let no_angle = FootholdModel::load(&no_angle_weights)?;
+    let mut cnn = FootholdModel::load(&weights)?;
+    let mut no_angle = FootholdModel::load(&no_angle_weights)?;
+    cnn.mirror_average = !args.single_pass;
+    no_angle.mirror_average = !args.single_pass;
     if no_angle.regions != cnn.regions {
         anyhow::bail!("{} and {} were trained on different region configurations", weights.display(), no_angle_weights.display());
     }

@@ -11,7 +11,7 @@
 //! motion plays only after an explicit torque on); a lost port needs [`Executor::reconnect`].
 //! A panic inside the bus implementation is already turned into an error by the bus.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -69,6 +69,8 @@ pub struct Telemetry {
     pub state: PlayerState,
     pub torque: bool,
     pub event: Option<PlayerEvent>,
+    /// Commands the bus thread had taken when it sent this (see [`Executor::is_current`]).
+    pub commands_taken: u64,
 }
 
 /// How the bus thread runs its cycle.
@@ -114,6 +116,10 @@ pub struct Executor {
     notify: Arc<OnceLock<Notify>>,
     health: Arc<Mutex<BusHealth>>,
     reply_timeout: Duration,
+    /// Sequence number of the last command sent (the bus thread takes them in this order).
+    commands_sent: AtomicU64,
+    /// Sequence number of the last command whose reply came back.
+    commands_answered: AtomicU64,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -162,13 +168,25 @@ impl Executor {
             notify: Arc::clone(&notify),
             health: Arc::clone(&health),
             commands: command_rx,
+            commands_taken: 0,
             telemetry: telemetry_tx,
         };
         let thread = std::thread::Builder::new()
             .name("servo-bus".into())
             .spawn(move || bus_loop.run())
             .map_err(|e| ExecutorError::Refused(format!("cannot start the bus thread: {e}")))?;
-        Ok(Self { commands: command_tx, telemetry: telemetry_rx, estop, shutdown, notify, health, reply_timeout, thread: Some(thread) })
+        Ok(Self {
+            commands: command_tx,
+            telemetry: telemetry_rx,
+            estop,
+            shutdown,
+            notify,
+            health,
+            reply_timeout,
+            commands_sent: AtomicU64::new(0),
+            commands_answered: AtomicU64::new(0),
+            thread: Some(thread),
+        })
     }
 
     /// Request an e-stop (honoured at the start of the next cycle, or between the transactions of
@@ -188,6 +206,14 @@ impl Executor {
         &self.telemetry
     }
 
+    /// Whether `telemetry` was sent after the bus thread took every command answered so far. Older
+    /// telemetry, still queued when a reply comes back, shows the state from before that command
+    /// (e.g. idle just after a `play` was answered): its positions are measurements all the same,
+    /// but its state, torque and keyframe are out of date.
+    pub fn is_current(&self, telemetry: &Telemetry) -> bool {
+        telemetry.commands_taken >= self.commands_answered.load(Ordering::SeqCst)
+    }
+
     /// The bus health as of the last update (every `bus.health_read_period_cycles` cycles, at
     /// least every 25).
     pub fn health(&self) -> BusHealth {
@@ -196,8 +222,11 @@ impl Executor {
 
     fn request<T>(&self, make: impl FnOnce(Reply<T>) -> Command) -> Result<T, ExecutorError> {
         let (tx, rx) = crossbeam_channel::bounded(1);
+        let sequence = self.commands_sent.fetch_add(1, Ordering::SeqCst) + 1;
         self.commands.send(make(tx)).map_err(|_| ExecutorError::Stopped)?;
-        rx.recv_timeout(self.reply_timeout).map_err(|_| ExecutorError::Stopped)?
+        let reply = rx.recv_timeout(self.reply_timeout).map_err(|_| ExecutorError::Stopped)?;
+        self.commands_answered.fetch_max(sequence, Ordering::SeqCst);
+        reply
     }
 
     /// Start a motion (torque is enabled first if needed; limits are checked before anything moves).
@@ -255,6 +284,8 @@ struct BusLoop {
     notify: Arc<OnceLock<Notify>>,
     health: Arc<Mutex<BusHealth>>,
     commands: Receiver<Command>,
+    /// Commands taken so far (sent with every telemetry).
+    commands_taken: u64,
     telemetry: Sender<Telemetry>,
 }
 
@@ -295,6 +326,7 @@ impl BusLoop {
             }
             let mut blocked = false;
             while let Ok(command) = self.commands.try_recv() {
+                self.commands_taken += 1;
                 blocked |= self.handle(command);
             }
             if blocked {
@@ -328,6 +360,7 @@ impl BusLoop {
                 state: self.player.state().clone(),
                 torque: self.torque,
                 event: report.event,
+                commands_taken: self.commands_taken,
             };
             let urgent = telemetry.goal.is_some() || telemetry.event.is_some();
             // Never block the control loop on a slow consumer: drop telemetry instead.
@@ -573,14 +606,9 @@ mod tests {
         assert!(matches!(err, ExecutorError::Servo { id: 2, .. }), "{err}");
     }
 
-    #[test]
-    fn play_estop_and_torque_through_the_bus_thread() {
-        let bus = MockBus::new(&[1, 2, 3]);
-        bus.state().max_step_ticks = 2;
-        let executor = Executor::spawn(Box::new(bus.clone()), player(3), LoopSettings::new(Duration::from_millis(2))).unwrap();
-        wait_for(&executor, |t| t.positions.iter().all(Option::is_some));
-        assert_eq!(executor.positions().unwrap(), vec![0.0; 3]);
-        let motion = Motion {
+    /// A motion of one 2 s keyframe to 0.5 rad on every joint.
+    fn slow_motion(joints: usize) -> Motion {
+        Motion {
             name: "m".into(),
             patch: Patch::new(
                 SurfaceType::Plane,
@@ -591,8 +619,18 @@ mod tests {
                 nalgebra::Vector3::zeros(),
             )
             .unwrap(),
-            keyframes: vec![Keyframe { positions: vec![0.5; 3], move_s: 2.0, pause_s: 0.0 }],
-        };
+            keyframes: vec![Keyframe { positions: vec![0.5; joints], move_s: 2.0, pause_s: 0.0 }],
+        }
+    }
+
+    #[test]
+    fn play_estop_and_torque_through_the_bus_thread() {
+        let bus = MockBus::new(&[1, 2, 3]);
+        bus.state().max_step_ticks = 2;
+        let executor = Executor::spawn(Box::new(bus.clone()), player(3), LoopSettings::new(Duration::from_millis(2))).unwrap();
+        wait_for(&executor, |t| t.positions.iter().all(Option::is_some));
+        assert_eq!(executor.positions().unwrap(), vec![0.0; 3]);
+        let motion = slow_motion(3);
         executor.play(motion.clone()).unwrap();
         wait_for(&executor, |t| t.torque && matches!(t.state, PlayerState::Playing { .. }));
         executor.estop();
@@ -604,5 +642,27 @@ mod tests {
         assert!(matches!(executor.play(bad), Err(ExecutorError::Refused(_))));
         executor.set_torque(false).unwrap();
         assert!(bus.state().servos.values().all(|s| !s.torque));
+    }
+
+    /// Cycles queued while nobody read them still say idle when a `play` is answered: they are not
+    /// current, and every cycle after the answer is (and plays).
+    #[test]
+    fn telemetry_queued_before_an_answered_command_is_not_current() {
+        let bus = MockBus::new(&[1, 2, 3]);
+        bus.state().max_step_ticks = 2;
+        let executor = Executor::spawn(Box::new(bus), player(3), LoopSettings::new(Duration::from_millis(2))).unwrap();
+        wait_for(&executor, |t| t.positions.iter().all(Option::is_some));
+        std::thread::sleep(Duration::from_millis(40));
+        executor.play(slow_motion(3)).unwrap();
+        let queued: Vec<Telemetry> = executor.telemetry().try_iter().collect();
+        let stale: Vec<&Telemetry> = queued.iter().filter(|t| !executor.is_current(t)).collect();
+        assert!(!stale.is_empty(), "40 ms of 2 ms cycles were queued before the play");
+        assert!(stale.iter().all(|t| t.state == PlayerState::Idle), "{:?}", stale.iter().map(|t| &t.state).collect::<Vec<_>>());
+        let stale_count = stale.len();
+        assert!(queued.iter().skip(stale_count).all(|t| executor.is_current(t)), "the stale cycles come first");
+        let next = wait_for(&executor, |_| true);
+        assert!(executor.is_current(&next));
+        assert!(matches!(next.state, PlayerState::Playing { .. }), "{:?}", next.state);
+        assert!(queued.iter().chain([&next]).filter(|t| executor.is_current(t)).all(|t| matches!(t.state, PlayerState::Playing { .. })));
     }
 }

@@ -264,6 +264,7 @@ mod tests {
             state: PlayerState::Idle,
             torque: true,
             event: None,
+            commands_taken: 0,
         }
     }
 

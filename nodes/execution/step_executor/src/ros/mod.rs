@@ -681,7 +681,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         more |= node::drain(&cloud_sub, CLOUD_TOPIC, 4, &mut log, |cloud, _| executor.latest_cloud = Some(Arc::new(cloud))) >= 4;
         // Every control cycle while playing, at joint_state_rate_hz otherwise.
         let telemetry = executor.runtime.poll();
-        play_action.on_telemetry(&telemetry, &executor.runtime, &mut log);
+        // The cycles queued before the last command was answered (a goal's motion just started) end
+        // nothing of that goal.
+        let current = telemetry.iter().position(|t| executor.runtime.is_current(t)).unwrap_or(telemetry.len());
+        play_action.on_telemetry(telemetry.get(current..).unwrap_or_default(), &executor.runtime, &mut log);
         cycles.add(&telemetry);
         executor.check_deadman(Instant::now());
         for telemetry in telemetry {

@@ -237,15 +237,21 @@ impl Runtime {
         let telemetry: Vec<Telemetry> = bus.telemetry().try_iter().collect();
         for t in &telemetry {
             self.positions = t.positions.clone();
+            if let Some(PlayerEvent::Fault(fault)) = &t.event {
+                self.last_fault = Some((fault.servo_id.unwrap_or(0), fault.to_string()));
+            }
+            // Cycles from before the last answered command (a motion just started, torque just
+            // switched) would turn the state back to what that command changed.
+            if !bus.is_current(t) {
+                continue;
+            }
             self.torque = t.torque;
             self.player_state = t.state.clone();
             self.keyframe_index = u32::try_from(t.keyframe_index).unwrap_or(u32::MAX);
             match &t.event {
-                Some(PlayerEvent::Fault(fault)) => {
-                    self.last_fault = Some((fault.servo_id.unwrap_or(0), fault.to_string()));
-                    self.current_motion.clear();
+                Some(PlayerEvent::Fault(_)) | Some(PlayerEvent::Finished { .. }) | Some(PlayerEvent::EStopped) => {
+                    self.current_motion.clear()
                 }
-                Some(PlayerEvent::Finished { .. }) | Some(PlayerEvent::EStopped) => self.current_motion.clear(),
                 Some(PlayerEvent::Started { name }) => self.current_motion = name.clone(),
                 None => {}
             }
@@ -254,6 +260,12 @@ impl Runtime {
             }
         }
         telemetry
+    }
+
+    /// Whether `telemetry` from [`Runtime::poll`] came after the last answered bus command (see
+    /// [`Executor::is_current`]); older cycles' events concern what ran before that command.
+    pub fn is_current(&self, telemetry: &Telemetry) -> bool {
+        self.bus.as_ref().is_some_and(|bus| bus.is_current(telemetry))
     }
 
     /// Measured joint positions (rad; 0 where unknown) by name, for forward kinematics.

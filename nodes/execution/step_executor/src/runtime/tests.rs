@@ -126,16 +126,16 @@ fn without_a_bus_the_node_still_starts_and_explains() {
     assert!(runtime.status().last_fault.contains("not available"));
 }
 
-#[test]
-fn train_match_and_play_on_the_mock_bus() {
-    let dir = tempfile::tempdir().unwrap();
+/// The runtime on a mock chain of 12 servos, with "rock1" trained on a plane 0.4 m ahead of the
+/// camera (two keyframes: right knee bent, then straight), the map's camera at the map's origin.
+fn trained_on_mock_bus(dir: &std::path::Path) -> (Runtime, MockBus, Patch) {
     let bus = MockBus::new(&(1..=12).collect::<Vec<_>>());
     bus.state().max_step_ticks = 40;
     let handle = bus.clone();
-    let (mut runtime, _) = Runtime::with_bus(config(dir.path()), move || Ok(Box::new(handle) as Box<dyn ServoBus>)).unwrap();
+    let (mut runtime, _) = Runtime::with_bus(config(dir), move || Ok(Box::new(handle) as Box<dyn ServoBus>)).unwrap();
     wait(&mut runtime, "positions", |r| r.positions().iter().all(Option::is_some));
 
-    // A patch map: one plane 0.15 m ahead of the camera.
+    // A patch map: one plane 0.4 m ahead of the camera.
     let map_from_camera = Isometry3::identity();
     let camera_patch = Patch::level_disc(0.03, Vector3::new(0.0, 0.1, 0.4)).unwrap();
     runtime.on_patch_map(std::slice::from_ref(&camera_patch), &map_from_camera).unwrap();
@@ -158,8 +158,37 @@ fn train_match_and_play_on_the_mock_bus() {
     runtime.record_keyframe(0.2, 0.0).unwrap();
     assert!(runtime.save_motion("rock1").unwrap().contains("2 keyframes"));
     assert_eq!(runtime.list_motions()[0].keyframe_count, 2);
-    let reloaded = MotionLibrary::load(&dir.path().join("motions.yaml"), runtime.joint_names()).unwrap();
+    let reloaded = MotionLibrary::load(&dir.join("motions.yaml"), runtime.joint_names()).unwrap();
     assert_eq!(reloaded.names(), vec!["rock1"]);
+    (runtime, bus, camera_patch)
+}
+
+/// A match plays the motion while the bus thread's cycles from before it are still queued (nobody
+/// polled for a while): they say idle, and reading them must not turn the step back to idle (the
+/// deadman ends its watch and `hold` does nothing when the motion looks idle).
+#[test]
+fn a_motion_started_with_idle_cycles_queued_reads_as_playing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut runtime, _bus, camera_patch) = trained_on_mock_bus(dir.path());
+    for attempt in 0..20 {
+        runtime.arm(true).unwrap();
+        runtime.poll();
+        std::thread::sleep(Duration::from_millis(30));
+        assert!(runtime.on_patch_map(std::slice::from_ref(&camera_patch), &Isometry3::identity()).unwrap().best.is_some());
+        assert_eq!(runtime.status().state, RunState::Playing);
+        runtime.poll();
+        assert_eq!(runtime.status().state, RunState::Playing, "attempt {attempt}: idle cycles from before the start were taken as current");
+        assert_eq!(runtime.status().current_motion, "rock1");
+        assert!(runtime.hold(), "a playing motion is held");
+        wait(&mut runtime, "the hold", |r| r.status().state == RunState::Idle);
+    }
+}
+
+#[test]
+fn train_match_and_play_on_the_mock_bus() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut runtime, bus, camera_patch) = trained_on_mock_bus(dir.path());
+    let map_from_camera = Isometry3::identity();
 
     // Non-matching map: nothing moves even when armed.
     runtime.arm(true).unwrap();

@@ -10,6 +10,7 @@
 //! - [`declared`]: the node's config as declared ROS 2 parameters (dotted keys, typed, validated).
 //! - [`param_server`]: the rcl parameter services over them (`ros2 param list/get/set/describe`).
 //! - [`process`]: process CPU time for the benchmarks.
+//! - [`cpu`]: whether the CPU has the instructions the binary was compiled for (checked at start).
 //! - [`memory`]: free heap pages handed back to the system (periodic glibc trim).
 //! - [`wait`]: the loop's wake-up on input readiness (no polling between inputs).
 //! - [`patch_msg`]: the Surface Patch Library's patch on the wire, validated where it enters.
@@ -27,6 +28,7 @@
 //! against other ROS 2 implementations.
 
 pub mod clock;
+pub mod cpu;
 pub mod declared;
 pub mod diagnostics;
 pub mod memory;

@@ -33,6 +33,11 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    // Before anything else runs: a binary built for another CPU would stop at its first unknown instruction.
+    if let Err(err) = patchwalk_ros::cpu::check() {
+        eprintln!("patch_mapper: error: {err}");
+        return std::process::ExitCode::from(1);
+    }
     // `--ros-args ...` (what `ros2 run`/`ros2 launch` append) is taken out before the options.
     let (cli, ros_args) = match patchwalk_ros::node::parse_command_line::<Cli>() {
         Ok(parsed) => parsed,

@@ -8,69 +8,35 @@
 //! The check is itself compiled for the build machine: it catches the common case (a build for a
 //! newer CPU of the same family, e.g. AVX-512 run on AVX2), not a CPU without any of them.
 
+/// Those of the listed target features that were enabled at compile time and that `std::arch::$detect`
+/// does not find on this CPU.
+macro_rules! missing_among {
+    ($detect:ident; $($feature:tt),* $(,)?) => {{
+        let mut missing = Vec::new();
+        $(
+            if cfg!(target_feature = $feature) && !std::arch::$detect!($feature) {
+                missing.push($feature);
+            }
+        )*
+        missing
+    }};
+}
+
 /// The target features enabled at compile time that this CPU does not report.
 #[cfg(target_arch = "x86_64")]
 pub fn missing_features() -> Vec<&'static str> {
-    let mut missing = Vec::new();
-    macro_rules! check {
-        ($($feature:tt),* $(,)?) => {
-            $(
-                if cfg!(target_feature = $feature) && !std::arch::is_x86_feature_detected!($feature) {
-                    missing.push($feature);
-                }
-            )*
-        };
-    }
-    check!(
-        "sse3",
-        "ssse3",
-        "sse4.1",
-        "sse4.2",
-        "popcnt",
-        "avx",
-        "avx2",
-        "fma",
-        "f16c",
-        "bmi1",
-        "bmi2",
-        "lzcnt",
-        "movbe",
-        "avx512f",
-        "avx512cd",
-        "avx512bw",
-        "avx512dq",
-        "avx512vl",
-        "avx512vnni",
-        "avx512vbmi",
-        "avx512vbmi2",
-        "avx512bitalg",
-        "avx512vpopcntdq",
-        "avx512ifma",
-        "avx512bf16",
-        "avx512fp16",
-        "avxvnni",
-        "gfni",
-        "vaes",
-        "vpclmulqdq",
-    );
-    missing
+    missing_among!(is_x86_feature_detected;
+        "sse3", "ssse3", "sse4.1", "sse4.2", "popcnt", "avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "lzcnt", "movbe", "avx512f",
+        "avx512cd", "avx512bw", "avx512dq", "avx512vl", "avx512vnni", "avx512vbmi", "avx512vbmi2", "avx512bitalg", "avx512vpopcntdq",
+        "avx512ifma", "avx512bf16", "avx512fp16", "avxvnni", "gfni", "vaes", "vpclmulqdq",
+    )
 }
 
 /// The target features enabled at compile time that this CPU does not report.
 #[cfg(target_arch = "aarch64")]
 pub fn missing_features() -> Vec<&'static str> {
-    let mut missing = Vec::new();
-    macro_rules! check {
-        ($($feature:tt),* $(,)?) => {
-            $(
-                if cfg!(target_feature = $feature) && !std::arch::is_aarch64_feature_detected!($feature) {
-                    missing.push($feature);
-                }
-            )*
-        };
-    }
-    check!("asimd", "fp16", "dotprod", "i8mm", "bf16", "sve", "sve2", "lse", "rcpc", "crc", "aes", "sha2");
-    missing
+    missing_among!(is_aarch64_feature_detected;
+        "neon", "fp16", "dotprod", "i8mm", "bf16", "sve", "sve2", "lse", "rcpc", "crc", "aes", "sha2")
 }
 
 /// Other architectures: nothing known to check.

@@ -47,16 +47,19 @@ pub fn missing_features() -> Vec<&'static str> {
 
 /// `Err` with a message for a person when [`missing_features`] is not empty.
 pub fn check() -> Result<(), String> {
-    let missing = missing_features();
-    if missing.is_empty() {
-        return Ok(());
-    }
-    Err(format!(
-        "this binary was compiled for a CPU with {} which this machine's CPU does not have (it was built on another \
-         machine; the workspace compiles for the CPU that builds it): build it on this machine, or on the other one \
-         with RUSTFLAGS=\"-C target-cpu=<this machine's CPU>\"",
-        missing.join(", ")
-    ))
+    refusal(&missing_features()).map_or(Ok(()), Err)
+}
+
+/// What a node says when the CPU lacks `missing` (`None` when nothing is missing).
+fn refusal(missing: &[&str]) -> Option<String> {
+    (!missing.is_empty()).then(|| {
+        format!(
+            "this binary was compiled for a CPU with {} which this machine's CPU does not have (it was built on another \
+             machine; the workspace compiles for the CPU that builds it): build it on this machine, or on the other one \
+             with RUSTFLAGS=\"-C target-cpu=<this machine's CPU>\"",
+            missing.join(", ")
+        )
+    })
 }
 
 #[cfg(test)]
@@ -66,5 +69,14 @@ mod tests {
     fn the_building_machine_has_every_feature_it_compiled_for() {
         assert_eq!(super::missing_features(), Vec::<&str>::new());
         assert!(super::check().is_ok());
+    }
+
+    /// A refusal names every missing feature and how to build for this machine.
+    #[test]
+    fn a_refusal_names_what_is_missing_and_the_remedy() {
+        assert_eq!(super::refusal(&[]), None);
+        let text = super::refusal(&["avx512f", "avx512bw"]).unwrap();
+        assert!(text.contains("avx512f, avx512bw"), "{text}");
+        assert!(text.contains("build it on this machine") && text.contains("RUSTFLAGS"), "{text}");
     }
 }

@@ -21,7 +21,7 @@ use crate::neighbourhood::{ball_neighbourhood, gather, uniform_subset, Neighbour
 use crate::patch_fusion::{reobserve, revisits, FusionConfig, FusionCounts, Reobserved};
 use crate::patch_map::{PatchMap, VolumeGrid};
 use crate::preprocess::{preprocess, PreprocessConfig, PreprocessError, Preprocessed};
-use crate::saliency::{fixation_point, hiking_saliency, Saliency, SaliencyConfig};
+use crate::saliency::{fixation_point, hiking_saliency_reusing, Saliency, SaliencyConfig, SaliencyTables};
 use crate::seeds::{select_seeds, AuxiliaryImage, Seed, SeedConfig, SeedPrior};
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 use patchwalk_spl::fit::neighbourhood::{fit_neighbourhood, NeighbourhoodFit};
@@ -362,6 +362,8 @@ pub struct Mapper {
     frames: u64,
     /// Predicted footholds in the map frame (point, score) for the learned seed orders.
     seed_priors_in_map: Vec<(Vector3<f64>, f64)>,
+    /// The saliency's summed-area tables, rebuilt in place every frame.
+    saliency_tables: SaliencyTables,
 }
 
 /// The single-frame volume: y along gravity, z along the camera's horizontal forward direction,
@@ -384,7 +386,13 @@ impl Mapper {
     pub fn new(config: MapperConfig, frame_id: &str, volume_from_map: Isometry3<f64>) -> Result<Self, MapperError> {
         check_config(&config)?;
         let grid = VolumeGrid { volume_from_map, edge_m: config.volume_edge_m, cells_per_side: config.seeds.cells_per_side };
-        Ok(Self { map: PatchMap::new(frame_id, grid), config, frames: 0, seed_priors_in_map: Vec::new() })
+        Ok(Self {
+            map: PatchMap::new(frame_id, grid),
+            config,
+            frames: 0,
+            seed_priors_in_map: Vec::new(),
+            saliency_tables: SaliencyTables::default(),
+        })
     }
 
     /// Predicted footholds (points in the map frame, scores in [0, 1]) for the learned seed orders
@@ -461,12 +469,13 @@ impl Mapper {
         let cloud = organized_cloud(&preprocessed.filtered, input.intrinsics)?;
         let t_pre = Instant::now();
         // Stage ii, step 6.
-        let saliency = hiking_saliency(
+        let saliency = hiking_saliency_reusing(
             &preprocessed.auxiliary,
             &preprocessed.auxiliary_intrinsics,
             &gravity_in_camera,
             config.foot_radius_m,
             &seed_saliency_config(config),
+            &mut self.saliency_tables,
         );
         let t_sal = Instant::now();
         // Stage iii.

@@ -154,7 +154,7 @@ pub fn fixation_point(gravity_in_camera: &Unit<Vector3<f64>>, down_m: f64, forwa
 }
 
 /// Integral image (summed-area table) of x, y, z and the valid count of an organized cloud.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct IntegralCloud {
     width: usize,
     height: usize,
@@ -165,8 +165,15 @@ pub struct IntegralCloud {
 impl IntegralCloud {
     /// Builds the sums from D and its intrinsics (points back-projected on the fly).
     pub fn new(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
-        let sums = summed_area_table(depth, intrinsics, |p| [p.x, p.y, p.z, 1.0]);
-        Self { width: depth.width, height: depth.height, sums }
+        let mut integral = Self::default();
+        integral.rebuild(depth, intrinsics);
+        integral
+    }
+
+    /// [`IntegralCloud::new`] of another frame, in the memory of this one's table.
+    pub fn rebuild(&mut self, depth: &DepthImage, intrinsics: &Intrinsics) {
+        (self.width, self.height) = (depth.width, depth.height);
+        summed_area_table(depth, intrinsics, |p| [p.x, p.y, p.z, 1.0], &mut self.sums);
     }
 
     /// The four half-window box sums of [`IntegralCloud::normal`] at `(u, v)`: `[right, left,
@@ -221,27 +228,47 @@ pub fn hiking_saliency(
     foot_radius_m: f64,
     config: &SaliencyConfig,
 ) -> Saliency {
+    hiking_saliency_reusing(depth, intrinsics, gravity_in_camera, foot_radius_m, config, &mut SaliencyTables::default())
+}
+
+/// The summed-area tables [`hiking_saliency_reusing`] builds from D (about 8 MB for J's 200 px
+/// birds-eye view), kept between frames so that each frame writes them into the same memory instead
+/// of allocating and zeroing them anew.
+#[derive(Debug, Clone, Default)]
+pub struct SaliencyTables {
+    integral: IntegralCloud,
+    moments: WindowMoments,
+}
+
+/// [`hiking_saliency`] with its tables built in `tables` (the result does not depend on what they
+/// held before).
+pub fn hiking_saliency_reusing(
+    depth: &DepthImage,
+    intrinsics: &Intrinsics,
+    gravity_in_camera: &Unit<Vector3<f64>>,
+    foot_radius_m: f64,
+    config: &SaliencyConfig,
+    tables: &mut SaliencyTables,
+) -> Saliency {
     let fixation = fixation_point(gravity_in_camera, config.fixation_down_m, config.fixation_forward_m);
     // Both are serial scans of D: side by side.
     let jump = if config.depth_edge_clearance > 0.0 { config.depth_edge_jump } else { 0.0 };
-    let ((integral, edges), moments) = rayon::join(
-        || rayon::join(|| IntegralCloud::new(depth, intrinsics), || EdgeDistance::new(depth, jump)),
+    let SaliencyTables { integral, moments } = tables;
+    let with_moments = config.window_rms_max_m.is_finite();
+    let (edges, ()) = rayon::join(
+        || rayon::join(|| integral.rebuild(depth, intrinsics), || EdgeDistance::new(depth, jump)).1,
         || {
-            config.window_rms_max_m.is_finite().then(|| {
-                if config.window_quadric_rms_max_m > 0.0 {
-                    WindowMoments::with_quadrics(depth, intrinsics)
-                } else {
-                    WindowMoments::new(depth, intrinsics)
-                }
-            })
+            if with_moments {
+                moments.rebuild(depth, intrinsics, config.window_quadric_rms_max_m > 0.0);
+            }
         },
     );
     let frame = LabelInput {
         depth,
         intrinsics,
-        integral: &integral,
+        integral,
         edges: &edges,
-        moments: moments.as_ref(),
+        moments: with_moments.then_some(&*moments),
         gravity_in_camera,
         fixation: &fixation,
         foot_radius_m,
@@ -410,6 +437,42 @@ pub(crate) mod tests {
     /// Camera looking straight ahead (gravity +y) at 0.4 m above a floor, a wall 2 m ahead.
     pub(crate) fn floor_and_wall(intrinsics: &Intrinsics) -> DepthImage {
         render(intrinsics, |p| (0.4 - p.y).min(2.0 - p.z))
+    }
+
+    /// Tables reused across frames of other sizes, contents and configurations give what fresh
+    /// ones give: nothing of an earlier frame is left in them.
+    #[test]
+    fn reused_tables_give_the_fresh_tables_saliency() {
+        let wide = small_camera();
+        let tall = Intrinsics::new(120, 160, 131.25, 131.25, 59.5, 79.5).unwrap();
+        let centre = Vector3::new(0.0, 0.1, 1.2);
+        let mut holed = floor_and_wall(&wide);
+        for (i, d) in holed.depth_m.iter_mut().enumerate() {
+            if (i / 7) % 11 == 0 {
+                *d = f32::NAN;
+            }
+        }
+        let plane_only = SaliencyConfig { window_quadric_rms_max_m: 0.0, ..SaliencyConfig::default() };
+        let no_moments = SaliencyConfig { window_rms_max_m: f64::INFINITY, ..SaliencyConfig::default() };
+        let frames = [
+            (floor_and_wall(&wide), wide, SaliencyConfig::default()),
+            (render(&tall, |p| (p - centre).norm() - 0.5), tall, SaliencyConfig::default()),
+            (holed, wide, plane_only),
+            (floor_and_wall(&wide), wide, no_moments),
+            (render(&tall, |p| 0.3 - p.y), tall, SaliencyConfig::default()),
+        ];
+        let g = Unit::new_normalize(Vector3::new(0.0, 1.0, 0.2));
+        let mut tables = SaliencyTables::default();
+        for (index, (depth, intrinsics, config)) in frames.iter().enumerate() {
+            let reused = hiking_saliency_reusing(depth, intrinsics, &g, 0.05, config, &mut tables);
+            let fresh = hiking_saliency(depth, intrinsics, &g, 0.05, config);
+            assert_eq!((reused.width, reused.height), (fresh.width, fresh.height));
+            assert!(reused.labels == fresh.labels, "frame {index}: labels differ");
+            let bits = |s: &Saliency| s.normals_in_camera.iter().flat_map(|n| n.iter().map(|c| c.to_bits())).collect::<Vec<_>>();
+            assert!(bits(&reused) == bits(&fresh), "frame {index}: normals differ");
+            assert_eq!(reused.salient_area_m2.to_bits(), fresh.salient_area_m2.to_bits(), "frame {index}");
+            assert!(fresh.count(SaliencyLabel::Salient) > 0, "frame {index} has salient points to compare");
+        }
     }
 
     #[test]

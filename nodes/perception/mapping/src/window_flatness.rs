@@ -24,19 +24,27 @@ use rayon::prelude::*;
 use patchwalk_fusion::camera::{DepthImage, Intrinsics};
 
 /// Summed-area table (`(width + 1) × (height + 1)`, row 0 and column 0 zero) of `channels(p)` over
-/// the back-projected points of D; invalid pixels add nothing. The per-row prefix sums run in
-/// parallel; each entry is then `above + row prefix`, the same additions in the same order as a
-/// sequential pass.
+/// the back-projected points of D, written into `sums` (its memory reused from the last frame:
+/// every entry is written, so it is neither reallocated nor zeroed first); invalid pixels add
+/// nothing. The per-row prefix sums run in parallel; each entry is then `above + row prefix`, the
+/// same additions in the same order as a sequential pass.
 pub(crate) fn summed_area_table<const C: usize>(
     depth: &DepthImage,
     intrinsics: &Intrinsics,
     channels: impl Fn(&Vector3<f64>) -> [f64; C] + Sync,
-) -> Vec<[f64; C]> {
+    sums: &mut Vec<[f64; C]>,
+) {
     let (width, height) = (depth.width, depth.height);
     let stride = width + 1;
-    let mut sums = vec![[0.0f64; C]; stride * (height + 1)];
+    sums.resize(stride * (height + 1), [0.0; C]);
+    if let Some(first_row) = sums.get_mut(..stride) {
+        first_row.fill([0.0; C]);
+    }
     sums.par_chunks_mut(stride).skip(1).zip(depth.depth_m.par_chunks(width.max(1))).enumerate().for_each(|(v, (out, src))| {
         let mut row = [0.0f64; C];
+        if let Some(first) = out.first_mut() {
+            *first = row;
+        }
         for (u, (o, &z)) in out.iter_mut().skip(1).zip(src).enumerate() {
             let z = f64::from(z);
             if z.is_finite() {
@@ -47,7 +55,16 @@ pub(crate) fn summed_area_table<const C: usize>(
             }
             *o = row;
         }
+        // A row of D shorter than the table's (a malformed image) leaves no entry of the last frame.
+        for o in out.iter_mut().skip(1 + src.len()) {
+            *o = row;
+        }
     });
+    // Rows D does not have (a malformed image) add nothing either.
+    let rows = depth.depth_m.len().div_ceil(width.max(1)).min(height);
+    for out in sums.chunks_mut(stride).skip(1 + rows) {
+        out.fill([0.0; C]);
+    }
     for v in 1..height {
         let (done, rest) = sums.split_at_mut((v + 1) * stride);
         let (above, row) = (&done[v * stride..], &mut rest[..stride]);
@@ -57,12 +74,11 @@ pub(crate) fn summed_area_table<const C: usize>(
             }
         }
     }
-    sums
 }
 
 /// Points (x, y, z, count) and second moments (xx, xy, xz, yy, yz, zz) of D, summed; for quadrics
 /// also the third and fourth moments of (x, y) and z·(xx, xy, yy).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct WindowMoments {
     width: usize,
     height: usize,
@@ -83,22 +99,43 @@ pub struct WindowQuadric {
 impl WindowMoments {
     /// The sums planes need ([`WindowMoments::rms_off_plane`]).
     pub fn new(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
-        Self { width: depth.width, height: depth.height, sums: plane_sums(depth, intrinsics), higher: None }
+        let mut moments = Self::default();
+        moments.rebuild(depth, intrinsics, false);
+        moments
     }
 
     /// The sums planes and quadrics need ([`WindowMoments::quadric`]), the two tables side by side.
     pub fn with_quadrics(depth: &DepthImage, intrinsics: &Intrinsics) -> Self {
-        let (sums, higher) = rayon::join(
-            || plane_sums(depth, intrinsics),
+        let mut moments = Self::default();
+        moments.rebuild(depth, intrinsics, true);
+        moments
+    }
+
+    /// [`WindowMoments::new`] (or, with `quadrics`, [`WindowMoments::with_quadrics`]) of another
+    /// frame, in the memory of this one's tables.
+    pub fn rebuild(&mut self, depth: &DepthImage, intrinsics: &Intrinsics, quadrics: bool) {
+        (self.width, self.height) = (depth.width, depth.height);
+        let higher = if quadrics { Some(self.higher.get_or_insert_with(Vec::new)) } else { None };
+        rayon::join(
+            || plane_sums(depth, intrinsics, &mut self.sums),
             || {
-                summed_area_table(depth, intrinsics, |p| {
-                    let (x, y, z) = (p.x, p.y, p.z);
-                    let (xx, xy, yy) = (x * x, x * y, y * y);
-                    [xx * x, xx * y, x * yy, yy * y, xx * xx, xx * xy, xx * yy, xy * yy, yy * yy, z * xx, z * xy, z * yy]
-                })
+                if let Some(higher) = higher {
+                    summed_area_table(
+                        depth,
+                        intrinsics,
+                        |p| {
+                            let (x, y, z) = (p.x, p.y, p.z);
+                            let (xx, xy, yy) = (x * x, x * y, y * y);
+                            [xx * x, xx * y, x * yy, yy * y, xx * xx, xx * xy, xx * yy, xy * yy, yy * yy, z * xx, z * xy, z * yy]
+                        },
+                        higher,
+                    );
+                }
             },
         );
-        Self { width: depth.width, height: depth.height, sums, higher: Some(higher) }
+        if !quadrics {
+            self.higher = None;
+        }
     }
 
     /// The image rectangle `[u0, u1) × [v0, v1)` of the window `[u − half, u + half]²` clipped to
@@ -207,9 +244,9 @@ impl WindowMoments {
     }
 }
 
-/// The summed-area table of the points and their second moments.
-fn plane_sums(depth: &DepthImage, intrinsics: &Intrinsics) -> Vec<[f64; 10]> {
-    summed_area_table(depth, intrinsics, |p| [p.x, p.y, p.z, 1.0, p.x * p.x, p.x * p.y, p.x * p.z, p.y * p.y, p.y * p.z, p.z * p.z])
+/// The summed-area table of the points and their second moments, into `sums`.
+fn plane_sums(depth: &DepthImage, intrinsics: &Intrinsics, sums: &mut Vec<[f64; 10]>) {
+    summed_area_table(depth, intrinsics, |p| [p.x, p.y, p.z, 1.0, p.x * p.x, p.x * p.y, p.x * p.z, p.y * p.y, p.y * p.z, p.z * p.z], sums);
 }
 
 /// The binomial coefficient C(n, k) for the small n of the moments (≤ 4).

@@ -130,20 +130,15 @@ impl FootholdModel {
         if !self.mirror_average {
             return forward(inputs, side);
         }
-        let (channels, out) = (self.regions.channels(), self.regions.out_px);
-        if inputs.len() != side.len() * channels * out * out {
-            return Err(FootholdError::Shape(format!(
-                "{} input values for {} regions of {}",
-                inputs.len(),
-                side.len(),
-                channels * out * out
-            )));
+        let len = self.regions.input_len();
+        if inputs.len() != side.len() * len {
+            return Err(FootholdError::Shape(format!("{} input values for {} regions of {len}", inputs.len(), side.len())));
         }
         let mut both = Vec::with_capacity(2 * inputs.len());
         both.extend_from_slice(inputs);
         both.extend_from_slice(inputs);
-        for region in both[inputs.len()..].chunks_mut(channels * out * out) {
-            mirror_input(region, channels, out);
+        for region in both[inputs.len()..].chunks_exact_mut(len) {
+            mirror_input(region, self.regions.channels(), self.regions.out_px);
         }
         let mut sides = side.to_vec();
         sides.extend_from_slice(side);

@@ -36,6 +36,10 @@ pub(crate) fn summed_area_table<const C: usize>(
 ) {
     let (width, height) = (depth.width, depth.height);
     let stride = width + 1;
+    if depth.depth_m.len() != width * height {
+        // A malformed image: every entry its rows do not reach stays zero, as in a new table.
+        sums.clear();
+    }
     sums.resize(stride * (height + 1), [0.0; C]);
     if let Some(first_row) = sums.get_mut(..stride) {
         first_row.fill([0.0; C]);
@@ -55,16 +59,7 @@ pub(crate) fn summed_area_table<const C: usize>(
             }
             *o = row;
         }
-        // A row of D shorter than the table's (a malformed image) leaves no entry of the last frame.
-        for o in out.iter_mut().skip(1 + src.len()) {
-            *o = row;
-        }
     });
-    // Rows D does not have (a malformed image) add nothing either.
-    let rows = depth.depth_m.len().div_ceil(width.max(1)).min(height);
-    for out in sums.chunks_mut(stride).skip(1 + rows) {
-        out.fill([0.0; C]);
-    }
     for v in 1..height {
         let (done, rest) = sums.split_at_mut((v + 1) * stride);
         let (above, row) = (&done[v * stride..], &mut rest[..stride]);
